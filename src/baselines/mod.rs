@@ -1,0 +1,1 @@
+//! Baselines evaluated on the same matrices as the flow method.

@@ -1,0 +1,26 @@
+//! seasonloc: visual localization on a previously driven route, across seasons.
+//!
+//! The crate is layered (see `ARCHITECTURE.md`):
+//!
+//! * **core** — [`features`], [`similarity`], [`solver`], [`baselines`], [`eval`]: pure
+//!   algorithms on images, descriptor matrices and similarity matrices. They know nothing of
+//!   HTTP, JSON or the store, and report failures as [`Error`].
+//! * **cli** — the `seasonloc solve` / `seasonloc eval` front end (`src/cli`).
+//! * **store** and **api** — the HTTP service on the embedded store (later issues).
+//!
+//! The method is Naseer, Burgard & Stachniss, *Robust Visual Localization Across Seasons*:
+//! global descriptors -> cosine similarity matrix (Eq. 1) -> column normalisation (Eq. 2)
+//! -> min-cost flow on a DAG of matching and hidden nodes.
+#![warn(missing_docs)]
+
+pub mod baselines;
+pub mod error;
+pub mod eval;
+pub mod features;
+pub mod localize;
+pub mod matrix;
+pub mod similarity;
+pub mod solver;
+
+pub use error::{Error, Result};
+pub use matrix::Matrix;

@@ -1,0 +1,166 @@
+//! The data-association graph of the flow paper (Section III-B) and its solvers.
+//!
+//! For query row `i` and reference column `j` there is a matching node `x_ij` (cost `1/ĉ_ij`,
+//! unusable when `ĉ_ij <= 0`) and a hidden node `h_ij` (cost `W`). Forward edges go from row `i`
+//! column `j` to row `i+1` columns `j..=j+K`; optional horizontal edges go from `(i, j)` to
+//! `(i, j+1)` within a row. Following `spec.md` §2 (the one deliberate correction of the paper),
+//! a horizontal step *into a matching node* costs that node's matching cost; horizontal steps
+//! between hidden nodes are free. Every edge into a node carries that node's cost, so a path's
+//! cost is the sum of the costs of the nodes it visits.
+//!
+//! * `F = 1`: the shortest source-sink path, by dynamic programming over the DAG in `O(Q·D)`.
+//! * `F > 1` greedy (the paper): repeat the shortest path, blocking used matching nodes.
+//! * `F > 1` exact: successive shortest paths with potentials on the residual graph.
+//!
+//! Matching nodes have capacity 1 (node-disjoint flows); hidden nodes carry any number of flows.
+
+use crate::{Error, Matrix, Result};
+
+/// How the hidden (non-match) cost `W` is chosen.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum HiddenCost {
+    /// Derived from the similarity matrix at hand (see [`auto_hidden_cost`]).
+    Auto,
+    /// A fixed value, > 0.
+    Fixed(f64),
+}
+
+/// Parameters of the graph and the solver. Validate with [`SolverParams::validate`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct SolverParams {
+    /// `K`: forward edges from column `j` reach columns `j..=j+K` of the next row.
+    pub fan_out: usize,
+    /// `W`: the cost of a hidden node.
+    pub hidden_cost: HiddenCost,
+    /// `F`: the number of flows (route hypotheses), >= 1.
+    pub flows: usize,
+    /// Solve `F > 1` exactly (min-cost flow) instead of greedily.
+    pub exact: bool,
+    /// Horizontal edges within a row.
+    pub horizontal: bool,
+    /// The paper's stopping rule: stop adding flows once a path's fraction of hidden rows
+    /// exceeds this value (the path that exceeds it is not reported). `None` keeps all `F`.
+    pub stop_hidden_fraction: Option<f64>,
+}
+
+impl Default for SolverParams {
+    fn default() -> Self {
+        SolverParams {
+            fan_out: 4,
+            hidden_cost: HiddenCost::Auto,
+            flows: 1,
+            exact: false,
+            horizontal: true,
+            stop_hidden_fraction: None,
+        }
+    }
+}
+
+/// Largest accepted fan-out; larger values make the graph meaningless for a route.
+pub const MAX_FAN_OUT: usize = 1024;
+/// Largest accepted number of flows.
+pub const MAX_FLOWS: usize = 64;
+
+impl SolverParams {
+    /// Checks every parameter's range.
+    pub fn validate(&self) -> Result<()> {
+        if self.fan_out > MAX_FAN_OUT {
+            return Err(Error::param(
+                "fan_out",
+                format!("must be at most {MAX_FAN_OUT}, got {}", self.fan_out),
+            ));
+        }
+        if let HiddenCost::Fixed(w) = self.hidden_cost {
+            if !(w.is_finite() && w > 0.0) {
+                return Err(Error::param(
+                    "hidden_cost",
+                    format!("must be a finite number > 0, got {w}"),
+                ));
+            }
+        }
+        if self.flows == 0 || self.flows > MAX_FLOWS {
+            return Err(Error::param(
+                "flows",
+                format!("must be between 1 and {MAX_FLOWS}, got {}", self.flows),
+            ));
+        }
+        if let Some(f) = self.stop_hidden_fraction {
+            if !(f.is_finite() && (0.0..=1.0).contains(&f)) {
+                return Err(Error::param(
+                    "stop_hidden_fraction",
+                    format!("must be within [0, 1], got {f}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One matched reference image in a row of a hypothesis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Match {
+    /// Reference (column) index `j`.
+    pub reference: usize,
+    /// `ĉ_ij` of the matching node.
+    pub similarity: f32,
+}
+
+/// What a hypothesis says about one query row.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RowAssignment {
+    /// Query (row) index `i`.
+    pub query: usize,
+    /// Matched references in increasing order (several when horizontal edges were used);
+    /// empty when the row is hidden.
+    pub matches: Vec<Match>,
+}
+
+/// A route hypothesis: one source-to-sink path.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Hypothesis {
+    /// 1-based rank (order found for greedy, increasing cost for exact).
+    pub rank: usize,
+    /// Sum of the costs of the nodes on the path.
+    pub cost: f64,
+    /// One entry per query row, in row order.
+    pub rows: Vec<RowAssignment>,
+}
+
+impl Hypothesis {
+    /// Fraction of rows that are hidden.
+    pub fn hidden_fraction(&self) -> f64 {
+        if self.rows.is_empty() {
+            return 0.0;
+        }
+        let hidden = self.rows.iter().filter(|r| r.matches.is_empty()).count();
+        hidden as f64 / self.rows.len() as f64
+    }
+}
+
+/// The result of [`solve`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Solution {
+    /// The hidden cost `W` actually used (resolved when [`HiddenCost::Auto`]).
+    pub hidden_cost: f64,
+    /// Ranked hypotheses.
+    pub hypotheses: Vec<Hypothesis>,
+}
+
+impl Solution {
+    /// Sum of the hypotheses' costs.
+    pub fn total_cost(&self) -> f64 {
+        self.hypotheses.iter().map(|h| h.cost).sum()
+    }
+}
+
+/// Resolves `W` for a normalised similarity matrix.
+pub fn auto_hidden_cost(_chat: &Matrix, _fan_out: usize) -> f64 {
+    todo!("auto hidden cost")
+}
+
+/// Solves the graph on the normalised similarity matrix `chat` (`ĉ`, Q x D).
+///
+/// Fails on an empty matrix, a non-finite entry or an invalid parameter.
+pub fn solve(_chat: &Matrix, _params: &SolverParams) -> Result<Solution> {
+    todo!("solver")
+}
