@@ -14,6 +14,8 @@
 #![warn(missing_docs)]
 
 pub mod baselines;
+pub mod cli;
+pub mod confidence;
 pub mod error;
 pub mod eval;
 pub mod features;

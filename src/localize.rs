@@ -4,9 +4,12 @@
 //! Shared by `seasonloc eval`, the HTTP service and trips, so all of them give the same answer
 //! for the same descriptors and parameters.
 
+use std::time::Instant;
+
+use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
 use crate::eval::Prediction;
-use crate::solver::{Solution, SolverParams};
-use crate::{Matrix, Result};
+use crate::solver::{solve, Solution, SolverParams};
+use crate::{similarity, Matrix, Result};
 
 /// Options of [`localize`].
 #[derive(Clone, Debug, PartialEq)]
@@ -15,6 +18,8 @@ pub struct LocalizeOptions {
     pub solver: SolverParams,
     /// Apply the column normalisation of Eq. 2 (default true).
     pub normalize: bool,
+    /// How per-query confidences are computed.
+    pub confidence: ConfidenceParams,
 }
 
 impl Default for LocalizeOptions {
@@ -22,6 +27,7 @@ impl Default for LocalizeOptions {
         LocalizeOptions {
             solver: SolverParams::default(),
             normalize: true,
+            confidence: ConfidenceParams::default(),
         }
     }
 }
@@ -49,9 +55,55 @@ pub struct Localization {
 /// Localizes the query descriptors (one row per query image, in driving order) against the
 /// reference descriptors (one row per map image, in route order).
 pub fn localize(
-    _queries: &Matrix,
-    _references: &Matrix,
-    _options: &LocalizeOptions,
+    queries: &Matrix,
+    references: &Matrix,
+    options: &LocalizeOptions,
 ) -> Result<Localization> {
-    todo!("localize facade")
+    options.solver.validate()?;
+    let started = Instant::now();
+    let c = similarity::cosine_matrix(queries, references)?;
+    let chat = if options.normalize {
+        similarity::normalize_columns(&c)?
+    } else {
+        c
+    };
+    let similarity_seconds = started.elapsed().as_secs_f64();
+    let (solution, predictions) = solve_with_confidence(&chat, options)?;
+    Ok(Localization {
+        solution,
+        predictions,
+        timings: StageTimings {
+            similarity: similarity_seconds,
+            solve: started.elapsed().as_secs_f64() - similarity_seconds,
+        },
+    })
+}
+
+/// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most
+/// one prediction per query: for a query matched by several hypotheses, the one whose local
+/// min-marginal ratio ([`crate::confidence`]) is highest.
+pub fn solve_with_confidence(
+    chat: &Matrix,
+    options: &LocalizeOptions,
+) -> Result<(Solution, Vec<Prediction>)> {
+    let solution = solve(chat, &options.solver)?;
+    let graph = GraphParams {
+        fan_out: options.solver.fan_out,
+        horizontal: options.solver.horizontal,
+        hidden_cost: solution.hidden_cost,
+    };
+    let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
+    for hypothesis in &solution.hypotheses {
+        for row in score_hypothesis(chat, &graph, hypothesis, &options.confidence)? {
+            let slot = &mut best[row.query];
+            if slot.is_none_or(|p| row.confidence > p.confidence) {
+                *slot = Some(Prediction {
+                    query: row.query,
+                    reference: row.reference,
+                    confidence: row.confidence,
+                });
+            }
+        }
+    }
+    Ok((solution, best.into_iter().flatten().collect()))
 }

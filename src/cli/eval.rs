@@ -1,0 +1,288 @@
+//! `seasonloc eval`: descriptors for two image folders, one or more localization methods, and
+//! the metrics of spec §4, printed as one JSON object on stdout.
+//!
+//! All inputs are validated before the expensive work starts (folders, ground truth, ranges,
+//! output locations), so a typo fails in milliseconds. Methods:
+//! * `flow` — the flow paper's graph on the column-normalised matrix ĉ; confidence = the local
+//!   min-marginal ratio (`confidence` module);
+//! * `best-match` — per query the reference with the highest cosine similarity C; confidence = C;
+//! * `seqslam` — SeqSLAM on the difference matrix 1 - C; confidence = its uniqueness ratio.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{json, Value};
+
+use super::{DescriptorArgs, SolverArgs};
+use crate::baselines::{best_match, seqslam, SeqSlamParams};
+use crate::eval::{
+    evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+};
+use crate::features::{extract_files, list_images, Extractor};
+use crate::localize::{solve_with_confidence, LocalizeOptions};
+use crate::similarity::{cosine_matrix, normalize_columns};
+use crate::Matrix;
+
+/// Localization methods `eval` can score.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Method {
+    /// Network flow on the data-association graph (flow paper).
+    Flow,
+    /// Single-image best match.
+    BestMatch,
+    /// SeqSLAM (Milford & Wyeth 2012, as in OpenSeqSLAM).
+    Seqslam,
+}
+
+impl Method {
+    fn name(self) -> &'static str {
+        match self {
+            Method::Flow => "flow",
+            Method::BestMatch => "best-match",
+            Method::Seqslam => "seqslam",
+        }
+    }
+}
+
+/// Flags of `seasonloc eval`.
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Folder of reference (map) images, taken in file-name order.
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Folder of query images, taken in file-name order.
+    #[arg(long)]
+    pub query: PathBuf,
+    /// Ground-truth CSV with a header holding at least `query_index,ref_index`.
+    #[arg(long)]
+    pub ground_truth: PathBuf,
+    /// Method to score.
+    #[arg(long, value_enum, default_value_t = Method::Flow)]
+    pub method: Method,
+    /// Further methods scored on the same descriptors (comma-separated), reported under
+    /// `compared` and drawn on the same plot.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub compare: Vec<Method>,
+    /// A prediction is correct within this many reference frames of a true match.
+    #[arg(long, default_value_t = 0)]
+    pub tolerance: usize,
+    /// Query index ranges left out of scoring, e.g. `0-16,100-120`.
+    #[arg(long, default_value = "")]
+    pub exclude: String,
+    /// Write `query_index,ref_index,confidence` of the main method here.
+    #[arg(long)]
+    pub predictions: Option<PathBuf>,
+    /// Write a precision-recall plot (PNG) of all scored methods here.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Use raw cosine similarities in the graph instead of the column-normalised ĉ (Eq. 2).
+    #[arg(long)]
+    pub no_normalize: bool,
+    /// Descriptor settings.
+    #[command(flatten)]
+    pub descriptor: DescriptorArgs,
+    /// Graph and solver parameters (flow method).
+    #[command(flatten)]
+    pub solver: SolverArgs,
+}
+
+/// Runs `eval` and returns the JSON report.
+pub fn run(args: &EvalArgs) -> Result<Value> {
+    let started = Instant::now();
+    let solver = args.solver.to_params()?;
+    let extractor = args.descriptor.to_extractor()?;
+    let exclusions = Exclusions::parse(&args.exclude)?;
+    for out in [&args.predictions, &args.plot].into_iter().flatten() {
+        check_output_location(out)?;
+    }
+    let ground_truth = GroundTruth::from_csv(&args.ground_truth)?;
+    let reference_files = list_images(&args.reference)?;
+    let query_files = list_images(&args.query)?;
+    if let Some(q) = ground_truth.max_query_index() {
+        if q >= query_files.len() {
+            bail!(
+                "{}: names query {q} but {} has only {} images",
+                args.ground_truth.display(),
+                args.query.display(),
+                query_files.len()
+            );
+        }
+    }
+
+    let t = Instant::now();
+    let references = extract("reference", extractor.as_ref(), &reference_files)?;
+    let queries = extract("query", extractor.as_ref(), &query_files)?;
+    let features_seconds = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let c = cosine_matrix(&queries, &references)?;
+    let chat = if args.no_normalize {
+        c.clone()
+    } else {
+        normalize_columns(&c)?
+    };
+    let similarity_seconds = t.elapsed().as_secs_f64();
+
+    let options = LocalizeOptions {
+        solver,
+        normalize: !args.no_normalize,
+        ..LocalizeOptions::default()
+    };
+    let mut methods = vec![args.method];
+    methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));
+    let mut scored = Vec::new();
+    for method in methods {
+        let t = Instant::now();
+        let (predictions, extra) = run_method(method, &c, &chat, &options)?;
+        let solve_seconds = t.elapsed().as_secs_f64();
+        let metrics = evaluate(
+            &predictions,
+            &ground_truth,
+            queries.rows(),
+            args.tolerance,
+            &exclusions,
+        )?;
+        scored.push((method, predictions, metrics, extra, solve_seconds));
+    }
+
+    if let Some(path) = &args.predictions {
+        write_predictions_csv(path, &scored[0].1)?;
+    }
+    if let Some(path) = &args.plot {
+        let curves: Vec<(String, _)> = scored
+            .iter()
+            .map(|(m, _, metrics, _, _)| {
+                (
+                    format!("{} (AP {:.3})", m.name(), metrics.ap),
+                    metrics.curve.clone(),
+                )
+            })
+            .collect();
+        let title = format!(
+            "{} vs {} ({})",
+            dir_name(&args.query),
+            dir_name(&args.reference),
+            args.descriptor.label()
+        );
+        plot_pr(path, &title, &curves)?;
+    }
+
+    let mut reports: Vec<Value> = scored
+        .iter()
+        .map(|(m, _, metrics, extra, solve_seconds)| {
+            method_json(*m, metrics, extra, *solve_seconds)
+        })
+        .collect();
+    let mut report = reports.remove(0);
+    let obj = report
+        .as_object_mut()
+        .context("method report is an object")?;
+    obj.insert("descriptor".into(), json!(args.descriptor.label()));
+    obj.insert("queries".into(), json!(queries.rows()));
+    obj.insert("references".into(), json!(references.rows()));
+    obj.insert("descriptor_dim".into(), json!(queries.cols()));
+    obj.insert("tolerance".into(), json!(args.tolerance));
+    obj.insert("exclude".into(), json!(args.exclude));
+    let solve_seconds = obj
+        .get("seconds")
+        .and_then(|s| s.get("solve"))
+        .cloned()
+        .unwrap_or(json!(0.0));
+    obj.insert(
+        "seconds".into(),
+        json!({
+            "features": features_seconds,
+            "similarity": similarity_seconds,
+            "solve": solve_seconds,
+            "total": started.elapsed().as_secs_f64(),
+        }),
+    );
+    obj.insert("compared".into(), Value::Array(reports));
+    Ok(report)
+}
+
+fn run_method(
+    method: Method,
+    c: &Matrix,
+    chat: &Matrix,
+    options: &LocalizeOptions,
+) -> Result<(Vec<Prediction>, Value)> {
+    Ok(match method {
+        Method::Flow => {
+            let (solution, predictions) = solve_with_confidence(chat, options)?;
+            let extra = json!({
+                "hidden_cost": solution.hidden_cost,
+                "fan_out": options.solver.fan_out,
+                "flows": options.solver.flows,
+                "exact": options.solver.exact,
+                "horizontal": options.solver.horizontal,
+                "hypotheses": solution.hypotheses.len(),
+                "total_cost": solution.total_cost(),
+            });
+            (predictions, extra)
+        }
+        Method::BestMatch => (best_match(c), json!({})),
+        Method::Seqslam => {
+            let params = SeqSlamParams::default();
+            (seqslam(c, &params)?, json!({}))
+        }
+    })
+}
+
+fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
+    let mut v = json!({
+        "method": method.name(),
+        "ap": m.ap,
+        "recall_at_100p": m.recall_at_100p,
+        "recall_at_99p": m.recall_at_99p,
+        "max_f1": m.max_f1,
+        "precision_at_full": m.precision_at_full,
+        "predicted": m.predicted,
+        "correct": m.correct,
+        "positives": m.positives,
+        "seconds": {"solve": solve_seconds},
+    });
+    if let (Some(obj), Some(extra)) = (v.as_object_mut(), extra.as_object()) {
+        if !extra.is_empty() {
+            obj.insert("params".into(), Value::Object(extra.clone()));
+        }
+    }
+    v
+}
+
+fn extract(what: &str, extractor: &dyn Extractor, files: &[PathBuf]) -> Result<Matrix> {
+    let bar = ProgressBar::new(files.len() as u64).with_message(format!("{what} features"));
+    bar.set_style(
+        ProgressStyle::with_template("{msg:>18} [{bar:30}] {pos}/{len} {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let result = extract_files(extractor, files, &|| bar.inc(1));
+    bar.finish_and_clear();
+    Ok(result?)
+}
+
+fn check_output_location(path: &Path) -> Result<()> {
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if !parent.is_dir() {
+        bail!(
+            "{}: the folder {} does not exist",
+            path.display(),
+            parent.display()
+        );
+    }
+    Ok(())
+}
+
+fn dir_name(path: &Path) -> String {
+    path.file_name().map_or_else(
+        || path.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    )
+}

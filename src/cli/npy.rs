@@ -1,0 +1,128 @@
+//! Reading similarity matrices from NumPy `.npy` files (float32 or float64, 2-D, C or Fortran
+//! order) with the `npyz` crate, which owns the header parsing and endianness.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use npyz::{DType, NpyFile, Order, TypeChar};
+
+use crate::Matrix;
+
+/// Reads a 2-D float32/float64 `.npy` file into a [`Matrix`] (values converted to `f32`).
+pub fn read_matrix(path: &Path) -> Result<Matrix> {
+    let file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
+    let npy = NpyFile::new(std::io::BufReader::new(file))
+        .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
+    let shape = npy.shape().to_vec();
+    let [rows, cols] = shape[..] else {
+        bail!(
+            "{}: expected a 2-D array (Q, D), got shape {shape:?}",
+            path.display()
+        );
+    };
+    let (rows, cols) = (rows as usize, cols as usize);
+    if rows == 0 || cols == 0 {
+        bail!(
+            "{}: the matrix is empty (shape {rows}x{cols})",
+            path.display()
+        );
+    }
+    let order = npy.order();
+    let data: Vec<f32> = match npy.dtype() {
+        DType::Plain(t) if t.type_char() == TypeChar::Float && t.size_field() == 4 => npy
+            .into_vec::<f32>()
+            .with_context(|| format!("{}: reading float32 data", path.display()))?,
+        DType::Plain(t) if t.type_char() == TypeChar::Float && t.size_field() == 8 => npy
+            .into_vec::<f64>()
+            .with_context(|| format!("{}: reading float64 data", path.display()))?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        other => bail!(
+            "{}: expected float32 or float64 data, got dtype {}",
+            path.display(),
+            other.descr()
+        ),
+    };
+    let data = match order {
+        Order::C => data,
+        Order::Fortran => {
+            let mut c = vec![0.0; data.len()];
+            for j in 0..cols {
+                for i in 0..rows {
+                    c[i * cols + j] = data[j * rows + i];
+                }
+            }
+            c
+        }
+    };
+    Ok(Matrix::from_vec(rows, cols, data)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    fn write_npy(path: &Path, descr: &str, fortran: bool, shape: &[usize], body: &[u8]) {
+        let shape_s = match shape {
+            [n] => format!("({n},)"),
+            _ => format!(
+                "({})",
+                shape
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        };
+        let mut header = format!(
+            "{{'descr': '{descr}', 'fortran_order': {}, 'shape': {shape_s}, }}",
+            if fortran { "True" } else { "False" }
+        );
+        while (10 + header.len() + 1) % 64 != 0 {
+            header.push(' ');
+        }
+        header.push('\n');
+        let mut f = std::fs::File::create(path).unwrap();
+        f.write_all(b"\x93NUMPY\x01\x00").unwrap();
+        f.write_all(&(header.len() as u16).to_le_bytes()).unwrap();
+        f.write_all(header.as_bytes()).unwrap();
+        f.write_all(body).unwrap();
+    }
+
+    #[test]
+    fn reads_f32_f64_and_fortran_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.npy");
+        let vals = [1.0f32, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let body: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+        write_npy(&p, "<f4", false, &[2, 3], &body);
+        let m = read_matrix(&p).unwrap();
+        assert_eq!((m.rows(), m.cols()), (2, 3));
+        assert_eq!(m.row(1), &[4.0, 5.0, 6.0]);
+
+        let body: Vec<u8> = vals
+            .iter()
+            .flat_map(|v| f64::from(*v).to_le_bytes())
+            .collect();
+        write_npy(&p, "<f8", true, &[2, 3], &body);
+        let m = read_matrix(&p).unwrap();
+        // Fortran order: column-major data 1..6 -> rows [1,3,5], [2,4,6].
+        assert_eq!(m.row(0), &[1.0, 3.0, 5.0]);
+    }
+
+    #[test]
+    fn rejects_wrong_rank_dtype_and_garbage() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.npy");
+        write_npy(&p, "<f4", false, &[3], &[0u8; 12]);
+        assert!(format!("{:#}", read_matrix(&p).unwrap_err()).contains("2-D"));
+        write_npy(&p, "<i4", false, &[1, 1], &[0u8; 4]);
+        assert!(format!("{:#}", read_matrix(&p).unwrap_err()).contains("float32 or float64"));
+        std::fs::write(&p, b"not numpy").unwrap();
+        assert!(format!("{:#}", read_matrix(&p).unwrap_err()).contains("not a valid .npy"));
+        let missing = dir.path().join("missing.npy");
+        assert!(format!("{:#}", read_matrix(&missing).unwrap_err()).contains("missing.npy"));
+    }
+}
