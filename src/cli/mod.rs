@@ -8,8 +8,11 @@ pub mod eval;
 pub mod npy;
 pub mod solve;
 
+use std::path::PathBuf;
+
 use clap::{Args, Parser, Subcommand};
 
+use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 use crate::features::hog::{HogOptions, HogSpec};
 use crate::features::Extractor;
 use crate::solver::{HiddenCost, SolverParams};
@@ -90,9 +93,31 @@ pub struct DescriptorArgs {
     /// HOG cell size in pixels (the paper's default is 32; use 8 for 64x32 frames).
     #[arg(long, default_value_t = 32)]
     pub cell_size: u32,
-    /// Resize every image to WIDTHxHEIGHT before extraction (e.g. 640x480).
+    /// Resize every image to WIDTHxHEIGHT before HOG extraction (e.g. 640x480).
     #[arg(long, value_parser = parse_size)]
     pub resize: Option<(u32, u32)>,
+    /// CNN: ONNX model file (an image classifier taking one [1, 3, H, W] float tensor).
+    #[arg(long, env = "SEASONLOC_CNN_MODEL")]
+    pub cnn_model: Option<PathBuf>,
+    /// CNN: output (or node) of the model used as descriptor, e.g. `pooled`, `block10`.
+    #[arg(long, default_value = "block10")]
+    pub cnn_layer: String,
+    /// CNN: network input size WIDTHxHEIGHT.
+    #[arg(long, value_parser = parse_size, default_value = "224x224")]
+    pub cnn_input: (u32, u32),
+    /// CNN: how images reach the input size: `stretch` the whole frame, or `crop` (scale the
+    /// short side to --cnn-short-side, cut the centre), the usual ImageNet transform.
+    #[arg(long, value_enum, default_value_t = CnnResizeArg::Stretch)]
+    pub cnn_resize: CnnResizeArg,
+    /// CNN: short side before the centre crop [default: 256/224 of the larger input side].
+    #[arg(long)]
+    pub cnn_short_side: Option<u32>,
+    /// CNN: per-channel mean R,G,B (or one value for all) subtracted from 0..255 pixels.
+    #[arg(long, value_parser = parse_rgb, default_value = "127,127,127")]
+    pub cnn_mean: [f32; 3],
+    /// CNN: per-channel divisor R,G,B (or one value for all): x' = (x - mean) / scale.
+    #[arg(long, value_parser = parse_rgb, default_value = "128,128,128")]
+    pub cnn_scale: [f32; 3],
 }
 
 /// Descriptor kinds available on the command line.
@@ -100,24 +125,105 @@ pub struct DescriptorArgs {
 pub enum DescriptorKind {
     /// Histogram of oriented gradients on a dense grid of cells (flow paper III-A).
     Hog,
+    /// One layer of an ONNX image model, flattened and L2-normalised (flow paper III-A).
+    Cnn,
+}
+
+/// `--cnn-resize` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CnnResizeArg {
+    /// Scale the whole image to the input size (keeps the full field of view).
+    Stretch,
+    /// Scale the short side, then cut the centred input-size window.
+    Crop,
 }
 
 impl DescriptorArgs {
-    /// The validated extractor these flags describe.
+    /// The validated extractor these flags describe. For the CNN this loads the model and
+    /// checks the layer and input size, so a bad model fails before any image is read.
     pub fn to_extractor(&self) -> crate::Result<Box<dyn Extractor>> {
         match self.descriptor {
             DescriptorKind::Hog => Ok(Box::new(HogSpec::new(HogOptions {
                 cell_size: self.cell_size,
                 resize: self.resize,
             })?)),
+            DescriptorKind::Cnn => Ok(Box::new(CnnSpec::new(self.cnn_options()?)?)),
         }
     }
 
-    /// A short label for reports, e.g. `hog-8px`.
+    /// The CNN settings these flags describe (not yet checked against the model file).
+    pub fn cnn_options(&self) -> crate::Result<CnnOptions> {
+        let model = self.cnn_model.clone().ok_or_else(|| {
+            crate::Error::param(
+                "cnn_model",
+                "--descriptor cnn needs --cnn-model PATH.onnx (or SEASONLOC_CNN_MODEL)",
+            )
+        })?;
+        if let Some((w, h)) = self.resize {
+            return Err(crate::Error::param(
+                "resize",
+                format!(
+                    "--resize {w}x{h} applies to HOG only; the CNN resizes to --cnn-input \
+                     (see --cnn-resize)"
+                ),
+            ));
+        }
+        let (w, h) = self.cnn_input;
+        let resize = match self.cnn_resize {
+            CnnResizeArg::Stretch => CnnResize::Stretch,
+            // 256 for 224, the ImageNet ratio, for other input sizes.
+            CnnResizeArg::Crop => CnnResize::ShortSideCrop {
+                short_side: self
+                    .cnn_short_side
+                    .unwrap_or_else(|| (w.max(h) * 256).div_ceil(224)),
+            },
+        };
+        Ok(CnnOptions {
+            model,
+            layer: self.cnn_layer.clone(),
+            input_size: (w, h),
+            resize,
+            mean: self.cnn_mean,
+            scale: self.cnn_scale,
+        })
+    }
+
+    /// A short label for reports, e.g. `hog-8px` or `cnn-efficientnet-lite0-224-block10-stretch`.
     pub fn label(&self) -> String {
         match self.descriptor {
             DescriptorKind::Hog => format!("hog-{}px", self.cell_size),
+            DescriptorKind::Cnn => {
+                let model = self
+                    .cnn_model
+                    .as_deref()
+                    .and_then(|p| p.file_stem())
+                    .map_or_else(|| "model".into(), |s| s.to_string_lossy());
+                let resize = match self.cnn_resize {
+                    CnnResizeArg::Stretch => "stretch".to_owned(),
+                    CnnResizeArg::Crop => match self.cnn_short_side {
+                        Some(s) => format!("crop{s}"),
+                        None => "crop".to_owned(),
+                    },
+                };
+                format!("cnn-{model}-{}-{resize}", self.cnn_layer)
+            }
         }
+    }
+}
+
+fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
+    let err = || format!("expected R,G,B or one number, all finite, got `{s}`");
+    let values: Vec<f32> = s
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|_| err()))
+        .collect::<Result<_, _>>()?;
+    if values.iter().any(|v| !v.is_finite()) {
+        return Err(err());
+    }
+    match values[..] {
+        [v] => Ok([v; 3]),
+        [r, g, b] => Ok([r, g, b]),
+        _ => Err(err()),
     }
 }
 
@@ -150,5 +256,67 @@ mod tests {
         assert_eq!(parse_size("640x480"), Ok((640, 480)));
         assert!(parse_size("640").is_err());
         assert!(parse_size("0x5").is_err());
+    }
+
+    fn eval_descriptor(flags: &[&str]) -> DescriptorArgs {
+        #[derive(Parser)]
+        struct Wrapper {
+            #[command(flatten)]
+            d: DescriptorArgs,
+        }
+        let args = std::iter::once("seasonloc").chain(flags.iter().copied());
+        Wrapper::try_parse_from(args).unwrap().d
+    }
+
+    #[test]
+    fn rgb_triples_parse_with_one_value_for_all() {
+        assert_eq!(parse_rgb("1,2.5,3"), Ok([1.0, 2.5, 3.0]));
+        assert_eq!(parse_rgb("58.4"), Ok([58.4; 3]));
+        for bad in ["1,2", "1,2,3,4", "a,b,c", "nan", ""] {
+            assert!(parse_rgb(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn cnn_flags_become_cnn_options() {
+        let d = eval_descriptor(&[
+            "--descriptor=cnn",
+            "--cnn-model=m.onnx",
+            "--cnn-layer=pooled",
+            "--cnn-resize=crop",
+            "--cnn-input=320x240",
+            "--cnn-mean=123.7,116.3,103.5",
+            "--cnn-scale=58.4",
+        ]);
+        let o = d.cnn_options().unwrap();
+        assert_eq!(o.model, PathBuf::from("m.onnx"));
+        assert_eq!(o.layer, "pooled");
+        assert_eq!(o.input_size, (320, 240));
+        assert_eq!(o.resize, CnnResize::ShortSideCrop { short_side: 366 });
+        assert_eq!(o.mean, [123.7, 116.3, 103.5]);
+        assert_eq!(o.scale, [58.4; 3]);
+        assert_eq!(d.label(), "cnn-m-pooled-crop");
+    }
+
+    #[test]
+    fn cnn_defaults_are_the_shipped_models_with_stretch() {
+        let d = eval_descriptor(&["--descriptor=cnn", "--cnn-model=dir/e.onnx"]);
+        let mut want = CnnOptions::efficientnet_lite0("dir/e.onnx");
+        want.resize = CnnResize::Stretch;
+        assert_eq!(d.cnn_options().unwrap(), want);
+        assert_eq!(d.label(), "cnn-e-block10-stretch");
+    }
+
+    #[test]
+    fn cnn_without_a_model_or_with_hog_resize_is_a_clear_error() {
+        let err = eval_descriptor(&["--descriptor=cnn"])
+            .to_extractor()
+            .err()
+            .expect("no model given");
+        assert!(err.to_string().contains("--cnn-model"), "{err}");
+        let err = eval_descriptor(&["--descriptor=cnn", "--cnn-model=m.onnx", "--resize=8x8"])
+            .cnn_options()
+            .unwrap_err();
+        assert!(err.to_string().contains("HOG only"), "{err}");
     }
 }

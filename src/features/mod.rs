@@ -25,6 +25,7 @@ pub fn extract_batch(
     todo!("features helper")
 }
 
+pub mod cnn;
 pub mod hog;
 
 /// Decodes one JPEG/PNG image given as bytes; `name` (file or multipart part name) appears in

@@ -1,0 +1,294 @@
+//! Loading an ONNX model with tract, once per process: parse, pick the output layer, fix the
+//! input shape, optimise, make it runnable, and prove it runs by feeding one zero input.
+//!
+//! Why: a model that cannot serve a map must fail when the map is created (missing file, not
+//! ONNX, unknown layer, input size the graph cannot take), not at the first query; and loading
+//! plus optimising costs far more than one inference, so every extractor built from the same
+//! (file, layer, input size) shares one [`LoadedModel`] through a process-wide cache.
+//!
+//! Invariants: a [`LoadedModel`] has exactly one input of shape `[1, 3, h, w]` (f32) and one
+//! output whose flattened length is [`LoadedModel::dim`] > 0; its plan is immutable and
+//! `Send + Sync`, so one copy serves all threads (each run gets its own scratch state).
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use sha2::{Digest, Sha256};
+use tract_onnx::prelude::*;
+
+use crate::{Error, Result};
+
+/// A model ready to run: the optimised tract plan computing one chosen output.
+pub(crate) struct LoadedModel {
+    plan: Arc<TypedSimplePlan>,
+    path: PathBuf,
+    sha256: String,
+    input_size: (u32, u32),
+    output_shape: Vec<usize>,
+    outputs: Vec<String>,
+}
+
+/// (canonical path, file sha256, layer, input size): what makes two loads interchangeable.
+type CacheKey = (PathBuf, String, String, (u32, u32));
+
+/// Loaded models of this process. A handful of entries at most (one per model file, layer and
+/// input size in use), so a vector with a linear scan is enough; the lock is held while a model
+/// loads so that concurrent map creations never load the same model twice.
+static CACHE: Mutex<Vec<(CacheKey, Arc<LoadedModel>)>> = Mutex::new(Vec::new());
+
+impl std::fmt::Debug for LoadedModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LoadedModel")
+            .field("path", &self.path)
+            .field("sha256", &self.sha256)
+            .field("input_size", &self.input_size)
+            .field("output_shape", &self.output_shape)
+            .finish_non_exhaustive()
+    }
+}
+
+impl LoadedModel {
+    /// The shared model for `(path, layer, input_size)`: from the cache when the file's content
+    /// (sha256) is unchanged, otherwise loaded, verified and cached.
+    pub(crate) fn shared(path: &Path, layer: &str, input_size: (u32, u32)) -> Result<Arc<Self>> {
+        let (bytes, sha256) = read_and_hash(path)?;
+        let canonical = std::fs::canonicalize(path).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let key: CacheKey = (canonical, sha256, layer.to_owned(), input_size);
+        // A panic while loading cannot leave the vector half-updated, so a poisoned lock is safe
+        // to keep using.
+        let mut cache = CACHE
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some((_, model)) = cache.iter().find(|(k, _)| *k == key) {
+            return Ok(Arc::clone(model));
+        }
+        let model = Arc::new(Self::load(path, &bytes, key.1.clone(), layer, input_size)?);
+        cache.push((key, Arc::clone(&model)));
+        Ok(model)
+    }
+
+    /// A private copy of the model, neither taken from nor added to the cache.
+    pub(crate) fn uncached(path: &Path, layer: &str, input_size: (u32, u32)) -> Result<Self> {
+        let (bytes, sha256) = read_and_hash(path)?;
+        Self::load(path, &bytes, sha256, layer, input_size)
+    }
+
+    fn load(
+        path: &Path,
+        bytes: &[u8],
+        sha256: String,
+        layer: &str,
+        (width, height): (u32, u32),
+    ) -> Result<Self> {
+        let shown = path.display();
+        let bad_model = |what: &str, e: TractError| {
+            Error::param("cnn_model", format!("{shown}: {what}: {e:#}"))
+        };
+        let onnx = tract_onnx::onnx();
+        let proto = onnx
+            .proto_model_for_read(&mut &bytes[..])
+            .map_err(|e| bad_model("not an ONNX model", e))?;
+        // The directory resolves tensors stored as external data next to the model file.
+        let dir = path.parent().and_then(Path::to_str);
+        let parsed = onnx
+            .parse(&proto, dir)
+            .map_err(|e| bad_model("cannot be loaded", e))?;
+        if !parsed.unresolved_inputs.is_empty() {
+            return Err(Error::param(
+                "cnn_model",
+                format!(
+                    "{shown}: cannot be loaded: unresolved inputs {:?}",
+                    parsed.unresolved_inputs
+                ),
+            ));
+        }
+        let mut model = parsed.model;
+        let inputs = model
+            .input_outlets()
+            .map_err(|e| bad_model("no inputs", e))?;
+        if inputs.len() != 1 {
+            return Err(Error::param(
+                "cnn_model",
+                format!(
+                    "{shown}: has {} inputs; seasonloc feeds one image tensor [1, 3, h, w]",
+                    inputs.len()
+                ),
+            ));
+        }
+        let declared = model
+            .input_fact(0)
+            .map(|f| format!("{f:?}"))
+            .unwrap_or_else(|_| "unknown".into());
+        let outputs = output_names(&model);
+        model.select_outputs_by_name([layer]).map_err(|_| {
+            Error::param(
+                "cnn_layer",
+                format!(
+                    "`{layer}` is neither an output nor a node of {shown}; its outputs are: {}",
+                    outputs.join(", ")
+                ),
+            )
+        })?;
+        let shape = [1, 3, height as usize, width as usize];
+        let wrong_size = |e: TractError| {
+            Error::param(
+                "cnn_input_size",
+                format!(
+                    "{shown} cannot run on a {width}x{height} input (tensor {shape:?}; the model \
+                     declares {declared}): {e:#}"
+                ),
+            )
+        };
+        let plan = model
+            .with_input_fact(0, f32::fact(shape).into())
+            .and_then(|m| m.into_optimized())
+            .map_err(wrong_size)?
+            .into_runnable()
+            .map_err(|e| bad_model("cannot be made runnable", e))?;
+        let mut loaded = LoadedModel {
+            plan,
+            path: path.to_path_buf(),
+            sha256,
+            input_size: (width, height),
+            output_shape: Vec::new(),
+            outputs,
+        };
+        // Running one zero image proves that the input size is accepted end to end and gives
+        // the true output shape (symbolic shapes are only resolved by running).
+        let zeros = vec![0.0; 3 * width as usize * height as usize];
+        let (output, out_shape) = loaded.run_raw(zeros).map_err(wrong_size)?;
+        if output.is_empty() {
+            return Err(Error::param(
+                "cnn_layer",
+                format!("`{layer}` of {shown} is empty (shape {out_shape:?})"),
+            ));
+        }
+        loaded.output_shape = out_shape;
+        Ok(loaded)
+    }
+
+    /// Runs the network on one preprocessed image (`3 * h * w` values, planar RGB) and returns
+    /// the chosen output, flattened.
+    pub(crate) fn run(&self, input: Vec<f32>) -> Result<Vec<f32>> {
+        let (output, shape) = self.run_raw(input).map_err(|e| {
+            Error::param(
+                "cnn_model",
+                format!("inference with {} failed: {e:#}", self.path.display()),
+            )
+        })?;
+        if shape != self.output_shape {
+            return Err(Error::Shape(format!(
+                "{} produced an output of shape {shape:?}, expected {:?}",
+                self.path.display(),
+                self.output_shape
+            )));
+        }
+        Ok(output)
+    }
+
+    fn run_raw(&self, input: Vec<f32>) -> TractResult<(Vec<f32>, Vec<usize>)> {
+        let (w, h) = self.input_size;
+        let tensor = tract_ndarray::Array4::from_shape_vec((1, 3, h as usize, w as usize), input)?
+            .into_tensor();
+        let outputs = self.plan.run(tvec!(tensor.into()))?;
+        let out = outputs
+            .first()
+            .ok_or_else(|| TractError::msg("the model returned no output"))?;
+        let out = out.cast_to::<f32>()?;
+        let values = out.to_plain_array_view::<f32>()?.iter().copied().collect();
+        Ok((values, out.shape().to_vec()))
+    }
+
+    /// Flattened output length.
+    pub(crate) fn dim(&self) -> usize {
+        self.output_shape.iter().product()
+    }
+
+    /// Output shape, batch axis included.
+    pub(crate) fn output_shape(&self) -> &[usize] {
+        &self.output_shape
+    }
+
+    /// Lower-case hex sha256 of the model file's bytes.
+    pub(crate) fn sha256(&self) -> &str {
+        &self.sha256
+    }
+
+    /// Names of the outputs the model file declares.
+    pub(crate) fn outputs(&self) -> &[String] {
+        &self.outputs
+    }
+}
+
+fn output_names(model: &InferenceModel) -> Vec<String> {
+    model
+        .output_outlets()
+        .map(|outlets| {
+            outlets
+                .iter()
+                .map(|o| {
+                    model
+                        .outlet_label(*o)
+                        .map_or_else(|| model.node(o.node).name.clone(), str::to_owned)
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+fn read_and_hash(path: &Path) -> Result<(Vec<u8>, String)> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let sha256 = sha256_hex(&bytes);
+    Ok((bytes, sha256))
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sha256_is_lower_case_hex_of_the_bytes() {
+        // The FIPS 180-2 test vector for "abc".
+        assert_eq!(
+            sha256_hex(b"abc"),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+    }
+
+    #[test]
+    fn garbage_files_are_rejected_as_cnn_model() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("not-a-model.onnx");
+        std::fs::write(&path, b"this is not protobuf \xff\xff\xff").unwrap();
+        let err = LoadedModel::shared(&path, "logits", (224, 224)).unwrap_err();
+        match &err {
+            Error::InvalidParameter { name, reason } => {
+                assert_eq!(*name, "cnn_model");
+                assert!(reason.contains("not-a-model.onnx"), "{reason}");
+            }
+            other => panic!("expected cnn_model error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn missing_files_are_io_errors_naming_the_path() {
+        let err = LoadedModel::shared(Path::new("/nonexistent/m.onnx"), "x", (8, 8)).unwrap_err();
+        match err {
+            Error::Io { path, .. } => assert_eq!(path, Path::new("/nonexistent/m.onnx")),
+            other => panic!("expected Io, got {other:?}"),
+        }
+    }
+}
