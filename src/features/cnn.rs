@@ -483,6 +483,19 @@ mod tests {
     }
 
     #[test]
+    fn input_sizes_the_layer_cannot_take_fail_at_creation() {
+        let Some(model) = shipped_model() else { return };
+        let mut options = CnnOptions::efficientnet_lite0(&model);
+        options.resize = CnnResize::Stretch;
+        // block10 sits after four stride-2 stages: an 8x8 input leaves it 0x0.
+        options.input_size = (8, 8);
+        let err = CnnSpec::new(options).unwrap_err();
+        let (name, reason) = param_error(&err);
+        assert_eq!(name, "cnn_input_size");
+        assert!(reason.contains("8x8") && reason.contains("block10"), "{reason}");
+    }
+
+    #[test]
     fn settings_are_validated_before_the_model_is_read() {
         let base = CnnOptions::efficientnet_lite0("/nonexistent/model.onnx");
         let cases: [(&str, fn(&mut CnnOptions)); 6] = [

@@ -162,8 +162,11 @@ impl LoadedModel {
         let (output, out_shape) = loaded.run_raw(zeros).map_err(wrong_size)?;
         if output.is_empty() {
             return Err(Error::param(
-                "cnn_layer",
-                format!("`{layer}` of {shown} is empty (shape {out_shape:?})"),
+                "cnn_input_size",
+                format!(
+                    "{width}x{height} is too small for `{layer}` of {shown}: the layer has no \
+                     values (shape {out_shape:?})"
+                ),
             ));
         }
         loaded.output_shape = out_shape;
