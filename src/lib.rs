@@ -21,8 +21,10 @@ pub mod eval;
 pub mod features;
 pub mod localize;
 pub mod matrix;
+pub mod online;
 pub mod similarity;
 pub mod solver;
+pub mod window;
 
 pub use error::{Error, Result};
 pub use matrix::Matrix;
