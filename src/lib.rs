@@ -24,6 +24,7 @@ pub mod matrix;
 pub mod online;
 pub mod similarity;
 pub mod solver;
+pub mod trip;
 pub mod window;
 
 pub use error::{Error, Result};
