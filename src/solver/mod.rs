@@ -13,6 +13,27 @@
 //! * `F > 1` exact: successive shortest paths with potentials on the residual graph.
 //!
 //! Matching nodes have capacity 1 (node-disjoint flows); hidden nodes carry any number of flows.
+//!
+//! Code map: the graph helpers (blocked set, input checks, path -> [`Hypothesis`]) live in
+//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs`, greedy and exact `F > 1` in
+//! `greedy.rs` / `exact.rs`, min-marginals for confidences in `marginals.rs`, and the test-only
+//! reference solvers (generic min-cost flow, brute force) in `reference.rs`.
+//!
+//! Invariants: every solver returns hypotheses with one [`RowAssignment`] per query row, matches
+//! in increasing column order, never on an unusable (`ĉ <= 0`) or blocked matching node, and a
+//! `cost` equal to the sum of the path's edge costs (recomputed in `f64` from the path).
+
+mod exact;
+mod graph;
+mod greedy;
+mod marginals;
+#[cfg(test)]
+mod reference;
+mod shortest_path;
+
+pub use graph::Blocked;
+pub use marginals::{row_alternatives, RowAlternatives};
+pub use shortest_path::shortest_path;
 
 use crate::{Error, Matrix, Result};
 
@@ -188,7 +209,28 @@ pub fn auto_hidden_cost(chat: &Matrix) -> f64 {
 
 /// Solves the graph on the normalised similarity matrix `chat` (`ĉ`, Q x D).
 ///
+/// `F = 1` is the shortest path; `F > 1` is greedy (ranked by order found) unless
+/// `params.exact`, which solves the true min-cost flow (ranked by increasing cost). The stopping
+/// rule `stop_hidden_fraction` never drops the first (rank 1) hypothesis; it stops before the
+/// first later hypothesis whose hidden fraction exceeds the limit.
+///
 /// Fails on an empty matrix, a non-finite entry or an invalid parameter.
-pub fn solve(_chat: &Matrix, _params: &SolverParams) -> Result<Solution> {
-    todo!("solver")
+pub fn solve(chat: &Matrix, params: &SolverParams) -> Result<Solution> {
+    params.validate()?;
+    graph::check_matrix(chat)?;
+    let w = match params.hidden_cost {
+        HiddenCost::Fixed(w) => w,
+        HiddenCost::Auto => auto_hidden_cost(chat, params.fan_out),
+    };
+    graph::check_hidden_cost(w)?;
+    let hypotheses = if params.flows > 1 && params.exact {
+        exact::min_cost_flow(chat, params.fan_out, params.horizontal, w, params.flows)?
+    } else {
+        greedy::greedy_paths(chat, params.fan_out, params.horizontal, w, params.flows)
+    };
+    let hypotheses = graph::apply_stop_rule(hypotheses, params.stop_hidden_fraction);
+    Ok(Solution {
+        hidden_cost: w,
+        hypotheses,
+    })
 }
