@@ -162,9 +162,7 @@ pub fn normalize_columns_in_place(c: &mut Matrix) -> Result<()> {
         .map(|block| {
             let mut s = vec![0.0f64; cols];
             for row in block.chunks_exact(cols) {
-                s.iter_mut()
-                    .zip(row)
-                    .for_each(|(a, &v)| *a += f64::from(v));
+                s.iter_mut().zip(row).for_each(|(a, &v)| *a += f64::from(v));
             }
             s
         })
@@ -318,11 +316,7 @@ mod tests {
 
     #[test]
     fn normalize_columns_divides_by_column_mean_and_zeroes_unusable_columns() {
-        let c = Matrix::from_rows(&[
-            vec![0.2, 0.0, -0.5, 1.0],
-            vec![0.6, 0.0, 0.1, 3.0],
-        ])
-        .unwrap();
+        let c = Matrix::from_rows(&[vec![0.2, 0.0, -0.5, 1.0], vec![0.6, 0.0, 0.1, 3.0]]).unwrap();
         let n = normalize_columns(&c).unwrap();
         // Column 0: mean 0.4; column 1: mean 0 -> zeros; column 2: mean -0.2 -> zeros.
         assert!((n.get(0, 0) - 0.5).abs() < 1e-6 && (n.get(1, 0) - 1.5).abs() < 1e-6);
