@@ -20,6 +20,11 @@ pub struct GroundTruth {
 }
 
 impl GroundTruth {
+    /// The largest query index with a ground-truth row, if any.
+    pub fn max_query_index(&self) -> Option<usize> {
+        self.matches.keys().next_back().copied()
+    }
+
     /// Ground truth from `(query_index, ref_index)` pairs (several per query allowed).
     pub fn from_pairs(pairs: impl IntoIterator<Item = (usize, usize)>) -> Self {
         let mut matches: BTreeMap<usize, Vec<usize>> = BTreeMap::new();

@@ -220,7 +220,7 @@ pub fn solve(chat: &Matrix, params: &SolverParams) -> Result<Solution> {
     graph::check_matrix(chat)?;
     let w = match params.hidden_cost {
         HiddenCost::Fixed(w) => w,
-        HiddenCost::Auto => auto_hidden_cost(chat, params.fan_out),
+        HiddenCost::Auto => auto_hidden_cost(chat),
     };
     graph::check_hidden_cost(w)?;
     let hypotheses = if params.flows > 1 && params.exact {
