@@ -29,9 +29,17 @@ pub fn leading_min_by<T: Copy>(m: &[T], k: usize, out: &mut [T], less: impl Fn(&
         out.copy_from_slice(m);
         return;
     }
-    let (prefix, suffix) = block_scans(m, k + 1, &less);
+    let size = k + 1;
+    let (prefix, suffix) = block_scans(m, size, &less);
     for j in 0..n {
-        out[j] = pick(suffix[j], prefix[(j + k).min(n - 1)], &less);
+        let block_end = (j / size) * size + size - 1;
+        // In the last block, the suffix minimum already covers `j..n`; a prefix minimum of the
+        // same block would also cover elements left of `j`.
+        out[j] = if block_end >= n - 1 {
+            suffix[j]
+        } else {
+            pick(suffix[j], prefix[(j + k).min(n - 1)], &less)
+        };
     }
 }
 
