@@ -263,8 +263,6 @@ fn eval_rejects_bad_input_with_one_line() {
             q,
             "--ground-truth",
             &route.ground_truth,
-            "--cell-size",
-            "8",
         ]
         .iter()
         .map(|s| s.to_string())
