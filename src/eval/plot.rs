@@ -71,7 +71,8 @@ pub fn plot_pr(path: &Path, title: &str, curves: &[(String, Vec<PrPoint>)]) -> R
         .label_style((FONT_FAMILY, 16))
         .x_labels(11)
         .y_labels(11)
-        .light_line_style(RGBColor(235, 235, 235))
+        .light_line_style(WHITE)
+        .bold_line_style(RGBColor(225, 225, 225))
         .draw()
         .map_err(|e| draw_err(&e))?;
     for (k, (name, curve)) in curves.iter().enumerate() {
@@ -90,7 +91,7 @@ pub fn plot_pr(path: &Path, title: &str, curves: &[(String, Vec<PrPoint>)]) -> R
     }
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::LowerLeft)
+        .position(SeriesLabelPosition::UpperRight)
         .label_font((FONT_FAMILY, 17))
         .background_style(WHITE.mix(0.9))
         .border_style(BLACK)
