@@ -26,7 +26,10 @@ fn single(c: &mut Criterion) {
     if let Some(path) = fixture::shared("models/samples/dog.jpg") {
         let spec = hog(32, Some((1024, 768)));
         g.bench_function("jpeg_decode_to_hog_1024x768_cell32", |b| {
-            b.iter(|| spec.extract(&load_image_file(&path).expect("decodes")).expect("extracts"))
+            b.iter(|| {
+                spec.extract(&load_image_file(&path).expect("decodes"))
+                    .expect("extracts")
+            })
         });
         g.bench_function("jpeg_decode_gray_resize_1024x768", |b| {
             b.iter(|| {

@@ -28,7 +28,12 @@ pub fn shared(rel: &str) -> Option<PathBuf> {
 pub fn sample_gray(name: &str, width: u32, height: u32) -> Option<GrayImage> {
     let path = shared(&format!("models/samples/{name}.jpg"))?;
     let image = seasonloc::features::load_image_file(&path).expect("sample photo decodes");
-    Some(imageops::resize(&image.to_luma8(), width, height, FilterType::Triangle))
+    Some(imageops::resize(
+        &image.to_luma8(),
+        width,
+        height,
+        FilterType::Triangle,
+    ))
 }
 
 /// The first `n` frames of one Nordland season (`summer` or `winter`), in route order.

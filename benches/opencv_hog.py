@@ -5,11 +5,14 @@ Single-threaded (cv2.setNumThreads(1)). Cases:
   1. 1024x768 gray image (shared/models/samples/<name>.jpg, gray, resized bilinear), 32 px cells,
      blocks 64x64 with a 32 px stride, 9 bins: the paper's grid, 25,668 values.
   2. a 64x32 Nordland frame, 8 px cells, blocks 16x16 with an 8 px stride: 756 values.
-Prints the median and minimum over many runs, in milliseconds.
+Prints the median and minimum over many runs, in milliseconds (the minimum is the
+robust figure on a machine shared with other jobs).
 
 Setup (never a runtime dependency of seasonloc):
-    python3 -m venv /tmp/cvenv && /tmp/cvenv/bin/pip install opencv-python-headless numpy
+    python3 -m venv /tmp/cvenv && /tmp/cvenv/bin/pip install "opencv-python-headless<5" numpy
+    (OpenCV 5 no longer exports cv2.HOGDescriptor; 4.14.0 was measured.)
     /tmp/cvenv/bin/python benches/opencv_hog.py [--image dog] [--runs 200]
+Data: ../shared beside the repository, or the folder named by SEASONLOC_SHARED_DIR.
 """
 import argparse
 import os
@@ -20,7 +23,7 @@ import time
 import cv2
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SHARED = os.path.join(HERE, "..", "..", "shared")
+SHARED = os.environ.get("SEASONLOC_SHARED_DIR") or os.path.join(HERE, "..", "..", "shared")
 
 
 def timed(fn, runs):

@@ -147,9 +147,7 @@ impl HogSpec {
         if width < c || height < c {
             return Err(Error::Image {
                 name: "input".into(),
-                reason: format!(
-                    "{width}x{height} px is smaller than one HOG cell of {c}x{c} px"
-                ),
+                reason: format!("{width}x{height} px is smaller than one HOG cell of {c}x{c} px"),
             });
         }
         let (w, h, c) = (width as usize, height as usize, c as usize);
@@ -342,7 +340,9 @@ mod tests {
     /// Straightforward HOG with `atan2`, per-pixel clamped neighbours and per-cell loops.
     fn reference(img: &GrayImage, cell: usize) -> Vec<f32> {
         let (w, h) = (img.width() as i64, img.height() as i64);
-        let px = |x: i64, y: i64| f32::from(img.get_pixel(x.clamp(0, w - 1) as u32, y.clamp(0, h - 1) as u32)[0]);
+        let px = |x: i64, y: i64| {
+            f32::from(img.get_pixel(x.clamp(0, w - 1) as u32, y.clamp(0, h - 1) as u32)[0])
+        };
         let (nx, ny) = (w as usize / cell, h as usize / cell);
         let (x0, y0) = ((w as usize - nx * cell) / 2, (h as usize - ny * cell) / 2);
         let mut hist = vec![[0f32; BINS]; nx * ny];
@@ -410,7 +410,9 @@ mod tests {
     fn too_small_images_are_image_errors() {
         for (w, h) in [(7, 40), (40, 7), (0, 0)] {
             match spec(8).extract(&gray(w, h, noise)) {
-                Err(Error::Image { reason, .. }) => assert!(reason.contains(&format!("{w}x{h} px")), "{reason}"),
+                Err(Error::Image { reason, .. }) => {
+                    assert!(reason.contains(&format!("{w}x{h} px")), "{reason}")
+                }
                 other => panic!("{w}x{h}: expected Image error, got {other:?}"),
             }
         }
@@ -421,16 +423,45 @@ mod tests {
     #[test]
     fn options_are_validated() {
         for cell in [0, 1, 513] {
-            let err = HogSpec::new(HogOptions { cell_size: cell, resize: None }).unwrap_err();
-            assert!(matches!(err, Error::InvalidParameter { name: "cell_size", .. }), "{err}");
+            let err = HogSpec::new(HogOptions {
+                cell_size: cell,
+                resize: None,
+            })
+            .unwrap_err();
+            assert!(
+                matches!(
+                    err,
+                    Error::InvalidParameter {
+                        name: "cell_size",
+                        ..
+                    }
+                ),
+                "{err}"
+            );
         }
         for resize in [(4, 64), (64, 0), (20_000, 64)] {
-            let err = HogSpec::new(HogOptions { cell_size: 8, resize: Some(resize) }).unwrap_err();
-            assert!(matches!(err, Error::InvalidParameter { name: "resize", .. }), "{err}");
+            let err = HogSpec::new(HogOptions {
+                cell_size: 8,
+                resize: Some(resize),
+            })
+            .unwrap_err();
+            assert!(
+                matches!(err, Error::InvalidParameter { name: "resize", .. }),
+                "{err}"
+            );
         }
-        let options = HogOptions { cell_size: 16, resize: Some((64, 48)) };
+        let options = HogOptions {
+            cell_size: 16,
+            resize: Some((64, 48)),
+        };
         assert_eq!(HogSpec::new(options).unwrap().options(), options);
-        assert_eq!(HogOptions::default(), HogOptions { cell_size: 32, resize: None });
+        assert_eq!(
+            HogOptions::default(),
+            HogOptions {
+                cell_size: 32,
+                resize: None
+            }
+        );
     }
 
     #[test]
@@ -442,8 +473,12 @@ mod tests {
 
     #[test]
     fn vertical_edge_votes_only_in_the_horizontal_gradient_bin() {
-        let d = spec(8).extract(&gray(64, 32, |x, _| if x < 36 { 20 } else { 220 })).unwrap();
-        let energy: Vec<f32> = (0..BINS).map(|b| d.iter().skip(b).step_by(BINS).sum()).collect();
+        let d = spec(8)
+            .extract(&gray(64, 32, |x, _| if x < 36 { 20 } else { 220 }))
+            .unwrap();
+        let energy: Vec<f32> = (0..BINS)
+            .map(|b| d.iter().skip(b).step_by(BINS).sum())
+            .collect();
         assert!(energy[0] > 1.0, "{energy:?}");
         assert!(energy[1..].iter().all(|&e| e == 0.0), "{energy:?}");
     }
@@ -451,11 +486,23 @@ mod tests {
     #[test]
     fn horizontal_edge_votes_around_ninety_degrees() {
         // 90° lies midway between the 80° and 100° bins (4 and 5): an even split.
-        let d = spec(8).extract(&gray(64, 32, |_, y| if y < 12 { 220 } else { 20 })).unwrap();
-        let energy: Vec<f32> = (0..BINS).map(|b| d.iter().skip(b).step_by(BINS).sum()).collect();
+        let d = spec(8)
+            .extract(&gray(64, 32, |_, y| if y < 12 { 220 } else { 20 }))
+            .unwrap();
+        let energy: Vec<f32> = (0..BINS)
+            .map(|b| d.iter().skip(b).step_by(BINS).sum())
+            .collect();
         assert!(energy[4] > 1.0, "{energy:?}");
-        assert!((energy[4] - energy[5]).abs() < 1e-4 * energy[4], "{energy:?}");
-        let others: f32 = energy.iter().enumerate().filter(|(b, _)| *b != 4 && *b != 5).map(|(_, e)| e).sum();
+        assert!(
+            (energy[4] - energy[5]).abs() < 1e-4 * energy[4],
+            "{energy:?}"
+        );
+        let others: f32 = energy
+            .iter()
+            .enumerate()
+            .filter(|(b, _)| *b != 4 && *b != 5)
+            .map(|(_, e)| e)
+            .sum();
         assert_eq!(others, 0.0, "{energy:?}");
     }
 
@@ -488,7 +535,11 @@ mod tests {
     fn margins_only_serve_as_gradient_neighbours() {
         // 20x8 with 8 px cells: 2 cells, 2 px margins on both sides (grid x = 2..18).
         let only_margins = gray(20, 8, |x, _| if x == 0 || x == 19 { 255 } else { 0 });
-        assert!(spec(8).extract(&only_margins).unwrap().iter().all(|&v| v == 0.0));
+        assert!(spec(8)
+            .extract(&only_margins)
+            .unwrap()
+            .iter()
+            .all(|&v| v == 0.0));
         let inside = gray(20, 8, |x, _| if x == 2 { 255 } else { 0 });
         assert!(spec(8).extract(&inside).unwrap().iter().any(|&v| v > 0.0));
     }
@@ -502,7 +553,11 @@ mod tests {
             let got = orientation_bins(gx, gy);
             assert!((0.0..BINS as f32).contains(&got), "{k}: {got}");
             let diff = (got - want).abs().min(BINS as f32 - (got - want).abs());
-            assert!(diff < 1e-3, "angle {}°: got {got}, want {want}", k as f32 / 10.0);
+            assert!(
+                diff < 1e-3,
+                "angle {}°: got {got}, want {want}",
+                k as f32 / 10.0
+            );
         }
         assert_eq!(orientation_bins(0.0, 0.0), 0.0);
     }
@@ -516,7 +571,11 @@ mod tests {
             s.extract(&DynamicImage::ImageRgb8(rgb.clone())).unwrap(),
             s.extract(&DynamicImage::ImageLuma8(luma.clone())).unwrap()
         );
-        let r = HogSpec::new(HogOptions { cell_size: 8, resize: Some((64, 32)) }).unwrap();
+        let r = HogSpec::new(HogOptions {
+            cell_size: 8,
+            resize: Some((64, 32)),
+        })
+        .unwrap();
         let small = imageops::resize(&luma, 64, 32, FilterType::Triangle);
         assert_eq!(
             r.extract(&DynamicImage::ImageRgb8(rgb)).unwrap(),

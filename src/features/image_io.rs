@@ -145,7 +145,8 @@ mod tests {
 
     #[test]
     fn garbage_and_empty_bytes_name_the_part() {
-        let (name, why) = reason(decode_image("part-3", b"definitely not an image", 1000).unwrap_err());
+        let (name, why) =
+            reason(decode_image("part-3", b"definitely not an image", 1000).unwrap_err());
         assert_eq!(name, "part-3");
         assert!(why.contains("not a PNG or JPEG"), "{why}");
         let (_, why) = reason(decode_image("e", b"", 1000).unwrap_err());
@@ -161,7 +162,8 @@ mod tests {
     #[test]
     fn truncated_png_is_an_image_error() {
         let bytes = encode(&sample_rgb(40, 40), ImageFormat::Png);
-        let (name, why) = reason(decode_image("cut.png", &bytes[..bytes.len() / 2], 10_000).unwrap_err());
+        let (name, why) =
+            reason(decode_image("cut.png", &bytes[..bytes.len() / 2], 10_000).unwrap_err());
         assert_eq!(name, "cut.png");
         assert!(why.contains("cannot decode the 40x40 Png"), "{why}");
     }
@@ -170,7 +172,10 @@ mod tests {
     fn pixel_limit_is_checked_from_the_header_before_decoding() {
         let bytes = encode(&sample_rgb(100, 50), ImageFormat::Png);
         let (_, why) = reason(decode_image("big.png", &bytes, 4999).unwrap_err());
-        assert!(why.contains("100x50 px = 5000 pixels exceeds the limit of 4999"), "{why}");
+        assert!(
+            why.contains("100x50 px = 5000 pixels exceeds the limit of 4999"),
+            "{why}"
+        );
         assert!(decode_image("ok.png", &bytes, 5000).is_ok());
         // Cut a few bytes into the pixel data (IDAT): it could never be decoded, yet the limit
         // error comes first.

@@ -94,7 +94,9 @@ pub fn extract_files(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Matrix> {
     if paths.is_empty() {
-        return Err(Error::Empty("no image files to extract descriptors from".into()));
+        return Err(Error::Empty(
+            "no image files to extract descriptors from".into(),
+        ));
     }
     let first_bad = AtomicUsize::new(usize::MAX);
     let rows: Vec<Result<Option<FileRow>>> = paths
@@ -218,7 +220,11 @@ mod tests {
 
     #[test]
     fn batch_with_mixed_sizes_needs_a_resize() {
-        let images = vec![textured(40, 24, 1), textured(40, 24, 2), textured(48, 24, 3)];
+        let images = vec![
+            textured(40, 24, 1),
+            textured(40, 24, 2),
+            textured(48, 24, 3),
+        ];
         match extract_batch(&hog(8, None), &images) {
             Err(Error::Shape(msg)) => {
                 assert!(msg.contains("image #2 is 48x24"), "{msg}");
@@ -236,11 +242,17 @@ mod tests {
         match extract_batch(&hog(8, None), &images) {
             Err(Error::Image { name, reason }) => {
                 assert_eq!(name, "#1");
-                assert!(reason.contains("4x4 px is smaller than one HOG cell of 8x8"), "{reason}");
+                assert!(
+                    reason.contains("4x4 px is smaller than one HOG cell of 8x8"),
+                    "{reason}"
+                );
             }
             other => panic!("expected Image, got {other:?}"),
         }
-        assert!(matches!(extract_batch(&hog(8, None), &[]), Err(Error::Empty(_))));
+        assert!(matches!(
+            extract_batch(&hog(8, None), &[]),
+            Err(Error::Empty(_))
+        ));
     }
 
     fn write_pngs(dir: &Path, sizes: &[(u32, u32)]) -> Vec<PathBuf> {
@@ -300,7 +312,10 @@ mod tests {
         }
         match extract_files(&hog(8, None), &[paths[0].clone(), paths[3].clone()], &|| {}) {
             Err(Error::Shape(msg)) => {
-                assert!(msg.contains(&format!("{} is 48x24", paths[3].display())), "{msg}")
+                assert!(
+                    msg.contains(&format!("{} is 48x24", paths[3].display())),
+                    "{msg}"
+                )
             }
             other => panic!("expected Shape, got {other:?}"),
         }
@@ -352,12 +367,17 @@ mod tests {
         let query_m = extract_files(&spec, w, &|| {}).unwrap();
         assert!(ref_m.as_slice().iter().all(|v| v.is_finite()));
         let n = s.len();
-        let same = (0..n).map(|i| cosine(query_m.row(i), ref_m.row(i))).sum::<f64>() / n as f64;
+        let same = (0..n)
+            .map(|i| cosine(query_m.row(i), ref_m.row(i)))
+            .sum::<f64>()
+            / n as f64;
         // Deterministic "random" partners, always at least 3 frames away.
         let mut state: u64 = 0x9e37_79b9_7f4a_7c15;
         let mut random = 0.0;
         for i in 0..n {
-            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
             let j = (i + 3 + (state >> 33) as usize % (n - 6)) % n;
             random += cosine(query_m.row(i), ref_m.row(j));
         }
