@@ -264,7 +264,7 @@ fn cell_histograms(gray: &GrayImage, g: &Grid) -> Vec<f32> {
                 let gy = f32::from(d) - f32::from(u);
                 let m = (gx * gx + gy * gy).sqrt();
                 let t = orientation_bins(gx, gy);
-                let floor = (t as u32).min(BINS as u32 - 1);
+                let floor = (t as i32).clamp(0, BINS as i32 - 1) as u32;
                 *k = floor;
                 *hi = m * (t - floor as f32);
                 *lo = m - *hi;
