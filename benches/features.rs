@@ -22,6 +22,13 @@ fn single(c: &mut Criterion) {
         g.bench_function("gray_1024x768_cell32", |b| {
             b.iter(|| spec.extract(&image).expect("extracts"))
         });
+        if fixture::thread_cpu_time().is_some() {
+            g.bench_function("gray_1024x768_cell32_thread_cpu_time", |b| {
+                b.iter_custom(|n| {
+                    fixture::cpu_time_of(n, || spec.extract(&image).expect("extracts"))
+                })
+            });
+        }
     }
     if let Some(path) = fixture::shared("models/samples/dog.jpg") {
         let spec = hog(32, Some((1024, 768)));
@@ -31,12 +38,16 @@ fn single(c: &mut Criterion) {
                     .expect("extracts")
             })
         });
-        g.bench_function("jpeg_decode_gray_resize_1024x768", |b| {
-            b.iter(|| {
-                let img = load_image_file(&path).expect("decodes").to_luma8();
-                image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
-            })
-        });
+        let prepare = || {
+            let img = load_image_file(&path).expect("decodes").to_luma8();
+            image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
+        };
+        g.bench_function("jpeg_decode_gray_resize_1024x768", |b| b.iter(prepare));
+        if fixture::thread_cpu_time().is_some() {
+            g.bench_function("jpeg_decode_gray_resize_1024x768_thread_cpu_time", |b| {
+                b.iter_custom(|n| fixture::cpu_time_of(n, prepare))
+            });
+        }
     }
     if let Some(frames) = fixture::nordland_images("summer", 600) {
         let spec = hog(8, None);

@@ -3,6 +3,7 @@
 #![allow(dead_code)] // each bench uses only some helpers
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use image::imageops::{self, FilterType};
 use image::{DynamicImage, GrayImage};
@@ -53,4 +54,22 @@ pub fn nordland_images(season: &str, n: usize) -> Option<Vec<DynamicImage>> {
             .map(|p| seasonloc::features::load_image_file(p).expect("Nordland frame decodes"))
             .collect(),
     )
+}
+
+/// CPU time the calling thread has run so far (first field of `/proc/thread-self/schedstat`,
+/// in ns), or `None` where that file is unavailable. On a machine shared with other jobs this
+/// is a steadier single-threaded figure than wall time.
+pub fn thread_cpu_time() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns = stat.split_whitespace().next()?.parse().ok()?;
+    Some(Duration::from_nanos(ns))
+}
+
+/// For `Bencher::iter_custom`: runs `f` `iters` times and returns the thread CPU time spent.
+pub fn cpu_time_of<R>(iters: u64, mut f: impl FnMut() -> R) -> Duration {
+    let start = thread_cpu_time().expect("checked with thread_cpu_time() before");
+    for _ in 0..iters {
+        std::hint::black_box(f());
+    }
+    thread_cpu_time().expect("checked with thread_cpu_time() before") - start
 }
