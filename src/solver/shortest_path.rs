@@ -317,8 +317,8 @@ impl<'a> Dp<'a> {
         }
         // `prev` now holds the last row. Sink: smallest column on ties.
         let mut j = 0;
-        for jj in 1..d {
-            if prev.m[jj] < prev.m[j] {
+        for (jj, &v) in prev.m.iter().enumerate().skip(1) {
+            if v < prev.m[j] {
                 j = jj;
             }
         }
