@@ -58,6 +58,17 @@ fn peak_rss_kib() -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
+/// User + system CPU time of this process in seconds (clock ticks of `/proc/self/stat`,
+/// assumed 100 Hz), if readable. Reported next to wall time because the bench machine is shared.
+fn cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = s.rsplit_once(')')?.1;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = f.get(11)?.parse().ok()?;
+    let stime: f64 = f.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
 const W: f64 = 1.2;
 
 fn params(flows: usize, exact: bool) -> SolverParams {
@@ -72,10 +83,24 @@ fn params(flows: usize, exact: bool) -> SolverParams {
 }
 
 fn big(c: &mut Criterion) {
+    let medium = synthetic(2400, 2400, 0xbeef);
+    let before = peak_rss_kib();
+    once("2400x2400 exact F=2 K=4", || {
+        solve(&medium, &params(2, true)).expect("valid input")
+    });
+    if let (Some(a), Some(b)) = (before, peak_rss_kib()) {
+        println!(
+            "peak RSS after exact F=2 on 2400x2400: +{:.0} MiB",
+            (b - a) as f64 / 1024.0
+        );
+    }
+    drop(medium);
     let (q, d) = (5392, 30790);
     let chat = synthetic(q, d, 0x5eed);
     let before = peak_rss_kib();
-    let h = shortest_path(&chat, 4, true, W, None).expect("valid input");
+    let h = once("5392x30790 F=1 K=4", || {
+        shortest_path(&chat, 4, true, W, None).expect("valid input")
+    });
     let after = peak_rss_kib();
     if let (Some(a), Some(b)) = (before, after) {
         println!(
@@ -92,6 +117,9 @@ fn big(c: &mut Criterion) {
     g.sample_size(10);
     g.bench_function("f1_k4", |b| {
         b.iter(|| shortest_path(&chat, 4, true, W, None).expect("valid input"))
+    });
+    once("5392x30790 greedy F=3 K=4", || {
+        solve(&chat, &params(3, false)).expect("valid input")
     });
     g.bench_function("greedy_f3_k4", |b| {
         b.iter(|| solve(&chat, &params(3, false)).expect("valid input"))
@@ -112,13 +140,29 @@ fn medium(c: &mut Criterion) {
     g.bench_function("row_alternatives_k4", |b| {
         b.iter(|| row_alternatives(&chat, 4, true, W, None, &h, 2).expect("valid input"))
     });
+    g.finish();
+    // The exact solver is far slower; criterion runs it on a 600 x 600 matrix.
+    let small = synthetic(600, 600, 0xfeed);
+    let mut g = c.benchmark_group("solver_600x600");
+    g.sample_size(10);
     g.bench_function("exact_f2_k4", |b| {
-        b.iter(|| solve(&chat, &params(2, true)).expect("valid input"))
+        b.iter(|| solve(&small, &params(2, true)).expect("valid input"))
     });
-    g.bench_function("exact_f3_k4", |b| {
-        b.iter(|| solve(&chat, &params(3, true)).expect("valid input"))
+    g.bench_function("greedy_f2_k4", |b| {
+        b.iter(|| solve(&small, &params(2, false)).expect("valid input"))
     });
     g.finish();
+}
+
+/// One timed run (wall and CPU seconds) of `f`, printed with `what`.
+fn once<T>(what: &str, f: impl FnOnce() -> T) -> T {
+    let (cpu0, t0) = (cpu_seconds(), std::time::Instant::now());
+    let out = f();
+    let wall = t0.elapsed().as_secs_f64();
+    if let (Some(a), Some(b)) = (cpu0, cpu_seconds()) {
+        println!("{what}: {wall:.2} s wall, {:.2} s CPU", b - a);
+    }
+    out
 }
 
 criterion_group!(benches, medium, big);

@@ -437,7 +437,7 @@ mod tests {
         ])
         .unwrap();
         let exact = min_cost_flow(&chat, 1, false, 10.0, 2).unwrap();
-        let greedy = greedy_paths(&chat, 1, false, 10.0, 2);
+        let greedy = greedy_paths(&chat, 1, false, 10.0, 2, None);
         let te: f64 = exact.iter().map(|h| h.cost).sum();
         let tg: f64 = greedy.iter().map(|h| h.cost).sum();
         let opt = generic_min_cost_flow(&chat, 1, false, 10.0, 2).unwrap();

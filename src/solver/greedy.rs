@@ -10,13 +10,15 @@ use super::shortest_path::Dp;
 use super::Hypothesis;
 use crate::Matrix;
 
-/// `flows` greedy hypotheses, rank 1 first.
+/// Up to `flows` greedy hypotheses, rank 1 first. With `stop = Some(f)` the search ends before
+/// the first hypothesis of rank > 1 whose hidden fraction exceeds `f` (it is not returned).
 pub(crate) fn greedy_paths(
     chat: &Matrix,
     fan_out: usize,
     horizontal: bool,
     w: f64,
     flows: usize,
+    stop: Option<f64>,
 ) -> Vec<Hypothesis> {
     let mut blocked = Blocked::new(chat.rows(), chat.cols());
     let mut out = Vec::with_capacity(flows);
@@ -24,6 +26,9 @@ pub(crate) fn greedy_paths(
         let b = (rank > 1).then_some(&blocked);
         let steps = Dp::new(chat, fan_out, horizontal, w, b).shortest_steps();
         let h = hypothesis_from_steps(chat, w, &steps, rank);
+        if rank > 1 && stop.is_some_and(|f| h.hidden_fraction() > f) {
+            break;
+        }
         if rank < flows {
             blocked.block_hypothesis(&h);
         }
@@ -89,7 +94,7 @@ mod tests {
     #[test]
     fn greedy_never_reuses_a_matching_node() {
         let chat = loop_matrix();
-        let hyps = greedy_paths(&chat, 3, true, 1.5, 4);
+        let hyps = greedy_paths(&chat, 3, true, 1.5, 4, None);
         let mut seen = std::collections::HashSet::new();
         for h in &hyps {
             for r in &h.rows {
@@ -142,7 +147,7 @@ mod tests {
             (chat, k, horizontal, w) in random_instance(),
             flows in 2usize..=3,
         ) {
-            let hyps = greedy_paths(&chat, k, horizontal, w, flows);
+            let hyps = greedy_paths(&chat, k, horizontal, w, flows, None);
             prop_assert_eq!(hyps.len(), flows);
             let mut blocked = Blocked::new(chat.rows(), chat.cols());
             for h in &hyps {

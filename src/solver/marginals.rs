@@ -131,7 +131,6 @@ struct Backward<'a> {
 impl Backward<'_> {
     /// Row `i` from row `i+1` (`None` for the last row). `g` is scratch of length `D`.
     fn step(&self, i: usize, next: Option<&BackRow>, cur: &mut BackRow, g: &mut [f64]) {
-        let d = self.chat.cols();
         let row = self.chat.row(i);
         match next {
             None => g.fill(0.0),
@@ -146,13 +145,17 @@ impl Backward<'_> {
         }
         let mut right_x = f64::INFINITY; // c_{i,j+1} + BX[j+1]
         let mut right_h = f64::INFINITY;
-        for j in (0..d).rev() {
-            let bx = g[j].min(right_x);
-            let bh = g[j].min(right_h);
-            cur.x[j] = bx;
-            cur.h[j] = bh;
+        let cells = g
+            .iter()
+            .zip(row)
+            .zip(cur.x.iter_mut().zip(cur.h.iter_mut()));
+        for (j, ((&gj, &v), (cx, ch))) in cells.enumerate().rev() {
+            let bx = gj.min(right_x);
+            let bh = gj.min(right_h);
+            *cx = bx;
+            *ch = bh;
             if self.horizontal {
-                right_x = self.dp.x_cost(i, j, row[j]) + bx;
+                right_x = self.dp.x_cost(i, j, v) + bx;
                 right_h = bh;
             }
         }
@@ -164,7 +167,7 @@ fn window_min_ahead(g: &mut [f64], k: usize) {
     let d = g.len();
     let src = g.to_vec();
     let mut dq = std::collections::VecDeque::with_capacity(k.min(d) + 1);
-    for j in (0..d).rev() {
+    for (j, gj) in g.iter_mut().enumerate().rev() {
         while dq.back().is_some_and(|&b: &usize| src[b] >= src[j]) {
             dq.pop_back();
         }
@@ -172,7 +175,7 @@ fn window_min_ahead(g: &mut [f64], k: usize) {
         while dq.front().is_some_and(|&f| f > j + k) {
             dq.pop_front();
         }
-        g[j] = src[*dq.front().expect("just pushed")];
+        *gj = src[*dq.front().expect("just pushed")];
     }
 }
 
@@ -180,14 +183,15 @@ fn combine(i: usize, f: &RowState, b: &BackRow, window: Option<(usize, usize)>) 
     let mut inside = f64::INFINITY;
     let mut outside = f64::INFINITY;
     let mut hidden = f64::INFINITY;
-    for j in 0..f.x.len() {
-        let through_x = f.x[j] + b.x[j];
+    let through = f.x.iter().zip(&b.x).zip(f.h.iter().zip(&b.h));
+    for (j, ((fx, bx), (fh, bh))) in through.enumerate() {
+        let through_x = fx + bx;
         if window.is_some_and(|(a, z)| (a..=z).contains(&j)) {
             inside = inside.min(through_x);
         } else {
             outside = outside.min(through_x);
         }
-        hidden = hidden.min(f.h[j] + b.h[j]);
+        hidden = hidden.min(fh + bh);
     }
     RowAlternatives {
         query: i,
@@ -220,21 +224,24 @@ fn windows(chat: &Matrix, path: &Hypothesis, radius: usize) -> Result<Vec<Option
         own.push(lo.zip(hi));
     }
     // Nearest matched row for hidden rows: scan from both sides.
-    let mut before: Vec<Option<(usize, (usize, usize))>> = vec![None; q];
     let mut last = None;
-    for i in 0..q {
-        if let Some(c) = own[i] {
-            last = Some((i, c));
-        }
-        before[i] = last;
-    }
+    let before: Vec<Option<(usize, (usize, usize))>> = own
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            if let Some(c) = c {
+                last = Some((i, *c));
+            }
+            last
+        })
+        .collect();
     let mut after = None;
     let mut out = vec![None; q];
-    for i in (0..q).rev() {
-        if let Some(c) = own[i] {
-            after = Some((i, c));
+    for (i, (c, b)) in own.iter().zip(&before).enumerate().rev() {
+        if let Some(c) = c {
+            after = Some((i, *c));
         }
-        let cols = match (before[i], after) {
+        let cols = match (*b, after) {
             (Some((a, ca)), Some((b, cb))) => Some(if i - a <= b - i { ca } else { cb }),
             (Some((_, c)), None) | (None, Some((_, c))) => Some(c),
             (None, None) => None,

@@ -257,11 +257,11 @@ pub(crate) fn generic_min_cost_flow(
         dist[s] = 0.0;
         for _ in 0..n {
             let mut changed = false;
-            for u in 0..n {
+            for (u, edges) in adj.iter().enumerate() {
                 if dist[u].is_infinite() {
                     continue;
                 }
-                for &e in &adj[u] {
+                for &e in edges {
                     if cap[e] > 0 && dist[u] + cost[e] < dist[to[e]] - 1e-12 {
                         dist[to[e]] = dist[u] + cost[e];
                         pred[to[e]] = Some(e);

@@ -59,7 +59,7 @@ trait BackPtr: Copy + Default {
     fn forward(from_hidden: bool, offset: usize) -> Self;
     fn horizontal() -> Self;
     fn is_horizontal(self) -> bool;
-    fn from_hidden(self) -> bool;
+    fn pred_hidden(self) -> bool;
     fn offset(self) -> usize;
 }
 
@@ -76,7 +76,7 @@ impl BackPtr for u8 {
     fn is_horizontal(self) -> bool {
         self & 0x80 != 0
     }
-    fn from_hidden(self) -> bool {
+    fn pred_hidden(self) -> bool {
         self & 0x40 != 0
     }
     fn offset(self) -> usize {
@@ -97,7 +97,7 @@ impl BackPtr for u16 {
     fn is_horizontal(self) -> bool {
         self & 0x8000 != 0
     }
-    fn from_hidden(self) -> bool {
+    fn pred_hidden(self) -> bool {
         self & 0x4000 != 0
     }
     fn offset(self) -> usize {
@@ -317,8 +317,8 @@ impl<'a> Dp<'a> {
         }
         // `prev` now holds the last row. Sink: smallest column on ties.
         let mut j = 0;
-        for jj in 1..d {
-            if prev.m[jj] < prev.m[j] {
+        for (jj, &v) in prev.m.iter().enumerate().skip(1) {
+            if v < prev.m[j] {
                 j = jj;
             }
         }
@@ -348,7 +348,7 @@ impl<'a> Dp<'a> {
             }
             i -= 1;
             j -= p.offset();
-            kind = if p.from_hidden() {
+            kind = if p.pred_hidden() {
                 Kind::Hidden
             } else {
                 Kind::Match
@@ -425,8 +425,8 @@ mod tests {
         for i in [0, 1, 2, 6, 7] {
             assert_eq!(c[i], vec![i], "row {i}");
         }
-        for i in 3..=5 {
-            assert!(c[i].is_empty(), "row {i} should be hidden");
+        for (i, r) in c.iter().enumerate().take(6).skip(3) {
+            assert!(r.is_empty(), "row {i} should be hidden");
         }
     }
 
