@@ -13,7 +13,7 @@
 //! at a time from the next checkpoint. Time: two backward passes and one forward pass.
 
 use super::graph::{check_inputs, Blocked};
-use super::shortest_path::{Dp, MonoDeque, RowState};
+use super::shortest_path::{Dp, RowState, Scratch};
 use super::Hypothesis;
 use crate::{Error, Matrix, Result};
 
@@ -79,7 +79,7 @@ pub fn row_alternatives(
     let mut block: Vec<BackRow> = vec![BackRow::new(d); s];
     let mut fprev = RowState::new(d);
     let mut fcur = RowState::new(d);
-    let mut dq = MonoDeque::default();
+    let mut forward_scratch = Scratch::default();
     for b0 in (0..q).step_by(s) {
         let b1 = (b0 + s).min(q);
         // Backward rows b1-1 ..= b0 from the checkpoint of row b1 (or the sink).
@@ -96,7 +96,12 @@ pub fn row_alternatives(
             back.step(i, next_row, &mut lo[n], &mut scratch);
         }
         for i in b0..b1 {
-            dp.values_step(i, (i > 0).then_some(&fprev), &mut fcur, &mut dq);
+            dp.values_step(
+                i,
+                (i > 0).then_some(&fprev),
+                &mut fcur,
+                &mut forward_scratch,
+            );
             out.push(combine(i, &fcur, &block[i - b0], windows[i]));
             std::mem::swap(&mut fprev, &mut fcur);
         }

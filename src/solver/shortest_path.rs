@@ -158,21 +158,72 @@ impl MonoDeque {
     }
 }
 
-/// Argmin of `m[kk-k..=kk]` (clamped at 0), latest column on ties.
+/// Per-row work buffers of the DP, reused from row to row.
+#[derive(Default)]
+pub(crate) struct Scratch {
+    dq: MonoDeque,
+    cost: Vec<f64>,
+    base: Vec<f64>,
+    /// Window offsets, kept as `f64` so the window pass is all same-width selects and
+    /// vectorises (an integer select beside a float compare stays a branch).
+    off: Vec<f64>,
+}
+
+/// Columns per block of [`Dp::row_step`].
+const BLOCK: usize = 2048;
+
+/// What pass (3) reads: `W`, the block's costs, window minima and offsets, the previous row,
+/// and the block's first column.
+type ScanArgs<'a> = (
+    f64,
+    &'a [f64],
+    &'a [f64],
+    &'a [f64],
+    Option<&'a RowState>,
+    usize,
+);
+
+/// Pass (3) of [`Dp::row_step`] on one block: `X[j] = min(base + c, X[j-1] + c)`,
+/// `H[j] = min(base + W, H[j-1])` (left terms only with horizontal edges), `M`, and the
+/// back-pointers. `carry` is `(X, H)` of the column left of the block; returns the block's last.
 #[inline]
-fn direct_argmin(m: &[f64], kk: usize, k: usize) -> usize {
-    let lo = kk.saturating_sub(k);
-    let mut best = m[kk];
-    let mut bj = kk;
-    let mut j = kk;
-    while j > lo {
-        j -= 1;
-        if m[j] < best {
-            best = m[j];
-            bj = j;
+fn scan<P: BackPtr, const HORIZONTAL: bool, const STORE_XH: bool>(
+    (w, cost, base, off, prev, b0): ScanArgs<'_>,
+    (mut left_x, mut left_h): (f64, f64),
+    cur: &mut RowState,
+    mut ptrs: Option<(&mut [P], &mut [P])>,
+) -> (f64, f64) {
+    for t in 0..cost.len() {
+        let j = b0 + t;
+        let (c, b) = (cost[t], base[t]);
+        let ex = b + c;
+        let hx = left_x + c;
+        let x_horiz = hx < ex;
+        let vx = if x_horiz { hx } else { ex };
+        let eh = b + w;
+        let h_horiz = left_h < eh;
+        let vh = if h_horiz { left_h } else { eh };
+        if HORIZONTAL {
+            left_x = vx;
+            left_h = vh;
+        }
+        if STORE_XH {
+            cur.x[j] = vx;
+            cur.h[j] = vh;
+        }
+        let hidden = vh < vx;
+        cur.m[j] = if hidden { vh } else { vx };
+        cur.from_h[j] = hidden;
+        if let Some((px, ph)) = ptrs.as_mut() {
+            // Offsets are small whole numbers, exact in f64.
+            let o = off[t] as usize;
+            let fh = prev.is_some_and(|p| p.from_h[j - o]);
+            let fwd = P::forward(fh, o);
+            px[t] = if x_horiz { P::horizontal() } else { fwd };
+            ph[t] = if h_horiz { P::horizontal() } else { fwd };
         }
     }
-    bj
+    (left_x, left_h)
 }
 
 /// One dynamic programme over the graph of `chat`.
@@ -228,53 +279,107 @@ impl<'a> Dp<'a> {
 
     /// Computes row `i` into `cur` from the previous row (`None` for row 0), writing
     /// back-pointers when `ptrs` is given.
+    ///
+    /// Three passes, so the first two vectorise and the third carries only the serial
+    /// horizontal dependency: (1) node costs `1/ĉ` of the row; (2) the window minimum of the
+    /// previous row and its offset (`K` shifted compare-and-select passes for small `K`, a
+    /// monotone deque otherwise); (3) the left-to-right scan with the horizontal edges. The
+    /// arithmetic and tie rules are those of one fused loop, so results do not depend on it.
     #[inline]
     fn row_step<P: BackPtr>(
         &self,
         i: usize,
         prev: Option<&RowState>,
         cur: &mut RowState,
-        mut ptrs: Option<(&mut [P], &mut [P])>,
-        dq: &mut MonoDeque,
+        ptrs: Option<(&mut [P], &mut [P])>,
+        scratch: &mut Scratch,
     ) {
         let row = self.chat.row(i);
-        let (k, w, window) = (self.k, self.w, self.window);
+        let d = row.len();
+        let Scratch {
+            dq,
+            cost,
+            base,
+            off,
+        } = scratch;
+        cost.resize(BLOCK, 0.0);
+        base.resize(BLOCK, 0.0);
+        off.resize(BLOCK, 0.0);
         dq.clear();
-        let mut left_x = f64::INFINITY;
-        let mut left_h = f64::INFINITY;
-        for (kk, &v) in row.iter().enumerate() {
-            let (base, off, fh) = match prev {
-                None => (0.0, 0, false),
-                Some(p) => {
-                    let j = match window {
-                        Window::Direct => direct_argmin(&p.m, kk, k),
-                        Window::Deque => dq.push_min(&p.m, kk, k),
-                    };
-                    (p.m[j], kk - j, p.from_h[j])
+        let mut ptrs = ptrs;
+        let mut carry = (f64::INFINITY, f64::INFINITY);
+        // Columns in blocks of `BLOCK`, so the per-row buffers stay in L1 on wide maps.
+        for b0 in (0..d).step_by(BLOCK) {
+            let b1 = (b0 + BLOCK).min(d);
+            let n = b1 - b0;
+            let (cost, base, off) = (&mut cost[..n], &mut base[..n], &mut off[..n]);
+
+            // (1) Node costs.
+            for (c, &v) in cost.iter_mut().zip(&row[b0..b1]) {
+                *c = match_cost(v);
+            }
+            if let Some(b) = self.blocked {
+                for (t, c) in cost.iter_mut().enumerate() {
+                    if b.is_blocked(i, b0 + t) {
+                        *c = f64::INFINITY;
+                    }
                 }
+            }
+
+            // (2) Window minimum of the previous row: base[j] = min m[j-K..=j], off = j - argmin
+            // (the latest column on ties).
+            match prev {
+                None => {
+                    base.fill(0.0);
+                    off.fill(0.0);
+                }
+                Some(p) => match self.window {
+                    Window::Direct => {
+                        base.copy_from_slice(&p.m[b0..b1]);
+                        off.fill(0.0);
+                        // o < d keeps every candidate slice in range (the first block
+                        // holds min(d, BLOCK) > o columns; later blocks start past K).
+                        for o in 1..=self.k.min(d - 1) {
+                            // Columns b0+t with b0+t >= o have a candidate at b0+t-o.
+                            let first = o.saturating_sub(b0).min(n);
+                            let of_o = o as f64;
+                            for ((b, of), &cand) in base[first..]
+                                .iter_mut()
+                                .zip(off[first..].iter_mut())
+                                .zip(&p.m[b0 + first - o..b1 - o])
+                            {
+                                // Unconditional selects, so this loop vectorises instead of
+                                // branching on noisy data.
+                                let better = cand < *b;
+                                *b = if better { cand } else { *b };
+                                *of = if better { of_o } else { *of };
+                            }
+                        }
+                    }
+                    Window::Deque => {
+                        for t in 0..n {
+                            let kk = b0 + t;
+                            let j = dq.push_min(&p.m, kk, self.k);
+                            base[t] = p.m[j];
+                            off[t] = (kk - j) as f64;
+                        }
+                    }
+                },
+            }
+
+            // (3) The scan along the row. `X` and `H` themselves are only stored for the
+            // values pass of the min-marginals; the path search needs `M` and the pointers.
+            let block_ptrs = ptrs
+                .as_mut()
+                .map(|(px, ph)| (&mut px[b0..b1], &mut ph[b0..b1]));
+            let w = self.w;
+            let args = (w, &*cost, &*base, &*off, prev, b0);
+            carry = match (self.horizontal, block_ptrs.is_some()) {
+                (true, true) => scan::<P, true, false>(args, carry, cur, block_ptrs),
+                (true, false) => scan::<P, true, true>(args, carry, cur, block_ptrs),
+                (false, true) => scan::<P, false, false>(args, carry, cur, block_ptrs),
+                (false, false) => scan::<P, false, true>(args, carry, cur, block_ptrs),
             };
-            let c = self.x_cost(i, kk, v);
-            let ex = base + c;
-            let hx = left_x + c;
-            let x_horiz = hx < ex;
-            let vx = if x_horiz { hx } else { ex };
-            let eh = base + w;
-            let h_horiz = left_h < eh;
-            let vh = if h_horiz { left_h } else { eh };
-            if self.horizontal {
-                left_x = vx;
-                left_h = vh;
-            }
-            cur.x[kk] = vx;
-            cur.h[kk] = vh;
-            let hidden = vh < vx;
-            cur.m[kk] = if hidden { vh } else { vx };
-            cur.from_h[kk] = hidden;
-            if let Some((px, ph)) = ptrs.as_mut() {
-                let fwd = P::forward(fh, off);
-                px[kk] = if x_horiz { P::horizontal() } else { fwd };
-                ph[kk] = if h_horiz { P::horizontal() } else { fwd };
-            }
         }
     }
 
@@ -284,9 +389,9 @@ impl<'a> Dp<'a> {
         i: usize,
         prev: Option<&RowState>,
         cur: &mut RowState,
-        dq: &mut MonoDeque,
+        scratch: &mut Scratch,
     ) {
-        self.row_step::<u8>(i, prev, cur, None, dq);
+        self.row_step::<u8>(i, prev, cur, None, scratch);
     }
 
     /// The nodes of the shortest path, in visiting order.
@@ -305,14 +410,14 @@ impl<'a> Dp<'a> {
         let mut ptr_h = vec![P::default(); q * d];
         let mut prev = RowState::new(d);
         let mut cur = RowState::new(d);
-        let mut dq = MonoDeque::default();
+        let mut scratch = Scratch::default();
         for (i, (px, ph)) in ptr_x
             .chunks_exact_mut(d)
             .zip(ptr_h.chunks_exact_mut(d))
             .enumerate()
         {
             let p = (i > 0).then_some(&prev);
-            self.row_step(i, p, &mut cur, Some((px, ph)), &mut dq);
+            self.row_step(i, p, &mut cur, Some((px, ph)), &mut scratch);
             std::mem::swap(&mut prev, &mut cur);
         }
         // `prev` now holds the last row. Sink: smallest column on ties.
