@@ -187,6 +187,26 @@ mod tests {
     }
 
     #[test]
+    fn env_sample_lists_every_setting() {
+        use clap::CommandFactory;
+        let mut from_flags: Vec<String> = Cli::command()
+            .get_arguments()
+            .filter_map(|a| a.get_env().map(|e| e.to_string_lossy().into_owned()))
+            .collect();
+        from_flags.push("RUST_LOG".into());
+        from_flags.sort();
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".env.sample");
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut from_file: Vec<String> = text
+            .lines()
+            .filter(|l| !l.starts_with('#') && l.contains('='))
+            .map(|l| l.split('=').next().unwrap().to_string())
+            .collect();
+        from_file.sort();
+        assert_eq!(from_file, from_flags);
+    }
+
+    #[test]
     fn zero_limits_are_rejected_by_name() {
         let args = ServeArgs {
             localize_queue: 0,
