@@ -220,7 +220,7 @@ pub struct LocalizeParams {
 impl LocalizeParams {
     /// Parses a `params` part; unknown fields and wrong types are 400 `invalid_parameter`.
     pub fn from_json(bytes: &[u8]) -> Result<Self, ApiError> {
-        serde_json::from_slice(bytes).map_err(|e| ApiError::param("params", e.to_string()))
+        super::extract::parse_json(bytes, Some("params"))
     }
 
     /// Resolves defaults and validates every range.

@@ -42,12 +42,59 @@ pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
     }
 }
 
-/// Parses a JSON body already read; errors as for [`ApiJson`].
-pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
-    serde_json::from_slice(bytes).map_err(|e| match e.classify() {
-        serde_json::error::Category::Data => ApiError::param("body", e.to_string()),
-        serde_json::error::Category::Io
-        | serde_json::error::Category::Syntax
-        | serde_json::error::Category::Eof => ApiError::BadRequest(format!("malformed JSON: {e}")),
-    })
+/// Parses a JSON document already read. Type errors and unknown fields are 400
+/// `invalid_parameter` naming the field by its path (prefixed with `root` when given, e.g.
+/// `params.flows`); syntax errors are 400 `bad_request`.
+pub fn parse_json<T: DeserializeOwned>(bytes: &[u8], root: Option<&str>) -> Result<T, ApiError> {
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        match inner.classify() {
+            serde_json::error::Category::Data => {
+                let name = match (root, path.as_str()) {
+                    (Some(r), ".") => r.to_string(),
+                    (Some(r), p) if p.starts_with('[') => format!("{r}{p}"),
+                    (Some(r), p) => format!("{r}.{p}"),
+                    (None, ".") => "body".to_string(),
+                    (None, p) => p.to_string(),
+                };
+                ApiError::param(name, inner.to_string())
+            }
+            serde_json::error::Category::Io
+            | serde_json::error::Category::Syntax
+            | serde_json::error::Category::Eof => {
+                ApiError::BadRequest(format!("malformed JSON: {inner}"))
+            }
+        }
+    })?;
+    de.end()
+        .map_err(|e| ApiError::BadRequest(format!("malformed JSON: {e}")))?;
+    Ok(value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_name_the_field_path() {
+        #[derive(serde::Deserialize, Debug)]
+        #[serde(deny_unknown_fields)]
+        struct Inner {
+            #[allow(dead_code)]
+            exact: bool,
+        }
+        #[derive(serde::Deserialize, Debug)]
+        struct Outer {
+            #[allow(dead_code)]
+            params: Inner,
+        }
+        let e = parse_json::<Outer>(br#"{"params": {"exact": "yes"}}"#, None).unwrap_err();
+        assert!(matches!(&e, ApiError::InvalidParameter { name, .. } if name == "params.exact"), "{e}");
+        let e = parse_json::<Inner>(br#"{"exact": 1}"#, Some("params")).unwrap_err();
+        assert!(e.to_string().contains("params.exact"), "{e}");
+        let e = parse_json::<Inner>(br#"{"exact": true} x"#, None).unwrap_err();
+        assert!(matches!(e, ApiError::BadRequest(_)), "{e}");
+    }
 }

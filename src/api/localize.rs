@@ -59,7 +59,7 @@ async fn parse(state: &AppState, req: Request) -> Result<(Queries, LocalizeOptio
         let bytes = axum::body::Bytes::from_request(req, state)
             .await
             .map_err(|r| super::extract::bytes_rejection(r, s.max_body_bytes))?;
-        let body: LocalizeDescriptorsRequest = super::extract::parse_json(&bytes)?;
+        let body: LocalizeDescriptorsRequest = super::extract::parse_json(&bytes, None)?;
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;
         Ok((Queries::Descriptors(m), options))

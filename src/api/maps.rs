@@ -141,8 +141,7 @@ fn metadata(json: Option<&[u8]>, count: usize) -> Result<Vec<ImageMeta>, ApiErro
     let Some(json) = json else {
         return Ok(vec![ImageMeta::default(); count]);
     };
-    let entries: Vec<ImageMetaDto> =
-        serde_json::from_slice(json).map_err(|e| ApiError::param("metadata", e.to_string()))?;
+    let entries: Vec<ImageMetaDto> = super::extract::parse_json(json, Some("metadata"))?;
     if entries.len() != count {
         return Err(ApiError::param(
             "metadata",
@@ -230,7 +229,7 @@ async fn append_descriptors(
         .and_then(|v| v.to_str().ok())
         .unwrap_or("");
     let (descriptors, metas) = if content_type.starts_with("application/json") {
-        let req: AppendDescriptorsRequest = super::extract::parse_json(&body)?;
+        let req: AppendDescriptorsRequest = super::extract::parse_json(&body, None)?;
         let m = upload::descriptor_matrix(&req.descriptors, map.dim, max)?;
         let metas = match req.metadata {
             None => vec![ImageMeta::default(); m.rows()],

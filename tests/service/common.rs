@@ -14,7 +14,7 @@ use crate::http::Client;
 /// The service running in this process (its own runtime thread) on `127.0.0.1:0`.
 pub struct Server {
     pub client: Client,
-    pub dir: tempfile::TempDir,
+    _dir: tempfile::TempDir,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     thread: Option<std::thread::JoinHandle<anyhow::Result<()>>>,
 }
@@ -52,7 +52,7 @@ impl Server {
         });
         let server = Server {
             client: Client::new(addr),
-            dir,
+            _dir: dir,
             stop: Some(stop),
             thread: Some(thread),
         };
@@ -72,22 +72,6 @@ impl Server {
             std::thread::sleep(Duration::from_millis(20));
         }
     }
-
-    /// Stops the server (graceful shutdown) and returns its data folder.
-    pub fn stop(mut self) -> tempfile::TempDir {
-        self.shutdown();
-        let dir = tempfile::tempdir().unwrap();
-        std::mem::replace(&mut self.dir, dir)
-    }
-
-    fn shutdown(&mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            t.join().expect("server thread panicked").expect("server failed");
-        }
-    }
 }
 
 impl Drop for Server {
@@ -105,7 +89,6 @@ impl Drop for Server {
 pub struct Process {
     pub child: Child,
     pub client: Client,
-    pub log: PathBuf,
 }
 
 impl Process {
@@ -133,7 +116,6 @@ impl Process {
                 return Process {
                     child,
                     client: Client::new(addr),
-                    log: log.to_path_buf(),
                 };
             }
             if let Ok(Some(status)) = child.try_wait() {
@@ -159,10 +141,6 @@ impl Process {
     pub fn kill(mut self) {
         self.child.kill().unwrap();
         let _ = self.child.wait();
-    }
-
-    pub fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
     }
 }
 
