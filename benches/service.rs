@@ -26,7 +26,12 @@ const BATCH: usize = 50;
 const CELL: u32 = 8;
 
 fn images() -> (Vec<Vec<u8>>, Vec<Vec<u8>>, &'static str) {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join("data/nordland_64x32"))
+        .find(|d| d.is_dir())
+        .unwrap_or_else(|| root.join("../shared/data/nordland_64x32"));
     let read = |season: &str| -> Option<Vec<Vec<u8>>> {
         let mut files: Vec<_> = std::fs::read_dir(dir.join(season))
             .ok()?
@@ -34,22 +39,34 @@ fn images() -> (Vec<Vec<u8>>, Vec<Vec<u8>>, &'static str) {
             .collect::<Result<_, _>>()
             .ok()?;
         files.sort();
-        files.iter().take(800).map(|p| std::fs::read(p).ok()).collect()
+        files
+            .iter()
+            .take(800)
+            .map(|p| std::fs::read(p).ok())
+            .collect()
     };
     if let (Some(s), Some(w)) = (read("summer"), read("winter")) {
         return (s, w, "Nordland 64x32 PNG");
     }
-    eprintln!("Nordland data not found at {}; using generated frames", dir.display());
+    eprintln!(
+        "Nordland data not found at {}; using generated frames",
+        dir.display()
+    );
     let frame = |i: usize, dark: bool| {
         let img = image::GrayImage::from_fn(64, 32, |x, y| {
             let v = ((x as usize * 7 + i * 5) % 97 + (y as usize * 3) % 41) as f32;
             image::Luma([if dark { v * 0.6 + 20.0 } else { v * 2.0 } as u8])
         });
         let mut out = Vec::new();
-        img.write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png).expect("encode");
+        img.write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png)
+            .expect("encode");
         out
     };
-    ((0..800).map(|i| frame(i, false)).collect(), (0..800).map(|i| frame(i, true)).collect(), "generated 64x32 PNG")
+    (
+        (0..800).map(|i| frame(i, false)).collect(),
+        (0..800).map(|i| frame(i, true)).collect(),
+        "generated 64x32 PNG",
+    )
 }
 
 fn options() -> LocalizeOptions {
@@ -62,7 +79,14 @@ fn options() -> LocalizeOptions {
     }
 }
 
-fn start_server(threads: usize) -> (Client, tokio::sync::oneshot::Sender<()>, std::thread::JoinHandle<()>, tempfile::TempDir) {
+fn start_server(
+    threads: usize,
+) -> (
+    Client,
+    tokio::sync::oneshot::Sender<()>,
+    std::thread::JoinHandle<()>,
+    tempfile::TempDir,
+) {
     let dir = tempfile::tempdir().expect("tempdir");
     let settings = ServeArgs {
         data_dir: dir.path().to_path_buf(),
@@ -77,7 +101,11 @@ fn start_server(threads: usize) -> (Client, tokio::sync::oneshot::Sender<()>, st
     let addr = listener.local_addr().expect("addr");
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let handle = std::thread::spawn(move || {
-        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("runtime");
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .expect("runtime");
         rt.block_on(async move {
             let listener = tokio::net::TcpListener::from_std(listener).expect("listener");
             seasonloc::service::serve(settings, listener, async move {
@@ -91,21 +119,38 @@ fn start_server(threads: usize) -> (Client, tokio::sync::oneshot::Sender<()>, st
 }
 
 fn parts(images: &[Vec<u8>]) -> Vec<Part> {
-    images.iter().enumerate().map(|(i, b)| Part::image(&format!("{i}.png"), b.clone())).collect()
+    images
+        .iter()
+        .enumerate()
+        .map(|(i, b)| Part::image(&format!("{i}.png"), b.clone()))
+        .collect()
 }
 
 fn main() {
     // `cargo bench` passes `--bench`; any filter argument is ignored.
-    let rounds: usize = std::env::var("SEASONLOC_BENCH_ROUNDS").ok().and_then(|v| v.parse().ok()).unwrap_or(2);
+    let rounds: usize = std::env::var("SEASONLOC_BENCH_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let (refs, queries, source) = images();
-    let spec = HogSpec::new(HogOptions { cell_size: CELL, resize: None }).expect("hog");
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+    let spec = HogSpec::new(HogOptions {
+        cell_size: CELL,
+        resize: None,
+    })
+    .expect("hog");
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("pool");
 
     // Library: the same batches, one after another, each extracted in parallel.
     let ingest_batches: Vec<&[Vec<u8>]> = refs.chunks(BATCH).collect();
     let extract = |set: &[Vec<u8>]| {
-        let imgs: Vec<_> = set.iter().map(|b| decode_image("x", b, u64::MAX).expect("decode")).collect();
+        let imgs: Vec<_> = set
+            .iter()
+            .map(|b| decode_image("x", b, u64::MAX).expect("decode"))
+            .collect();
         extract_batch(&spec, &imgs).expect("extract")
     };
     let t = Instant::now();
@@ -124,7 +169,8 @@ fn main() {
     for _ in 0..rounds {
         for b in &query_batches {
             let q = pool.install(|| extract(b));
-            pool.install(|| localize(&q, &reference, &options())).expect("localize");
+            pool.install(|| localize(&q, &reference, &options()))
+                .expect("localize");
             n += q.rows();
         }
     }
@@ -138,7 +184,10 @@ fn main() {
             r.json()["id"].as_str().expect("id").to_string()
         })
         .collect();
-    let bodies: Vec<Vec<u8>> = ingest_batches.iter().map(|b| http::multipart_body(&parts(b))).collect();
+    let bodies: Vec<Vec<u8>> = ingest_batches
+        .iter()
+        .map(|b| http::multipart_body(&parts(b)))
+        .collect();
     let ct = format!("multipart/form-data; boundary={}", http::BOUNDARY);
     let t = Instant::now();
     // The batches of `rounds` passes over the references, spread over the clients.
@@ -148,7 +197,12 @@ fn main() {
             let (jobs, bodies, maps, ct) = (&jobs, &bodies, &maps, &ct);
             s.spawn(move || {
                 for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let r = client.request("POST", &format!("/v1/maps/{}/images", maps[k]), Some(ct), &bodies[j % bodies.len()]);
+                    let r = client.request(
+                        "POST",
+                        &format!("/v1/maps/{}/images", maps[k]),
+                        Some(ct),
+                        &bodies[j % bodies.len()],
+                    );
                     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
                 }
             });
@@ -161,14 +215,24 @@ fn main() {
         .expect("id")
         .to_string();
     for b in &bodies {
-        assert_eq!(client.request("POST", &format!("/v1/maps/{target}/images"), Some(&ct), b).status, 200);
+        assert_eq!(
+            client
+                .request("POST", &format!("/v1/maps/{target}/images"), Some(&ct), b)
+                .status,
+            200
+        );
     }
     let params = Part::json("params", &serde_json::json!({"hidden_cost": 1.3}));
     let qbodies: Vec<Vec<u8>> = query_batches
         .iter()
         .map(|b| {
             let mut p = parts(b);
-            p.push(Part { name: params.name.clone(), file_name: None, content_type: params.content_type.clone(), bytes: params.bytes.clone() });
+            p.push(Part {
+                name: params.name.clone(),
+                file_name: None,
+                content_type: params.content_type.clone(),
+                bytes: params.bytes.clone(),
+            });
             http::multipart_body(&p)
         })
         .collect();
@@ -179,7 +243,12 @@ fn main() {
             let (jobs, qbodies, target, ct) = (&jobs, &qbodies, &target, &ct);
             s.spawn(move || {
                 for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let r = client.request("POST", &format!("/v1/maps/{target}/localize"), Some(ct), &qbodies[j % qbodies.len()]);
+                    let r = client.request(
+                        "POST",
+                        &format!("/v1/maps/{target}/localize"),
+                        Some(ct),
+                        &qbodies[j % qbodies.len()],
+                    );
                     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
                 }
             });
@@ -193,7 +262,17 @@ fn main() {
     println!();
     println!("| path | library (images/s) | HTTP, {CLIENTS} clients (images/s) | HTTP overhead |");
     println!("| --- | --- | --- | --- |");
-    for (what, lib, web) in [("ingest (decode + HOG + store)", lib_ingest, http_ingest), ("localize (decode + HOG + similarity + solve + store)", lib_localize, http_localize)] {
-        println!("| {what} | {lib:.0} | {web:.0} | {:+.1} % |", (lib / web - 1.0) * 100.0);
+    for (what, lib, web) in [
+        ("ingest (decode + HOG + store)", lib_ingest, http_ingest),
+        (
+            "localize (decode + HOG + similarity + solve + store)",
+            lib_localize,
+            http_localize,
+        ),
+    ] {
+        println!(
+            "| {what} | {lib:.0} | {web:.0} | {:+.1} % |",
+            (lib / web - 1.0) * 100.0
+        );
     }
 }

@@ -113,7 +113,10 @@ impl ServeArgs {
         positive("max_batch_images", self.max_batch_images as u64)?;
         positive("max_image_pixels", self.max_image_pixels)?;
         positive("request_timeout_secs", self.request_timeout_secs)?;
-        positive("max_concurrent_requests", self.max_concurrent_requests as u64)?;
+        positive(
+            "max_concurrent_requests",
+            self.max_concurrent_requests as u64,
+        )?;
         positive("localize_queue", self.localize_queue as u64)?;
         if self.data_dir.as_os_str().is_empty() {
             return Err(ConfigError {

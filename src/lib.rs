@@ -22,8 +22,8 @@ pub mod eval;
 pub mod features;
 pub mod localize;
 pub mod matrix;
-pub mod similarity;
 pub mod service;
+pub mod similarity;
 pub mod solver;
 pub mod store;
 

@@ -6,7 +6,11 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "seasonloc", version, about = "Visual localization across seasons")]
+#[command(
+    name = "seasonloc",
+    version,
+    about = "Visual localization across seasons"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -18,7 +18,10 @@ pub fn format_id(id: u64) -> String {
 
 /// Parses a wire id; `None` when it cannot be an id (callers answer 404).
 pub fn parse_id(s: &str) -> Option<u64> {
-    if s.len() == 16 && s.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+    if s.len() == 16
+        && s.bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+    {
         u64::from_str_radix(s, 16).ok()
     } else {
         None
@@ -160,12 +163,18 @@ impl ImageMetaDto {
         }
         if let Some(lat) = self.latitude {
             if !(-90.0..=90.0).contains(&lat) {
-                return Err(ApiError::param(name("latitude"), format!("must be within [-90, 90], got {lat}")));
+                return Err(ApiError::param(
+                    name("latitude"),
+                    format!("must be within [-90, 90], got {lat}"),
+                ));
             }
         }
         if let Some(lon) = self.longitude {
             if !(-180.0..=180.0).contains(&lon) {
-                return Err(ApiError::param(name("longitude"), format!("must be within [-180, 180], got {lon}")));
+                return Err(ApiError::param(
+                    name("longitude"),
+                    format!("must be within [-180, 180], got {lon}"),
+                ));
             }
         }
         Ok(ImageMeta {
@@ -231,7 +240,12 @@ impl LocalizeParams {
             Some(serde_json::Value::String(s)) if s == "auto" => HiddenCost::Auto,
             Some(serde_json::Value::Number(n)) => match n.as_f64() {
                 Some(w) => HiddenCost::Fixed(w),
-                None => return Err(ApiError::param("hidden_cost", format!("{n} is not a number"))),
+                None => {
+                    return Err(ApiError::param(
+                        "hidden_cost",
+                        format!("{n} is not a number"),
+                    ))
+                }
             },
             Some(other) => {
                 return Err(ApiError::param(
@@ -460,7 +474,13 @@ mod tests {
     #[test]
     fn ids_round_trip_and_reject_garbage() {
         assert_eq!(parse_id(&format_id(0xdead_beef)), Some(0xdead_beef));
-        for bad in ["", "123", "000000000000000G", "00000000000000FF", "0000000000000000a"] {
+        for bad in [
+            "",
+            "123",
+            "000000000000000G",
+            "00000000000000FF",
+            "0000000000000000a",
+        ] {
             assert_eq!(parse_id(bad), None, "{bad}");
         }
     }
@@ -468,11 +488,23 @@ mod tests {
     #[test]
     fn descriptor_defaults_to_hog_32() {
         let r: CreateMapRequest = serde_json::from_str(r#"{"name": "a"}"#).unwrap();
-        assert_eq!(r.descriptor, DescriptorDto::Hog { cell_size: 32, resize: None });
+        assert_eq!(
+            r.descriptor,
+            DescriptorDto::Hog {
+                cell_size: 32,
+                resize: None
+            }
+        );
         let r: CreateMapRequest =
             serde_json::from_str(r#"{"name": "a", "descriptor": {"kind": "hog", "cell_size": 8}}"#)
                 .unwrap();
-        assert_eq!(r.descriptor, DescriptorDto::Hog { cell_size: 8, resize: None });
+        assert_eq!(
+            r.descriptor,
+            DescriptorDto::Hog {
+                cell_size: 8,
+                resize: None
+            }
+        );
         let err = serde_json::from_str::<CreateMapRequest>(
             r#"{"name": "a", "descriptor": {"kind": "hog", "cel_size": 8}}"#,
         )
@@ -482,15 +514,20 @@ mod tests {
 
     #[test]
     fn params_resolve_and_validate() {
-        let o = LocalizeParams::from_json(br#"{"fan_out": 2, "hidden_cost": 1.5, "flows": 3, "exact": true}"#)
-            .unwrap()
-            .into_options()
-            .unwrap();
+        let o = LocalizeParams::from_json(
+            br#"{"fan_out": 2, "hidden_cost": 1.5, "flows": 3, "exact": true}"#,
+        )
+        .unwrap()
+        .into_options()
+        .unwrap();
         assert_eq!(o.solver.fan_out, 2);
         assert_eq!(o.solver.hidden_cost, HiddenCost::Fixed(1.5));
         assert!(o.solver.exact && o.normalize && o.solver.horizontal);
         let auto = LocalizeParams::from_json(br#"{"hidden_cost": "auto"}"#).unwrap();
-        assert_eq!(auto.into_options().unwrap().solver.hidden_cost, HiddenCost::Auto);
+        assert_eq!(
+            auto.into_options().unwrap().solver.hidden_cost,
+            HiddenCost::Auto
+        );
         let unknown = LocalizeParams::from_json(br#"{"fanout": 2}"#).unwrap_err();
         assert!(unknown.to_string().contains("fanout"), "{unknown}");
         let bad_w = LocalizeParams::from_json(br#"{"hidden_cost": "high"}"#)

@@ -60,7 +60,9 @@ pub enum ApiError {
     #[error("request body is larger than the configured limit of {0} bytes")]
     PayloadTooLarge(usize),
     /// 413 `image_too_large`: an image exceeds the configured pixel limit.
-    #[error("{part} is {width}x{height} = {pixels} pixels, more than the configured limit of {limit}")]
+    #[error(
+        "{part} is {width}x{height} = {pixels} pixels, more than the configured limit of {limit}"
+    )]
     ImageTooLarge {
         /// The part, e.g. `image #2 ("a.png")`.
         part: String,
@@ -168,10 +170,9 @@ impl IntoResponse for ApiError {
         let body = serde_json::json!({"error": {"code": code, "message": message}});
         let mut response = (status, axum::Json(body)).into_response();
         if retry {
-            response.headers_mut().insert(
-                header::RETRY_AFTER,
-                HeaderValue::from(RETRY_AFTER_SECS),
-            );
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECS));
         }
         response
     }
@@ -241,7 +242,10 @@ mod tests {
         let e: ApiError = crate::Error::param("fan_out", "must be at most 1024, got 5000").into();
         let (status, body, _) = body_of(e).await;
         assert_eq!(status, StatusCode::BAD_REQUEST);
-        assert!(body["error"]["message"].as_str().unwrap().contains("fan_out"));
+        assert!(body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("fan_out"));
         let e: ApiError = crate::Error::Image {
             name: "image #2".into(),
             reason: "truncated".into(),

@@ -91,7 +91,10 @@ mod tests {
             params: Inner,
         }
         let e = parse_json::<Outer>(br#"{"params": {"exact": "yes"}}"#, None).unwrap_err();
-        assert!(matches!(&e, ApiError::InvalidParameter { name, .. } if name == "params.exact"), "{e}");
+        assert!(
+            matches!(&e, ApiError::InvalidParameter { name, .. } if name == "params.exact"),
+            "{e}"
+        );
         let e = parse_json::<Inner>(br#"{"exact": 1}"#, Some("params")).unwrap_err();
         assert!(e.to_string().contains("params.exact"), "{e}");
         let e = parse_json::<Inner>(br#"{"exact": true} x"#, None).unwrap_err();

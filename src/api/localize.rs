@@ -149,7 +149,12 @@ async fn run(
             reference_count,
             params: ParamsUsed::new(&options, result.solution.hidden_cost),
             total_cost: result.solution.total_cost(),
-            hypotheses: result.solution.hypotheses.iter().map(HypothesisDto::from).collect(),
+            hypotheses: result
+                .solution
+                .hypotheses
+                .iter()
+                .map(HypothesisDto::from)
+                .collect(),
             predictions: result.predictions.iter().map(PredictionDto::from).collect(),
             timings,
         };
@@ -175,10 +180,7 @@ fn json_bytes(bytes: Vec<u8>) -> Response {
     r
 }
 
-async fn read(
-    State(state): State<AppState>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let lid = parse_id(&id).ok_or(ApiError::LocalizationNotFound(id))?;
     let store = Arc::clone(&state.store);
     let record = blocking(move || Ok(store.get_localization(lid)?)).await?;
@@ -202,14 +204,18 @@ async fn list(
     let map = q.map.as_deref().map(map_id).transpose()?;
     let limit = q.limit.unwrap_or(DEFAULT_PAGE);
     if limit == 0 || limit > MAX_PAGE {
-        return Err(ApiError::param("limit", format!("must be between 1 and {MAX_PAGE}, got {limit}")));
+        return Err(ApiError::param(
+            "limit",
+            format!("must be between 1 and {MAX_PAGE}, got {limit}"),
+        ));
     }
-    let before = match q.before.as_deref() {
-        None => None,
-        Some(b) => Some(parse_id(b).ok_or_else(|| {
-            ApiError::param("before", format!("`{b}` is not a localization id"))
-        })?),
-    };
+    let before =
+        match q.before.as_deref() {
+            None => None,
+            Some(b) => Some(parse_id(b).ok_or_else(|| {
+                ApiError::param("before", format!("`{b}` is not a localization id"))
+            })?),
+        };
     let store = Arc::clone(&state.store);
     let page = blocking(move || Ok(store.list_localizations(map, before, limit)?)).await?;
     let items = page
@@ -217,7 +223,10 @@ async fn list(
         .iter()
         .map(|r| {
             serde_json::from_slice::<LocalizationResponse>(&r.document).map_err(|e| {
-                ApiError::Internal(format!("stored localization {:016x} is unreadable: {e}", r.id))
+                ApiError::Internal(format!(
+                    "stored localization {:016x} is unreadable: {e}",
+                    r.id
+                ))
             })
         })
         .collect::<Result<Vec<_>, _>>()?;

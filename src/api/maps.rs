@@ -16,8 +16,8 @@ use axum::{Json, Router};
 use serde::Deserialize;
 
 use super::dto::{
-    format_id, parse_id, AppendDescriptorsRequest, AppendResponse, CreateMapRequest,
-    DescriptorDto, ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
+    format_id, parse_id, AppendDescriptorsRequest, AppendResponse, CreateMapRequest, DescriptorDto,
+    ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
 };
 use super::error::ApiError;
 use super::extract::ApiJson;
@@ -62,11 +62,17 @@ fn validate(req: CreateMapRequest) -> Result<NewMap, ApiError> {
     let descriptor = match req.descriptor {
         DescriptorDto::Hog { cell_size, resize } => {
             if cell_size == 0 {
-                return Err(ApiError::param("descriptor.cell_size", "must be at least 1 pixel"));
+                return Err(ApiError::param(
+                    "descriptor.cell_size",
+                    "must be at least 1 pixel",
+                ));
             }
             if let Some([w, h]) = resize {
                 if w == 0 || h == 0 {
-                    return Err(ApiError::param("descriptor.resize", format!("must be positive, got [{w}, {h}]")));
+                    return Err(ApiError::param(
+                        "descriptor.resize",
+                        format!("must be positive, got [{w}, {h}]"),
+                    ));
                 }
             }
             let settings = DescriptorSettings::Hog {
@@ -85,12 +91,10 @@ fn validate(req: CreateMapRequest) -> Result<NewMap, ApiError> {
             }
             DescriptorSettings::Precomputed { dim }
         }
-        DescriptorDto::Cnn { .. } => {
-            return Err(ApiError::param(
-                "descriptor.kind",
-                "`cnn` descriptors are not available in this server build; use `hog` or `precomputed`",
-            ))
-        }
+        DescriptorDto::Cnn { .. } => return Err(ApiError::param(
+            "descriptor.kind",
+            "`cnn` descriptors are not available in this server build; use `hog` or `precomputed`",
+        )),
     };
     Ok(NewMap { name, descriptor })
 }
@@ -145,7 +149,10 @@ fn metadata(json: Option<&[u8]>, count: usize) -> Result<Vec<ImageMeta>, ApiErro
     if entries.len() != count {
         return Err(ApiError::param(
             "metadata",
-            format!("has {} entries for {count} images; send one per image", entries.len()),
+            format!(
+                "has {} entries for {count} images; send one per image",
+                entries.len()
+            ),
         ));
     }
     entries
@@ -164,7 +171,9 @@ async fn store_batch(
     let store = Arc::clone(&state.store);
     let started = std::time::Instant::now();
     let range = blocking(move || Ok(store.append_images(id, &descriptors, &metas)?)).await?;
-    state.metrics.observe_stage("store", started.elapsed().as_secs_f64());
+    state
+        .metrics
+        .observe_stage("store", started.elapsed().as_secs_f64());
     state.metrics.add_images_ingested(range.len() as u64);
     tracing::info!(map = %format_id(id), first = range.start, count = range.len(), "batch stored");
     Ok(AppendResponse {
@@ -202,7 +211,9 @@ async fn append_images(
         .pool
         .run(move || upload::extract(&spec, &batch.images, max_pixels, dim))
         .await?;
-    state.metrics.observe_stage("features", started.elapsed().as_secs_f64());
+    state
+        .metrics
+        .observe_stage("features", started.elapsed().as_secs_f64());
     Ok(Json(store_batch(&state, id, descriptors, metas).await?))
 }
 
@@ -221,7 +232,8 @@ async fn append_descriptors(
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Json<AppendResponse>, ApiError> {
     let id = map_id(&id)?;
-    let body = body.map_err(|r| super::extract::bytes_rejection(r, state.settings.max_body_bytes))?;
+    let body =
+        body.map_err(|r| super::extract::bytes_rejection(r, state.settings.max_body_bytes))?;
     let map = get_map(&state, id).await?;
     let max = state.settings.max_batch_images;
     let content_type = headers
@@ -251,7 +263,12 @@ async fn append_descriptors(
         let dim = match (q.dim, map.dim) {
             (Some(d), _) => d,
             (None, Some(d)) => d,
-            (None, None) => return Err(ApiError::param("dim", "required until the map has descriptors")),
+            (None, None) => {
+                return Err(ApiError::param(
+                    "dim",
+                    "required until the map has descriptors",
+                ))
+            }
         };
         let m = upload::raw_descriptor_matrix(&body, dim, max)?;
         let n = m.rows();

@@ -49,7 +49,11 @@ impl Histogram {
         for (c, b) in self.counts.iter().zip(BUCKETS) {
             let _ = writeln!(out, "{name}_bucket{{{labels}{sep}le=\"{b}\"}} {c}");
         }
-        let _ = writeln!(out, "{name}_bucket{{{labels}{sep}le=\"+Inf\"}} {}", self.count);
+        let _ = writeln!(
+            out,
+            "{name}_bucket{{{labels}{sep}le=\"+Inf\"}} {}",
+            self.count
+        );
         let _ = writeln!(out, "{name}_sum{{{labels}}} {}", self.sum);
         let _ = writeln!(out, "{name}_count{{{labels}}} {}", self.count);
     }
@@ -91,7 +95,11 @@ impl Metrics {
 
     /// Records the duration of one pipeline stage.
     pub fn observe_stage(&self, stage: &'static str, seconds: f64) {
-        self.lock().stages.entry(stage).or_default().observe(seconds);
+        self.lock()
+            .stages
+            .entry(stage)
+            .or_default()
+            .observe(seconds);
     }
 
     /// Counts reference images stored.
@@ -113,7 +121,9 @@ impl Metrics {
     pub fn render(&self) -> String {
         let m = self.lock();
         let mut out = String::new();
-        out.push_str("# HELP seasonloc_http_requests_total HTTP requests by method, route and status.\n");
+        out.push_str(
+            "# HELP seasonloc_http_requests_total HTTP requests by method, route and status.\n",
+        );
         out.push_str("# TYPE seasonloc_http_requests_total counter\n");
         for ((method, route, status), n) in &m.requests {
             let _ = writeln!(
@@ -131,14 +141,33 @@ impl Metrics {
         out.push_str("# HELP seasonloc_stage_duration_seconds Time per pipeline stage.\n");
         out.push_str("# TYPE seasonloc_stage_duration_seconds histogram\n");
         for (stage, h) in &m.stages {
-            h.render(&mut out, "seasonloc_stage_duration_seconds", &format!("stage=\"{stage}\""));
+            h.render(
+                &mut out,
+                "seasonloc_stage_duration_seconds",
+                &format!("stage=\"{stage}\""),
+            );
         }
         for (name, help, v) in [
-            ("seasonloc_images_ingested_total", "Reference images stored.", m.images_ingested),
-            ("seasonloc_queries_localized_total", "Query images localized.", m.queries_localized),
-            ("seasonloc_localize_rejected_total", "Localize requests refused by the full queue.", m.localize_rejected),
+            (
+                "seasonloc_images_ingested_total",
+                "Reference images stored.",
+                m.images_ingested,
+            ),
+            (
+                "seasonloc_queries_localized_total",
+                "Query images localized.",
+                m.queries_localized,
+            ),
+            (
+                "seasonloc_localize_rejected_total",
+                "Localize requests refused by the full queue.",
+                m.localize_rejected,
+            ),
         ] {
-            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+            let _ = writeln!(
+                out,
+                "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
+            );
         }
         out
     }

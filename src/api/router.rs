@@ -51,7 +51,9 @@ pub fn app(state: AppState) -> Router {
     let limits = ServiceBuilder::new()
         .layer(HandleErrorLayer::new(limit_error))
         .load_shed()
-        .layer(tower::limit::GlobalConcurrencyLimitLayer::new(s.max_concurrent_requests))
+        .layer(tower::limit::GlobalConcurrencyLimitLayer::new(
+            s.max_concurrent_requests,
+        ))
         .timeout(timeout);
     let edge = ServiceBuilder::new()
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))

@@ -133,7 +133,10 @@ mod tests {
             .run::<(), _>(|| panic!("boom in solver"))
             .await
             .unwrap_err();
-        assert!(matches!(&err, ApiError::Internal(m) if m.contains("boom in solver")), "{err}");
+        assert!(
+            matches!(&err, ApiError::Internal(m) if m.contains("boom in solver")),
+            "{err}"
+        );
         let err = blocking::<(), _>(|| panic!("store")).await.unwrap_err();
         assert!(matches!(err, ApiError::Internal(_)));
     }

@@ -91,7 +91,9 @@ pub async fn read(
         }
     }
     if upload.images.is_empty() {
-        return Err(ApiError::EmptyBatch("no `image` parts in the request".into()));
+        return Err(ApiError::EmptyBatch(
+            "no `image` parts in the request".into(),
+        ));
     }
     Ok(upload)
 }
@@ -103,7 +105,12 @@ fn dimensions(part: &ImagePart) -> Result<(u32, u32), ApiError> {
         .map_err(|e| invalid(part, e.to_string()))?;
     match reader.format() {
         Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
-        Some(other) => return Err(invalid(part, format!("{other:?} is not supported; send JPEG or PNG"))),
+        Some(other) => {
+            return Err(invalid(
+                part,
+                format!("{other:?} is not supported; send JPEG or PNG"),
+            ))
+        }
         None => return Err(invalid(part, "not a JPEG or PNG image".into())),
     }
     reader
@@ -141,7 +148,9 @@ pub fn extract(
                     limit: max_pixels,
                 });
             }
-            let dim = extractor.dim_for(w, h).map_err(|e| invalid(p, e.to_string()))?;
+            let dim = extractor
+                .dim_for(w, h)
+                .map_err(|e| invalid(p, e.to_string()))?;
             Ok((w, h, dim))
         })
         .collect::<Vec<_>>();
@@ -195,7 +204,9 @@ pub fn descriptor_matrix(
     }
     let dim = expected_dim.map_or(rows[0].len(), |d| d as usize);
     if dim == 0 {
-        return Err(ApiError::DescriptorLength("descriptors must not be empty vectors".into()));
+        return Err(ApiError::DescriptorLength(
+            "descriptors must not be empty vectors".into(),
+        ));
     }
     let mut data = Vec::with_capacity(rows.len() * dim);
     for (i, row) in rows.iter().enumerate() {
@@ -219,11 +230,7 @@ pub fn descriptor_matrix(
 }
 
 /// Parses a raw little-endian `f32` body of `dim`-long rows.
-pub fn raw_descriptor_matrix(
-    body: &[u8],
-    dim: u32,
-    max_rows: usize,
-) -> Result<Matrix, ApiError> {
+pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<Matrix, ApiError> {
     let dim = dim as usize;
     if dim == 0 {
         return Err(ApiError::param("dim", "must be at least 1"));
@@ -273,7 +280,10 @@ mod tests {
         assert!(matches!(e, ApiError::NonFinite(_)), "{e}");
         let e = descriptor_matrix(&[vec![1.0]], Some(2), 10).unwrap_err();
         assert!(matches!(e, ApiError::DescriptorLength(_)), "{e}");
-        assert!(matches!(descriptor_matrix(&[], None, 10), Err(ApiError::EmptyBatch(_))));
+        assert!(matches!(
+            descriptor_matrix(&[], None, 10),
+            Err(ApiError::EmptyBatch(_))
+        ));
         assert!(matches!(
             descriptor_matrix(&[vec![1.0], vec![1.0]], None, 1),
             Err(ApiError::BatchTooLarge { .. })
@@ -282,12 +292,18 @@ mod tests {
 
     #[test]
     fn raw_rows_are_checked() {
-        let bytes: Vec<u8> = [1.0f32, 2.0, 3.0, f32::NAN].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let bytes: Vec<u8> = [1.0f32, 2.0, 3.0, f32::NAN]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
         let e = raw_descriptor_matrix(&bytes, 2, 10).unwrap_err();
         assert!(e.to_string().contains("descriptors[1][1]"), "{e}");
         let m = raw_descriptor_matrix(&bytes[..8], 2, 10).unwrap();
         assert_eq!(m.row(0), &[1.0, 2.0]);
-        assert!(matches!(raw_descriptor_matrix(&bytes[..6], 2, 10), Err(ApiError::DescriptorLength(_))));
+        assert!(matches!(
+            raw_descriptor_matrix(&bytes[..6], 2, 10),
+            Err(ApiError::DescriptorLength(_))
+        ));
     }
 
     #[test]
@@ -306,7 +322,10 @@ mod tests {
             bytes: Bytes::from_static(b"not an image"),
         }];
         let e = extract(&Never, &parts, 100, None).unwrap_err();
-        assert!(matches!(&e, ApiError::InvalidImage { part, .. } if part.contains("x.png")), "{e}");
+        assert!(
+            matches!(&e, ApiError::InvalidImage { part, .. } if part.contains("x.png")),
+            "{e}"
+        );
         let mut png = Vec::new();
         image::DynamicImage::new_luma8(20, 10)
             .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
@@ -316,6 +335,9 @@ mod tests {
             bytes: Bytes::from(png),
         }];
         let e = extract(&Never, &parts, 100, None).unwrap_err();
-        assert!(matches!(e, ApiError::ImageTooLarge { pixels: 200, .. }), "{e}");
+        assert!(
+            matches!(e, ApiError::ImageTooLarge { pixels: 200, .. }),
+            "{e}"
+        );
     }
 }

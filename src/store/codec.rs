@@ -142,7 +142,10 @@ impl<'a> Reader<'a> {
         let mut r = Reader { key, buf };
         let format = r.u8()?;
         if format != FORMAT_V1 {
-            return Err(StoreError::corrupt(key, format!("unknown value format {format}")));
+            return Err(StoreError::corrupt(
+                key,
+                format!("unknown value format {format}"),
+            ));
         }
         Ok(r)
     }
@@ -253,7 +256,12 @@ pub fn decode_map(key: &[u8], value: &[u8]) -> Result<MapRecord, StoreError> {
             DescriptorSettings::Hog { cell_size, resize }
         }
         KIND_PRECOMPUTED => DescriptorSettings::Precomputed { dim: r.u32()? },
-        k => return Err(StoreError::corrupt(key, format!("unknown descriptor kind {k}"))),
+        k => {
+            return Err(StoreError::corrupt(
+                key,
+                format!("unknown descriptor kind {k}"),
+            ))
+        }
     };
     let dim = match r.u8()? {
         0 => None,

@@ -136,9 +136,18 @@ mod tests {
     fn unknown_ids_are_reported() {
         let dir = tempfile::tempdir().unwrap();
         let store = Store::open(dir.path()).unwrap();
-        assert!(matches!(store.get_localization(7), Err(StoreError::LocalizationNotFound(7))));
-        assert!(matches!(store.list_localizations(Some(3), None, 1), Err(StoreError::MapNotFound(3))));
-        assert!(matches!(store.put_localization(1, 3, vec![]), Err(StoreError::MapNotFound(3))));
+        assert!(matches!(
+            store.get_localization(7),
+            Err(StoreError::LocalizationNotFound(7))
+        ));
+        assert!(matches!(
+            store.list_localizations(Some(3), None, 1),
+            Err(StoreError::MapNotFound(3))
+        ));
+        assert!(matches!(
+            store.put_localization(1, 3, vec![]),
+            Err(StoreError::MapNotFound(3))
+        ));
     }
 
     #[test]
@@ -150,6 +159,10 @@ mod tests {
         store.put_localization(id, a, vec![1]).unwrap();
         store.delete_map(a).unwrap();
         assert!(store.get_localization(id).is_err());
-        assert!(store.list_localizations(None, None, 10).unwrap().items.is_empty());
+        assert!(store
+            .list_localizations(None, None, 10)
+            .unwrap()
+            .items
+            .is_empty());
     }
 }

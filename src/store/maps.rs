@@ -151,19 +151,24 @@ impl Store {
             let before = data.len();
             codec::decode_image_into(&k, &v, &mut data)?;
             if data.len() - before != dim {
-                return Err(StoreError::corrupt(&k, "descriptor length differs from the map's"));
+                return Err(StoreError::corrupt(
+                    &k,
+                    "descriptor length differs from the map's",
+                ));
             }
             rows += 1;
         }
         if rows != record.image_count as usize {
             return Err(StoreError::corrupt(
                 &codec::map_key(map),
-                format!("image_count is {} but {rows} images are stored", record.image_count),
+                format!(
+                    "image_count is {} but {rows} images are stored",
+                    record.image_count
+                ),
             ));
         }
-        let matrix = Arc::new(
-            Matrix::from_vec(rows, dim, data).expect("rows * dim values were collected"),
-        );
+        let matrix =
+            Arc::new(Matrix::from_vec(rows, dim, data).expect("rows * dim values were collected"));
         self.cache().insert(map, Arc::clone(&matrix));
         Ok((record, matrix))
     }
@@ -209,7 +214,11 @@ mod tests {
         let store = Store::open(dir.path()).unwrap();
         let map = store.create_map(hog()).unwrap();
         let a = store
-            .append_images(map.id, &rows(2, 3, 0.0), &[ImageMeta::default(), ImageMeta::default()])
+            .append_images(
+                map.id,
+                &rows(2, 3, 0.0),
+                &[ImageMeta::default(), ImageMeta::default()],
+            )
             .unwrap();
         let meta = ImageMeta {
             label: Some("bridge".into()),
@@ -237,9 +246,23 @@ mod tests {
             .append_images(map.id, &rows(1, 3, 0.0), &[ImageMeta::default()])
             .unwrap();
         let err = store
-            .append_images(map.id, &rows(2, 4, 0.0), &[ImageMeta::default(), ImageMeta::default()])
+            .append_images(
+                map.id,
+                &rows(2, 4, 0.0),
+                &[ImageMeta::default(), ImageMeta::default()],
+            )
             .unwrap_err();
-        assert!(matches!(err, StoreError::DimensionMismatch { expected: 3, got: 4, .. }), "{err}");
+        assert!(
+            matches!(
+                err,
+                StoreError::DimensionMismatch {
+                    expected: 3,
+                    got: 4,
+                    ..
+                }
+            ),
+            "{err}"
+        );
         assert_eq!(store.get_map(map.id).unwrap().image_count, 1);
         assert_eq!(store.references(map.id).unwrap().1.rows(), 1);
     }
@@ -269,15 +292,25 @@ mod tests {
             let gone = store.create_map(hog()).unwrap();
             for id in [kept.id, gone.id] {
                 store
-                    .append_images(id, &rows(2, 2, 0.0), &[ImageMeta::default(), ImageMeta::default()])
+                    .append_images(
+                        id,
+                        &rows(2, 2, 0.0),
+                        &[ImageMeta::default(), ImageMeta::default()],
+                    )
                     .unwrap();
             }
             store.delete_map(gone.id).unwrap();
-            assert!(matches!(store.delete_map(gone.id), Err(StoreError::MapNotFound(_))));
+            assert!(matches!(
+                store.delete_map(gone.id),
+                Err(StoreError::MapNotFound(_))
+            ));
             (kept.id, gone.id)
         };
         let store = Store::open(dir.path()).unwrap();
-        assert!(matches!(store.get_map(gone), Err(StoreError::MapNotFound(_))));
+        assert!(matches!(
+            store.get_map(gone),
+            Err(StoreError::MapNotFound(_))
+        ));
         assert_eq!(store.db.scan_prefix(codec::images_prefix(gone)).count(), 0);
         assert_eq!(store.references(kept).unwrap().1.rows(), 2);
         assert_eq!(store.list_maps().unwrap().len(), 1);

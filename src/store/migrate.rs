@@ -42,9 +42,10 @@ pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
     match db.get(codec::SCHEMA_VERSION_KEY)? {
         None => Ok(None),
         Some(v) => {
-            let bytes: [u8; 4] = v.as_ref().try_into().map_err(|_| {
-                StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "expected 4 bytes")
-            })?;
+            let bytes: [u8; 4] = v
+                .as_ref()
+                .try_into()
+                .map_err(|_| StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "expected 4 bytes"))?;
             Ok(Some(u32::from_be_bytes(bytes)))
         }
     }
@@ -77,7 +78,11 @@ pub fn migrate(db: &sled::Db) -> StoreResult<u32> {
         batch.insert(codec::SCHEMA_VERSION_KEY, &step.version.to_be_bytes());
         db.apply_batch(batch)?;
         db.flush()?;
-        tracing::info!(version = step.version, file = step.file, "store layout upgraded");
+        tracing::info!(
+            version = step.version,
+            file = step.file,
+            "store layout upgraded"
+        );
     }
     Ok(found)
 }
@@ -98,16 +103,18 @@ fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::{
-        DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, Store,
-    };
+    use crate::store::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, Store};
 
     #[test]
     fn steps_are_consecutive_and_documented() {
         for (k, m) in MIGRATIONS.iter().enumerate() {
             assert_eq!(m.version as usize, k + 1);
             assert!(m.file.starts_with(&format!("{:04}_", m.version)));
-            assert!(m.doc.starts_with(&format!("# {:04}", m.version)), "{}", m.file);
+            assert!(
+                m.doc.starts_with(&format!("# {:04}", m.version)),
+                "{}",
+                m.file
+            );
         }
         assert_eq!(MIGRATIONS.last().map(|m| m.version), Some(CURRENT_VERSION));
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("migrations");
@@ -127,7 +134,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (map_id, locs) = {
             let db = sled::open(dir.path()).unwrap();
-            db.insert(codec::SCHEMA_VERSION_KEY, &1u32.to_be_bytes()).unwrap();
+            db.insert(codec::SCHEMA_VERSION_KEY, &1u32.to_be_bytes())
+                .unwrap();
             let map = MapRecord {
                 id: 5,
                 name: "old".into(),
@@ -136,7 +144,8 @@ mod tests {
                 image_count: 2,
                 created_ms: 1,
             };
-            db.insert(codec::map_key(5), codec::encode_map(&map)).unwrap();
+            db.insert(codec::map_key(5), codec::encode_map(&map))
+                .unwrap();
             for i in 0..2u32 {
                 let v = codec::encode_image(&[i as f32, 1.0], &ImageMeta::default());
                 db.insert(codec::image_key(5, i), v).unwrap();
@@ -149,8 +158,11 @@ mod tests {
                     created_ms: id,
                     document: vec![id as u8],
                 };
-                db.insert(codec::localization_key(id), codec::encode_localization(&rec))
-                    .unwrap();
+                db.insert(
+                    codec::localization_key(id),
+                    codec::encode_localization(&rec),
+                )
+                .unwrap();
                 locs.push(id);
             }
             db.flush().unwrap();
@@ -173,7 +185,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         {
             let db = sled::open(dir.path()).unwrap();
-            db.insert(codec::SCHEMA_VERSION_KEY, &99u32.to_be_bytes()).unwrap();
+            db.insert(codec::SCHEMA_VERSION_KEY, &99u32.to_be_bytes())
+                .unwrap();
             db.flush().unwrap();
         }
         assert!(matches!(

@@ -65,7 +65,9 @@ pub enum StoreError {
     #[error("localization {0:016x} does not exist")]
     LocalizationNotFound(u64),
     /// Descriptors of a batch do not have the map's descriptor length.
-    #[error("descriptors have length {got}, map {map:016x} stores descriptors of length {expected}")]
+    #[error(
+        "descriptors have length {got}, map {map:016x} stores descriptors of length {expected}"
+    )]
     DimensionMismatch {
         /// The map.
         map: u64,

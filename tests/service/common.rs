@@ -121,7 +121,10 @@ impl Process {
             if let Ok(Some(status)) = child.try_wait() {
                 panic!("seasonloc serve exited with {status} before listening:\n{text}");
             }
-            assert!(Instant::now() < deadline, "no 'listening on' line in:\n{text}");
+            assert!(
+                Instant::now() < deadline,
+                "no 'listening on' line in:\n{text}"
+            );
             std::thread::sleep(Duration::from_millis(20));
         }
     }
@@ -156,10 +159,7 @@ impl Drop for Process {
 /// The address in the "listening on http://ADDR" log line.
 pub fn listening_addr(log: &str) -> Option<SocketAddr> {
     let rest = log.split("listening on http://").nth(1)?;
-    let addr: String = rest
-        .chars()
-        .take_while(|c| !c.is_whitespace())
-        .collect();
+    let addr: String = rest.chars().take_while(|c| !c.is_whitespace()).collect();
     // Strip ANSI colour codes that a terminal-aware logger might add.
     let addr = addr.split('\u{1b}').next()?;
     addr.parse().ok()
@@ -170,10 +170,15 @@ pub struct Lcg(u64);
 
 impl Lcg {
     pub fn new(seed: u64) -> Self {
-        Lcg(seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407))
+        Lcg(seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407))
     }
     pub fn next(&mut self) -> u32 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (self.0 >> 33) as u32
     }
     pub fn below(&mut self, n: u32) -> u32 {
@@ -255,18 +260,21 @@ pub fn png(img: &image::GrayImage) -> Vec<u8> {
     out
 }
 
-/// `../shared/data/nordland_64x32` beside the repository, if present.
+/// `../shared/data/nordland_64x32` beside the repository (as in CI), or `../../shared/...`
+/// (a git worktree one level further down), if present.
 pub fn nordland() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
-    if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "SKIPPED: Nordland data not found at {} (CI clones shared/ beside the repo)",
-            dir.display()
-        );
-        None
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for shared in ["../shared", "../../shared"] {
+        let dir = root.join(shared).join("data/nordland_64x32");
+        if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
+            return Some(dir);
+        }
     }
+    eprintln!(
+        "SKIPPED: Nordland data not found at {} (CI clones shared/ beside the repo)",
+        root.join("../shared/data/nordland_64x32").display()
+    );
+    None
 }
 
 /// File names of a Nordland season folder, sorted (= route order).

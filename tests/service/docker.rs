@@ -24,7 +24,8 @@ fn json_array(s: &str) -> Vec<String> {
 
 /// Parses the last stage of the Dockerfile (continuation lines joined).
 fn runtime_stage() -> Runtime {
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("Dockerfile")).unwrap();
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("Dockerfile")).unwrap();
     let joined = text.replace("\\\n", " ");
     let lines: Vec<&str> = joined
         .lines()
@@ -72,19 +73,31 @@ fn runtime_stage_is_small_non_root_and_consistent() {
     assert!(rt.user != "root" && rt.user != "0", "runs as root");
     let addr = &rt.env["SEASONLOC_ADDR"];
     let port = addr.rsplit(':').next().unwrap();
-    assert!(addr.starts_with("0.0.0.0:"), "must listen on all interfaces in a container: {addr}");
+    assert!(
+        addr.starts_with("0.0.0.0:"),
+        "must listen on all interfaces in a container: {addr}"
+    );
     assert_eq!(rt.expose, vec![port.to_string()]);
     assert_eq!(rt.volumes, vec![rt.env["SEASONLOC_DATA_DIR"].clone()]);
     assert_eq!(rt.entrypoint, vec!["seasonloc"]);
     assert_eq!(rt.cmd, vec!["serve"]);
     assert!(rt.healthcheck.join(" ").contains("/healthz"));
-    let ignore = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(".dockerignore")).unwrap();
-    assert!(ignore.lines().any(|l| l.trim() == "target/"), "target/ must not be sent to the build");
+    let ignore =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(".dockerignore"))
+            .unwrap();
+    assert!(
+        ignore.lines().any(|l| l.trim() == "target/"),
+        "target/ must not be sent to the build"
+    );
 }
 
 #[test]
 fn healthcheck_command_passes_against_the_image_environment() {
-    if std::process::Command::new("bash").arg("--version").output().is_err() {
+    if std::process::Command::new("bash")
+        .arg("--version")
+        .output()
+        .is_err()
+    {
         eprintln!("SKIPPED: bash not found (the runtime image has it)");
         return;
     }
@@ -95,7 +108,11 @@ fn healthcheck_command_passes_against_the_image_environment() {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         l.local_addr().unwrap().port()
     };
-    let image_port = rt.env["SEASONLOC_ADDR"].rsplit(':').next().unwrap().to_string();
+    let image_port = rt.env["SEASONLOC_ADDR"]
+        .rsplit(':')
+        .next()
+        .unwrap()
+        .to_string();
     let addr = rt.env["SEASONLOC_ADDR"].replace(&format!(":{image_port}"), &format!(":{port}"));
     let data = tmp.path().join("data");
     let data_s = data.to_string_lossy().into_owned();
@@ -114,11 +131,17 @@ fn healthcheck_command_passes_against_the_image_environment() {
         .iter()
         .map(|a| a.replace(&format!("/{image_port}"), &format!("/{port}")))
         .collect();
-    let status = std::process::Command::new(&cmd[0]).args(&cmd[1..]).status().unwrap();
+    let status = std::process::Command::new(&cmd[0])
+        .args(&cmd[1..])
+        .status()
+        .unwrap();
     assert!(status.success(), "HEALTHCHECK failed: {cmd:?}");
     assert!(p.terminate());
     // And it fails when nothing listens.
-    let status = std::process::Command::new(&cmd[0]).args(&cmd[1..]).status().unwrap();
+    let status = std::process::Command::new(&cmd[0])
+        .args(&cmd[1..])
+        .status()
+        .unwrap();
     assert!(!status.success(), "HEALTHCHECK passes with the server down");
     assert!(data.is_dir());
 }

@@ -41,7 +41,10 @@ fn restart_keeps_everything_acknowledged() {
     let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &parts);
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let vectors = create_vector_map(&c, "vectors", 2);
-    let r = c.post_json(&format!("/v1/maps/{vectors}/descriptors"), &json!({"descriptors": [[1, 2], [3, 4]]}));
+    let r = c.post_json(
+        &format!("/v1/maps/{vectors}/descriptors"),
+        &json!({"descriptors": [[1, 2], [3, 4]]}),
+    );
     assert_eq!(r.status, 200);
     let queries: Vec<Part> = (4..12)
         .map(|i| Part::image(&format!("q{i}.png"), route.query_png(i)))
@@ -50,7 +53,10 @@ fn restart_keeps_everything_acknowledged() {
     assert_eq!(loc.status, 200, "{}", String::from_utf8_lossy(&loc.body));
     let loc = loc.json();
     let before_maps = c.get("/v1/maps").json();
-    assert!(p.terminate(), "seasonloc serve did not exit cleanly on SIGTERM");
+    assert!(
+        p.terminate(),
+        "seasonloc serve did not exit cleanly on SIGTERM"
+    );
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(text.contains("store flushed"), "{text}");
 
@@ -60,7 +66,9 @@ fn restart_keeps_everything_acknowledged() {
     let id = loc["id"].as_str().unwrap();
     assert_eq!(c.get(&format!("/v1/localizations/{id}")).json(), loc);
     // New ids keep increasing after a restart, so listings stay newest first.
-    let again = c.post_multipart(&format!("/v1/maps/{map}/localize"), &queries).json();
+    let again = c
+        .post_multipart(&format!("/v1/maps/{map}/localize"), &queries)
+        .json();
     assert!(again["id"].as_str().unwrap() > id);
     let list = c.get(&format!("/v1/localizations?map={map}")).json();
     assert_eq!(list["items"][0]["id"], again["id"]);
@@ -92,7 +100,12 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
                     let n = 1 + (b * 7) % 13;
                     let rows: Vec<Vec<f32>> = (0..n).map(|k| row(b, k, n)).collect();
                     let body = serde_json::to_vec(&json!({"descriptors": rows})).unwrap();
-                    match c.try_request("POST", &format!("/v1/maps/{map}/descriptors"), Some("application/json"), &body) {
+                    match c.try_request(
+                        "POST",
+                        &format!("/v1/maps/{map}/descriptors"),
+                        Some("application/json"),
+                        &body,
+                    ) {
                         Ok(r) if r.status == 200 => acked.lock().unwrap().push((b, n)),
                         Ok(r) => panic!("upload failed: {}", String::from_utf8_lossy(&r.body)),
                         Err(_) => break, // the server was killed mid-request
@@ -106,13 +119,22 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
         stop.store(true, Ordering::SeqCst);
     });
     let acked = acked.into_inner().unwrap();
-    assert!(acked.len() >= 3, "too few uploads before the kill: {}", acked.len());
+    assert!(
+        acked.len() >= 3,
+        "too few uploads before the kill: {}",
+        acked.len()
+    );
 
     // Restart the binary: it comes up on the same folder and reports at least every acked row.
     let p = start(&data, &log);
-    let count = p.client.get(&format!("/v1/maps/{map}")).json()["image_count"].as_u64().unwrap() as usize;
+    let count = p.client.get(&format!("/v1/maps/{map}")).json()["image_count"]
+        .as_u64()
+        .unwrap() as usize;
     let acked_rows: usize = acked.iter().map(|(_, n)| n).sum();
-    assert!(count >= acked_rows, "{count} rows stored, {acked_rows} acknowledged");
+    assert!(
+        count >= acked_rows,
+        "{count} rows stored, {acked_rows} acknowledged"
+    );
     assert!(p.terminate());
 
     // Inspect the store: rows form whole batches, and every acknowledged batch is there.
@@ -125,7 +147,11 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
         let (b, n) = (m.get(i, 0) as usize - 1, m.get(i, 2) as usize);
         for k in 0..n {
             assert!(i + k < m.rows(), "batch {b} is cut off at the end");
-            assert_eq!(m.row(i + k), row(b, k, n).as_slice(), "batch {b} is half-written");
+            assert_eq!(
+                m.row(i + k),
+                row(b, k, n).as_slice(),
+                "batch {b} is half-written"
+            );
         }
         seen.insert(b, n);
         i += n;
@@ -142,18 +168,31 @@ fn environment_configures_and_flags_win() {
     let flag_dir = tmp.path().join("from-flag");
     let log = tmp.path().join("serve.log");
     let env_dir_s = env_dir.to_string_lossy().into_owned();
-    let p = Process::start(&[], &[("SEASONLOC_ADDR", "127.0.0.1:0"), ("SEASONLOC_DATA_DIR", &env_dir_s)], &log);
+    let p = Process::start(
+        &[],
+        &[
+            ("SEASONLOC_ADDR", "127.0.0.1:0"),
+            ("SEASONLOC_DATA_DIR", &env_dir_s),
+        ],
+        &log,
+    );
     assert_eq!(p.client.get("/healthz").status, 200);
     assert!(p.terminate());
     assert!(env_dir.is_dir(), "SEASONLOC_DATA_DIR was not used");
     let flag = flag_dir.to_string_lossy().into_owned();
     let p = Process::start(
         &["--data-dir", &flag],
-        &[("SEASONLOC_ADDR", "127.0.0.1:0"), ("SEASONLOC_DATA_DIR", &env_dir_s)],
+        &[
+            ("SEASONLOC_ADDR", "127.0.0.1:0"),
+            ("SEASONLOC_DATA_DIR", &env_dir_s),
+        ],
         &log,
     );
     assert!(p.terminate());
-    assert!(flag_dir.is_dir(), "--data-dir did not win over SEASONLOC_DATA_DIR");
+    assert!(
+        flag_dir.is_dir(),
+        "--data-dir did not win over SEASONLOC_DATA_DIR"
+    );
     // Exactly one line announces the address.
     let text = std::fs::read_to_string(&log).unwrap();
     assert_eq!(text.matches("listening on http://").count(), 1, "{text}");

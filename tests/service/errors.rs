@@ -18,7 +18,9 @@ fn strict_server() -> Server {
 }
 
 fn image_count(c: &Client, map: &str) -> u64 {
-    c.get(&format!("/v1/maps/{map}")).json()["image_count"].as_u64().unwrap()
+    c.get(&format!("/v1/maps/{map}")).json()["image_count"]
+        .as_u64()
+        .unwrap()
 }
 
 fn expect(r: &crate::http::Response, method: &str, template: &str, status: u16, code: &str) {
@@ -36,18 +38,45 @@ fn unknown_ids_are_404() {
     let server = strict_server();
     let c = server.client;
     for id in ["ffffffffffffffff", "not-an-id"] {
-        expect(&c.get(&format!("/v1/maps/{id}")), "get", "/v1/maps/{id}", 404, "map_not_found");
-        expect(&c.delete(&format!("/v1/maps/{id}")), "delete", "/v1/maps/{id}", 404, "map_not_found");
-        let r = c.post_multipart(&format!("/v1/maps/{id}/images"), &[Part::image("a.png", vec![1])]);
+        expect(
+            &c.get(&format!("/v1/maps/{id}")),
+            "get",
+            "/v1/maps/{id}",
+            404,
+            "map_not_found",
+        );
+        expect(
+            &c.delete(&format!("/v1/maps/{id}")),
+            "delete",
+            "/v1/maps/{id}",
+            404,
+            "map_not_found",
+        );
+        let r = c.post_multipart(
+            &format!("/v1/maps/{id}/images"),
+            &[Part::image("a.png", vec![1])],
+        );
         expect(&r, "post", "/v1/maps/{id}/images", 404, "map_not_found");
-        let r = c.post_json(&format!("/v1/maps/{id}/localize"), &json!({"descriptors": [[1.0]]}));
+        let r = c.post_json(
+            &format!("/v1/maps/{id}/localize"),
+            &json!({"descriptors": [[1.0]]}),
+        );
         expect(&r, "post", "/v1/maps/{id}/localize", 404, "map_not_found");
         let r = c.get(&format!("/v1/localizations/{id}"));
-        expect(&r, "get", "/v1/localizations/{id}", 404, "localization_not_found");
+        expect(
+            &r,
+            "get",
+            "/v1/localizations/{id}",
+            404,
+            "localization_not_found",
+        );
         let r = c.get(&format!("/v1/localizations?map={id}"));
         expect(&r, "get", "/v1/localizations", 404, "map_not_found");
     }
-    assert!(c.get("/v1/maps/ffffffffffffffff").message().contains("ffffffffffffffff"));
+    assert!(c
+        .get("/v1/maps/ffffffffffffffff")
+        .message()
+        .contains("ffffffffffffffff"));
 }
 
 #[test]
@@ -56,11 +85,23 @@ fn bad_map_settings_are_400() {
     let c = server.client;
     let cases = [
         (json!({"name": "", "descriptor": {"kind": "hog"}}), "name"),
-        (json!({"name": "a", "descriptor": {"kind": "hog", "cell_size": 0}}), "cell_size"),
-        (json!({"name": "a", "descriptor": {"kind": "hog", "cel_size": 8}}), "cel_size"),
+        (
+            json!({"name": "a", "descriptor": {"kind": "hog", "cell_size": 0}}),
+            "cell_size",
+        ),
+        (
+            json!({"name": "a", "descriptor": {"kind": "hog", "cel_size": 8}}),
+            "cel_size",
+        ),
         (json!({"name": "a", "descriptor": {"kind": "sift"}}), "sift"),
-        (json!({"name": "a", "descriptor": {"kind": "cnn", "model": "m.onnx", "layer": "x"}}), "cnn"),
-        (json!({"name": "a", "descriptor": {"kind": "precomputed", "dim": 0}}), "dim"),
+        (
+            json!({"name": "a", "descriptor": {"kind": "cnn", "model": "m.onnx", "layer": "x"}}),
+            "cnn",
+        ),
+        (
+            json!({"name": "a", "descriptor": {"kind": "precomputed", "dim": 0}}),
+            "dim",
+        ),
         (json!({"name": "a", "colour": "red"}), "colour"),
     ];
     for (body, needle) in cases {
@@ -72,7 +113,10 @@ fn bad_map_settings_are_400() {
     expect(&r, "post", "/v1/maps", 400, "bad_request");
     let r = c.request("POST", "/v1/maps", Some("text/plain"), b"{}");
     expect(&r, "post", "/v1/maps", 415, "unsupported_media_type");
-    assert!(c.get("/v1/maps").json()["maps"].as_array().unwrap().is_empty());
+    assert!(c.get("/v1/maps").json()["maps"]
+        .as_array()
+        .unwrap()
+        .is_empty());
 }
 
 #[test]
@@ -88,9 +132,19 @@ fn bad_image_batches_are_rejected_whole() {
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
 
     // Corrupt (not an image) and truncated PNG, each naming its part.
-    let r = c.post_multipart(&path, &[good(1), Part::image("bad.png", b"definitely not a png".to_vec())]);
+    let r = c.post_multipart(
+        &path,
+        &[
+            good(1),
+            Part::image("bad.png", b"definitely not a png".to_vec()),
+        ],
+    );
     expect(&r, "post", t, 422, "invalid_image");
-    assert!(r.message().contains("image[1]") && r.message().contains("bad.png"), "{}", r.message());
+    assert!(
+        r.message().contains("image[1]") && r.message().contains("bad.png"),
+        "{}",
+        r.message()
+    );
     let mut truncated = route.reference_png(2);
     truncated.truncate(truncated.len() / 2);
     let r = c.post_multipart(&path, &[Part::image("cut.png", truncated), good(3)]);
@@ -101,7 +155,11 @@ fn bad_image_batches_are_rejected_whole() {
     let big = png(&image::GrayImage::new(65, 32));
     let r = c.post_multipart(&path, &[good(1), Part::image("big.png", big)]);
     expect(&r, "post", t, 413, "image_too_large");
-    assert!(r.message().contains("big.png") && r.message().contains("65x32"), "{}", r.message());
+    assert!(
+        r.message().contains("big.png") && r.message().contains("65x32"),
+        "{}",
+        r.message()
+    );
 
     // A different size than the map's images.
     let small = png(&image::GrayImage::new(32, 32));
@@ -120,10 +178,23 @@ fn bad_image_batches_are_rejected_whole() {
     let r = c.post_multipart(&path, &[good(1), Part::json("photo", &json!(1))]);
     expect(&r, "post", t, 400, "bad_request");
     assert!(r.message().contains("photo"));
-    let r = c.post_multipart(&path, &[good(1), Part::json("metadata", &json!([{"latitude": 123.0}]))]);
+    let r = c.post_multipart(
+        &path,
+        &[
+            good(1),
+            Part::json("metadata", &json!([{"latitude": 123.0}])),
+        ],
+    );
     expect(&r, "post", t, 400, "invalid_parameter");
-    assert!(r.message().contains("metadata[0].latitude"), "{}", r.message());
-    let r = c.post_multipart(&path, &[good(1), good(2), Part::json("metadata", &json!([{}]))]);
+    assert!(
+        r.message().contains("metadata[0].latitude"),
+        "{}",
+        r.message()
+    );
+    let r = c.post_multipart(
+        &path,
+        &[good(1), good(2), Part::json("metadata", &json!([{}]))],
+    );
     expect(&r, "post", t, 400, "invalid_parameter");
 
     // Over the body limit.
@@ -150,7 +221,10 @@ fn bad_descriptors_are_rejected_whole() {
     assert!(r.message().contains("descriptors[1]"), "{}", r.message());
     let r = c.post_json(&path, &json!({"descriptors": [[1, 2, 1e39]]}));
     expect(&r, "post", t, 422, "non_finite");
-    let nan: Vec<u8> = [1.0f32, f32::NAN, 3.0].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let nan: Vec<u8> = [1.0f32, f32::NAN, 3.0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
     let r = c.request("POST", &path, Some("application/octet-stream"), &nan);
     expect(&r, "post", t, 422, "non_finite");
     assert!(r.message().contains("descriptors[0][1]"), "{}", r.message());
@@ -164,12 +238,18 @@ fn bad_descriptors_are_rejected_whole() {
     expect(&r, "post", t, 400, "invalid_parameter");
     let r = c.request("POST", &path, Some("text/csv"), b"1,2,3");
     expect(&r, "post", t, 415, "unsupported_media_type");
-    let long = format!("{{\"descriptors\": [[{}]]}}", vec!["1.0"; MAX_BODY / 3].join(","));
+    let long = format!(
+        "{{\"descriptors\": [[{}]]}}",
+        vec!["1.0"; MAX_BODY / 3].join(",")
+    );
     let r = c.request("POST", &path, Some("application/json"), long.as_bytes());
     expect(&r, "post", t, 413, "payload_too_large");
     assert_eq!(image_count(&c, &map), 0, "a failed batch wrote something");
     // Images to a precomputed map.
-    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &[Part::image("a.png", vec![1, 2])]);
+    let r = c.post_multipart(
+        &format!("/v1/maps/{map}/images"),
+        &[Part::image("a.png", vec![1, 2])],
+    );
     expect(&r, "post", "/v1/maps/{id}/images", 400, "bad_request");
 }
 
@@ -182,7 +262,10 @@ fn bad_localize_requests_are_rejected() {
     let t = "/v1/maps/{id}/localize";
     let r = c.post_json(&path, &json!({"descriptors": [[1, 0]]}));
     expect(&r, "post", t, 409, "map_empty");
-    let r = c.post_json(&format!("/v1/maps/{map}/descriptors"), &json!({"descriptors": [[1, 0], [0, 1], [1, 1]]}));
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({"descriptors": [[1, 0], [0, 1], [1, 1]]}),
+    );
     assert_eq!(r.status, 200);
     let cases = [
         (json!({"fanout": 3}), "fanout"),
@@ -199,7 +282,10 @@ fn bad_localize_requests_are_rejected() {
         expect(&r, "post", t, 400, "invalid_parameter");
         assert!(r.message().contains(needle), "{params}: {}", r.message());
         // The same through the multipart `params` part.
-        let r = c.post_multipart(&path, &[Part::image("q.png", vec![1]), Part::json("params", &params)]);
+        let r = c.post_multipart(
+            &path,
+            &[Part::image("q.png", vec![1]), Part::json("params", &params)],
+        );
         expect(&r, "post", t, 400, "invalid_parameter");
     }
     let r = c.post_json(&path, &json!({"descriptors": [[1, 0, 0]]}));
@@ -217,7 +303,11 @@ fn bad_localize_requests_are_rejected() {
     let r = c.get("/v1/localizations?before=xyz");
     expect(&r, "get", "/v1/localizations", 400, "invalid_parameter");
     let r = c.get("/v1/localizations");
-    assert_eq!(r.json()["items"].as_array().unwrap().len(), 0, "a failed localization was stored");
+    assert_eq!(
+        r.json()["items"].as_array().unwrap().len(),
+        0,
+        "a failed localization was stored"
+    );
 }
 
 #[test]
@@ -226,9 +316,16 @@ fn full_localize_queue_answers_503_with_retry_after() {
     let c = server.client;
     let map = create_vector_map(&c, "queue", 16);
     let refs: Vec<Vec<f32>> = (0..1500)
-        .map(|i| (0..16).map(|k| ((i * 7 + k * 13) % 17) as f32 + 1.0).collect())
+        .map(|i| {
+            (0..16)
+                .map(|k| ((i * 7 + k * 13) % 17) as f32 + 1.0)
+                .collect()
+        })
         .collect();
-    let r = c.post_json(&format!("/v1/maps/{map}/descriptors"), &json!({"descriptors": refs}));
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({"descriptors": refs}),
+    );
     assert_eq!(r.status, 200);
     let body = serde_json::to_vec(&json!({"descriptors": &refs[..400]})).unwrap();
     let path = format!("/v1/maps/{map}/localize");
@@ -240,14 +337,21 @@ fn full_localize_queue_answers_503_with_retry_after() {
             handles.into_iter().map(|h| h.join().unwrap()).collect()
         });
         for r in &results {
-            assert!(r.status == 200 || r.status == 503, "{}", String::from_utf8_lossy(&r.body));
+            assert!(
+                r.status == 200 || r.status == 503,
+                "{}",
+                String::from_utf8_lossy(&r.body)
+            );
             check("post", "/v1/maps/{id}/localize", r);
         }
         if let Some(busy) = results.iter().find(|r| r.status == 503) {
             assert_eq!(busy.code(), "queue_full");
             assert_eq!(busy.header("retry-after"), Some("1"));
             let metrics = String::from_utf8(c.get("/metrics").body).unwrap();
-            assert!(!metrics.contains("seasonloc_localize_rejected_total 0"), "{metrics}");
+            assert!(
+                !metrics.contains("seasonloc_localize_rejected_total 0"),
+                "{metrics}"
+            );
             return;
         }
     }

@@ -14,8 +14,17 @@ use crate::http::{Client, Part};
 use crate::spec::check;
 
 /// The library's answer for the same encoded images and options.
-fn library(refs: &[Vec<u8>], queries: &[Vec<u8>], cell_size: u32, options: &LocalizeOptions) -> seasonloc::localize::Localization {
-    let spec = HogSpec::new(HogOptions { cell_size, resize: None }).unwrap();
+fn library(
+    refs: &[Vec<u8>],
+    queries: &[Vec<u8>],
+    cell_size: u32,
+    options: &LocalizeOptions,
+) -> seasonloc::localize::Localization {
+    let spec = HogSpec::new(HogOptions {
+        cell_size,
+        resize: None,
+    })
+    .unwrap();
     let decode = |set: &[Vec<u8>]| {
         let images: Vec<_> = set
             .iter()
@@ -54,7 +63,10 @@ fn assert_same_as_library(http: &Value, lib: &seasonloc::localize::Localization)
             assert_eq!(refs, lrefs);
         }
     }
-    assert_eq!(http["params"]["hidden_cost"].as_f64().unwrap(), lib.solution.hidden_cost);
+    assert_eq!(
+        http["params"]["hidden_cost"].as_f64().unwrap(),
+        lib.solution.hidden_cost
+    );
 }
 
 fn upload(c: &Client, map: &str, images: &[(String, Vec<u8>)], metadata: Option<Value>) -> Value {
@@ -110,9 +122,14 @@ fn generated_route_end_to_end() {
     assert_eq!(r.json()["image_count"], 60);
     let r = c.get("/v1/maps");
     check("get", "/v1/maps", &r);
-    assert!(r.json()["maps"].as_array().unwrap().iter().any(|m| m["id"] == map.as_str()));
+    assert!(r.json()["maps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|m| m["id"] == map.as_str()));
 
-    let params = json!({"fan_out": 4, "hidden_cost": 1.3, "flows": 2, "exact": false, "horizontal": true});
+    let params =
+        json!({"fan_out": 4, "hidden_cost": 1.3, "flows": 2, "exact": false, "horizontal": true});
     let result = run_localize(&c, &map, &queries, &params);
     assert_eq!(result["query_count"], 30);
     assert_eq!(result["reference_count"], 60);
@@ -125,7 +142,11 @@ fn generated_route_end_to_end() {
             (p["ref"].as_i64().unwrap() - q).abs() <= 1
         })
         .count();
-    assert!(correct * 10 >= queries.len() * 8, "only {correct} of {} queries localized", queries.len());
+    assert!(
+        correct * 10 >= queries.len() * 8,
+        "only {correct} of {} queries localized",
+        queries.len()
+    );
 
     let options = LocalizeOptions {
         solver: SolverParams {
@@ -154,16 +175,32 @@ fn generated_route_end_to_end() {
     let page = list.json();
     assert_eq!(page["items"][0]["id"], again["id"]);
     let next = page["next"].as_str().unwrap();
-    let page2 = c.get(&format!("/v1/localizations?map={map}&limit=1&before={next}")).json();
+    let page2 = c
+        .get(&format!(
+            "/v1/localizations?map={map}&limit=1&before={next}"
+        ))
+        .json();
     assert_eq!(page2["items"][0]["id"], result["id"]);
     assert_eq!(page2["next"], Value::Null);
 
     // Metrics saw the work.
     let metrics = String::from_utf8(c.get("/metrics").body).unwrap();
-    assert!(metrics.contains("seasonloc_images_ingested_total 60"), "{metrics}");
-    assert!(metrics.contains("seasonloc_queries_localized_total 40"), "{metrics}");
-    assert!(metrics.contains("route=\"/v1/maps/{id}/localize\",status=\"200\"} 2"), "{metrics}");
-    assert!(metrics.contains("seasonloc_stage_duration_seconds_count{stage=\"solve\"} 2"), "{metrics}");
+    assert!(
+        metrics.contains("seasonloc_images_ingested_total 60"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("seasonloc_queries_localized_total 40"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("route=\"/v1/maps/{id}/localize\",status=\"200\"} 2"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("seasonloc_stage_duration_seconds_count{stage=\"solve\"} 2"),
+        "{metrics}"
+    );
 
     // Deleting the map deletes its results.
     let r = c.delete(&format!("/v1/maps/{map}"));
@@ -178,7 +215,10 @@ fn generated_route_end_to_end() {
 fn precomputed_descriptors_end_to_end() {
     let server = Server::start();
     let c = server.client;
-    let r = c.post_json("/v1/maps", &json!({"name": "own", "descriptor": {"kind": "precomputed", "dim": 3}}));
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "own", "descriptor": {"kind": "precomputed", "dim": 3}}),
+    );
     check("post", "/v1/maps", &r);
     let map = r.json()["id"].as_str().unwrap().to_string();
     // A route whose descriptors rotate slowly; queries are noisy copies of references 4..12.
@@ -187,7 +227,10 @@ fn precomputed_descriptors_end_to_end() {
         vec![a.cos() + noise, a.sin() - noise, 0.5 + 0.1 * (i % 3) as f64]
     };
     let refs: Vec<Vec<f64>> = (0..20).map(|i| desc(i, 0.0)).collect();
-    let r = c.post_json(&format!("/v1/maps/{map}/descriptors"), &json!({"descriptors": refs[..12]}));
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({"descriptors": refs[..12]}),
+    );
     check("post", "/v1/maps/{id}/descriptors", &r);
     assert_eq!(r.json()["image_count"], 12);
     let raw: Vec<u8> = refs[12..]
@@ -195,23 +238,37 @@ fn precomputed_descriptors_end_to_end() {
         .flatten()
         .flat_map(|v| (*v as f32).to_le_bytes())
         .collect();
-    let r = c.request("POST", &format!("/v1/maps/{map}/descriptors"), Some("application/octet-stream"), &raw);
+    let r = c.request(
+        "POST",
+        &format!("/v1/maps/{map}/descriptors"),
+        Some("application/octet-stream"),
+        &raw,
+    );
     check("post", "/v1/maps/{id}/descriptors", &r);
     assert_eq!(r.json()["indices"], json!((12..20).collect::<Vec<u32>>()));
 
     let queries: Vec<Vec<f64>> = (4..12).map(|i| desc(i, 0.01)).collect();
     let params = json!({"fan_out": 3, "hidden_cost": "auto", "normalize": false});
-    let r = c.post_json(&format!("/v1/maps/{map}/localize"), &json!({"descriptors": queries, "params": params}));
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/localize"),
+        &json!({"descriptors": queries, "params": params}),
+    );
     check("post", "/v1/maps/{id}/localize", &r);
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let http = r.json();
 
     let to_matrix = |rows: &[Vec<f64>]| {
-        let f: Vec<Vec<f32>> = rows.iter().map(|r| r.iter().map(|v| *v as f32).collect()).collect();
+        let f: Vec<Vec<f32>> = rows
+            .iter()
+            .map(|r| r.iter().map(|v| *v as f32).collect())
+            .collect();
         seasonloc::Matrix::from_rows(&f).unwrap()
     };
     let options = LocalizeOptions {
-        solver: SolverParams { fan_out: 3, ..SolverParams::default() },
+        solver: SolverParams {
+            fan_out: 3,
+            ..SolverParams::default()
+        },
         normalize: false,
     };
     let lib = localize(&to_matrix(&queries), &to_matrix(&refs), &options).unwrap();
@@ -226,7 +283,12 @@ fn nordland_end_to_end() {
     let read = |files: &[std::path::PathBuf]| -> Vec<(String, Vec<u8>)> {
         files
             .iter()
-            .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(p).unwrap()))
+            .map(|p| {
+                (
+                    p.file_name().unwrap().to_string_lossy().into_owned(),
+                    std::fs::read(p).unwrap(),
+                )
+            })
             .collect()
     };
     // References 100..400 in two batches; queries: winter frames 200..300 (truth = index + 100).
@@ -237,16 +299,31 @@ fn nordland_end_to_end() {
     let map = create_hog_map(&c, "nordland", 8);
     upload(&c, &map, &refs[..150], None);
     upload(&c, &map, &refs[150..], None);
-    let result = run_localize(&c, &map, &queries, &json!({"fan_out": 4, "hidden_cost": 1.3}));
+    let result = run_localize(
+        &c,
+        &map,
+        &queries,
+        &json!({"fan_out": 4, "hidden_cost": 1.3}),
+    );
     let preds = result["predictions"].as_array().unwrap();
     let correct = preds
         .iter()
         .filter(|p| (p["ref"].as_i64().unwrap() - (p["query"].as_i64().unwrap() + 100)).abs() <= 1)
         .count();
-    eprintln!("nordland over HTTP: {correct} of {} queries within ±1 frame", queries.len());
-    assert!(correct * 3 >= queries.len(), "only {correct} of {} correct", queries.len());
+    eprintln!(
+        "nordland over HTTP: {correct} of {} queries within ±1 frame",
+        queries.len()
+    );
+    assert!(
+        correct * 3 >= queries.len(),
+        "only {correct} of {} correct",
+        queries.len()
+    );
     let options = LocalizeOptions {
-        solver: SolverParams { hidden_cost: HiddenCost::Fixed(1.3), ..SolverParams::default() },
+        solver: SolverParams {
+            hidden_cost: HiddenCost::Fixed(1.3),
+            ..SolverParams::default()
+        },
         normalize: true,
     };
     let rb: Vec<Vec<u8>> = refs.iter().map(|(_, b)| b.clone()).collect();

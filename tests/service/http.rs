@@ -40,7 +40,10 @@ impl Response {
     }
 
     pub fn message(&self) -> String {
-        self.json()["error"]["message"].as_str().unwrap_or("").to_string()
+        self.json()["error"]["message"]
+            .as_str()
+            .unwrap_or("")
+            .to_string()
     }
 }
 
@@ -54,7 +57,11 @@ pub struct Part {
 
 impl Part {
     pub fn image(file_name: &str, bytes: Vec<u8>) -> Self {
-        let content_type = if file_name.ends_with(".png") { "image/png" } else { "image/jpeg" };
+        let content_type = if file_name.ends_with(".png") {
+            "image/png"
+        } else {
+            "image/jpeg"
+        };
         Part {
             name: "image".into(),
             file_name: Some(file_name.into()),
@@ -81,7 +88,11 @@ pub fn multipart_body(parts: &[Part]) -> Vec<u8> {
         body.extend_from_slice(format!("--{BOUNDARY}\r\n").as_bytes());
         match &p.file_name {
             Some(f) => body.extend_from_slice(
-                format!("Content-Disposition: form-data; name=\"{}\"; filename=\"{f}\"\r\n", p.name).as_bytes(),
+                format!(
+                    "Content-Disposition: form-data; name=\"{}\"; filename=\"{f}\"\r\n",
+                    p.name
+                )
+                .as_bytes(),
             ),
             None => body.extend_from_slice(
                 format!("Content-Disposition: form-data; name=\"{}\"\r\n", p.name).as_bytes(),
@@ -115,7 +126,12 @@ impl Client {
     }
 
     pub fn post_json(&self, path: &str, value: &serde_json::Value) -> Response {
-        self.request("POST", path, Some("application/json"), &serde_json::to_vec(value).unwrap())
+        self.request(
+            "POST",
+            path,
+            Some("application/json"),
+            &serde_json::to_vec(value).unwrap(),
+        )
     }
 
     pub fn post_multipart(&self, path: &str, parts: &[Part]) -> Response {
@@ -123,7 +139,13 @@ impl Client {
         self.request("POST", path, Some(&ct), &multipart_body(parts))
     }
 
-    pub fn request(&self, method: &str, path: &str, content_type: Option<&str>, body: &[u8]) -> Response {
+    pub fn request(
+        &self,
+        method: &str,
+        path: &str,
+        content_type: Option<&str>,
+        body: &[u8],
+    ) -> Response {
         self.try_request(method, path, content_type, body)
             .unwrap_or_else(|e| panic!("{method} {path}: {e}"))
     }
@@ -187,7 +209,11 @@ fn parse(raw: &[u8]) -> std::io::Result<Response> {
     if chunked {
         body = dechunk(&body).ok_or_else(|| bad("bad chunked body"))?;
     }
-    Ok(Response { status, headers, body })
+    Ok(Response {
+        status,
+        headers,
+        body,
+    })
 }
 
 fn dechunk(mut data: &[u8]) -> Option<Vec<u8>> {

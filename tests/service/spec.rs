@@ -23,7 +23,11 @@ fn resolve<'a>(doc: &'a Value, v: &'a Value) -> &'a Value {
     match v.get("$ref").and_then(Value::as_str) {
         Some(r) => {
             let pointer = r.strip_prefix('#').expect("local refs only");
-            resolve(doc, doc.pointer(pointer).unwrap_or_else(|| panic!("dangling $ref {r}")))
+            resolve(
+                doc,
+                doc.pointer(pointer)
+                    .unwrap_or_else(|| panic!("dangling $ref {r}")),
+            )
         }
         None => v,
     }
@@ -47,7 +51,10 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
         }
     }
     if let Some(any) = schema.get("oneOf").and_then(Value::as_array) {
-        let ok = any.iter().filter(|s| validate(s, value, path).is_ok()).count();
+        let ok = any
+            .iter()
+            .filter(|s| validate(s, value, path).is_ok())
+            .count();
         if ok != 1 {
             return Err(format!("{path}: {value} matches {ok} of the oneOf schemas"));
         }
@@ -67,7 +74,11 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
         "integer" => value.is_u64() || value.is_i64(),
         "number" => value.is_number(),
         "boolean" => value.is_boolean(),
-        other => return Err(format!("{path}: schema type {other} unsupported by the checker")),
+        other => {
+            return Err(format!(
+                "{path}: schema type {other} unsupported by the checker"
+            ))
+        }
     };
     if !type_ok {
         return Err(format!("{path}: expected {ty}, got {value}"));
@@ -76,7 +87,10 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
         // The document's only pattern is the id format.
         assert_eq!(p, "^[0-9a-f]{16}$", "pattern unsupported by the checker");
         let s = value.as_str().unwrap_or("");
-        if !(s.len() == 16 && s.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))) {
+        if !(s.len() == 16
+            && s.bytes()
+                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)))
+        {
             return Err(format!("{path}: {s:?} is not an id"));
         }
     }
@@ -88,7 +102,12 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
     if ty == "object" {
         let obj = value.as_object().expect("checked above");
         let props = schema.get("properties").and_then(Value::as_object);
-        for r in schema.get("required").and_then(Value::as_array).into_iter().flatten() {
+        for r in schema
+            .get("required")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+        {
             let r = r.as_str().unwrap();
             if !obj.contains_key(r) {
                 return Err(format!("{path}: missing required `{r}`"));
@@ -131,12 +150,17 @@ pub fn check(method: &str, template: &str, r: &Response) {
         Some(content) => {
             let body = r.json();
             if let Err(e) = validate(&content["schema"], &body, "$") {
-                panic!("{method} {template} {status}: response drifted from openapi.yaml: {e}\n{body}");
+                panic!(
+                    "{method} {template} {status}: response drifted from openapi.yaml: {e}\n{body}"
+                );
             }
         }
         None => {
             if declared.get("content").is_none() {
-                assert!(r.body.is_empty(), "{method} {template} {status}: undeclared body");
+                assert!(
+                    r.body.is_empty(),
+                    "{method} {template} {status}: undeclared body"
+                );
             }
         }
     }
@@ -172,7 +196,12 @@ fn every_documented_route_is_served() {
     let c = server.client;
     for (method, path) in documented() {
         let concrete = path.replace("{id}", "00000000ffffffff");
-        let r = c.request(&method.to_ascii_uppercase(), &concrete, Some("application/json"), b"{}");
+        let r = c.request(
+            &method.to_ascii_uppercase(),
+            &concrete,
+            Some("application/json"),
+            b"{}",
+        );
         assert!(r.status != 405, "{method} {path} is not routed");
         if r.status == 404 {
             assert_ne!(r.code(), "route_not_found", "{method} {path} is not routed");
