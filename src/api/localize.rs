@@ -83,12 +83,9 @@ async fn run(
 ) -> Result<Response, ApiError> {
     let map = map_id(&id)?;
     let (queries, options) = parse(&state, req).await?;
-    let _permit = match Arc::clone(&state.localize_slots).try_acquire_owned() {
-        Ok(p) => p,
-        Err(_) => {
-            state.metrics.add_queue_rejection();
-            return Err(ApiError::QueueFull);
-        }
+    let Ok(_permit) = Arc::clone(&state.localize_slots).try_acquire_owned() else {
+        state.metrics.add_queue_rejection();
+        return Err(ApiError::QueueFull);
     };
     let store = Arc::clone(&state.store);
     let max_pixels = state.settings.max_image_pixels;

@@ -131,8 +131,9 @@ impl Process {
 
     /// Sends SIGTERM and waits; returns whether it exited successfully.
     pub fn terminate(mut self) -> bool {
-        let status = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
+        // The shell's builtin `kill` exists wherever `sh` does (no procps needed).
+        let status = Command::new("sh")
+            .args(["-c", &format!("kill -TERM {}", self.child.id())])
             .status()
             .unwrap();
         assert!(status.success());

@@ -208,3 +208,40 @@ fn bad_configuration_exits_with_a_reason() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("localize_queue"), "{err}");
 }
+
+#[test]
+fn sigterm_lets_in_flight_requests_finish() {
+    use std::io::{Read, Write};
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let log = tmp.path().join("serve.log");
+    let mut p = start(&data, &log);
+    let map = create_vector_map(&p.client, "drain", 2);
+    let body = serde_json::to_vec(&json!({"descriptors": [[1, 2], [3, 4]]})).unwrap();
+    let mut s = std::net::TcpStream::connect(p.client.addr).unwrap();
+    let head = format!(
+        "POST /v1/maps/{map}/descriptors HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\
+         Content-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(&body[..5]).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    // SIGTERM while the request is half-sent: the server must wait for it.
+    let pid = p.child.id().to_string();
+    let kill = std::process::Command::new("sh")
+        .args(["-c", &format!("kill -TERM {pid}")])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    s.write_all(&body[5..]).unwrap();
+    let mut answer = String::new();
+    s.read_to_string(&mut answer).unwrap();
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+    assert!(p.child.wait().unwrap().success());
+    let p = start(&data, &log);
+    let m = p.client.get(&format!("/v1/maps/{map}")).json();
+    assert_eq!(m["image_count"], 2);
+    assert!(p.terminate());
+}
