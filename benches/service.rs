@@ -189,31 +189,6 @@ fn main() {
     }
     let lib_store_ingest = n as f64 / t.elapsed().as_secs_f64();
     drop(store);
-    // The same, plus the store's atomic, flushed append of each batch (what the service adds
-    // besides HTTP).
-    let store_dir = tempfile::tempdir().expect("tempdir");
-    let store = seasonloc::store::Store::open(store_dir.path()).expect("store");
-    let t = Instant::now();
-    let mut n = 0;
-    for _ in 0..rounds {
-        let map = store
-            .create_map(seasonloc::store::NewMap {
-                name: "lib".into(),
-                descriptor: seasonloc::store::DescriptorSettings::Hog {
-                    cell_size: CELL,
-                    resize: None,
-                },
-            })
-            .expect("map");
-        for b in &ingest_batches {
-            let m = pool.install(|| extract(b));
-            let metas = vec![seasonloc::store::ImageMeta::default(); m.rows()];
-            store.append_images(map.id, &m, &metas).expect("append");
-            n += m.rows();
-        }
-    }
-    let lib_store_ingest = n as f64 / t.elapsed().as_secs_f64();
-    drop(store);
     let reference = pool.install(|| extract(&refs));
     let query_batches: Vec<&[Vec<u8>]> = queries.chunks(BATCH).collect();
     let t = Instant::now();
