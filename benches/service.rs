@@ -77,7 +77,8 @@ fn options() -> LocalizeOptions {
             hidden_cost: HiddenCost::Fixed(1.3),
             ..SolverParams::default()
         },
-        normalize: true,
+        normalization: seasonloc::similarity::Normalization::default(),
+        ..Default::default()
     }
 }
 

@@ -531,7 +531,11 @@ mod tests {
         .unwrap();
         assert_eq!(o.solver.fan_out, 2);
         assert_eq!(o.solver.hidden_cost, HiddenCost::Fixed(1.5));
-        assert!(o.solver.exact && o.normalize && o.solver.horizontal);
+        assert!(
+            o.solver.exact
+                && o.normalization == Normalization::FlooredColumns
+                && o.solver.horizontal
+        );
         let auto = LocalizeParams::from_json(br#"{"hidden_cost": "auto"}"#).unwrap();
         assert_eq!(
             auto.into_options().unwrap().solver.hidden_cost,

@@ -157,7 +157,8 @@ fn generated_route_end_to_end() {
             horizontal: true,
             stop_hidden_fraction: None,
         },
-        normalize: true,
+        normalization: seasonloc::similarity::Normalization::default(),
+        ..Default::default()
     };
     let ref_bytes: Vec<Vec<u8>> = refs.iter().map(|(_, b)| b.clone()).collect();
     let query_bytes: Vec<Vec<u8>> = queries.iter().map(|(_, b)| b.clone()).collect();
@@ -269,7 +270,8 @@ fn precomputed_descriptors_end_to_end() {
             fan_out: 3,
             ..SolverParams::default()
         },
-        normalize: false,
+        normalization: seasonloc::similarity::Normalization::None,
+        ..Default::default()
     };
     let lib = localize(&to_matrix(&queries), &to_matrix(&refs), &options).unwrap();
     assert_same_as_library(&http, &lib);
@@ -324,7 +326,8 @@ fn nordland_end_to_end() {
             hidden_cost: HiddenCost::Fixed(1.3),
             ..SolverParams::default()
         },
-        normalize: true,
+        normalization: seasonloc::similarity::Normalization::default(),
+        ..Default::default()
     };
     let rb: Vec<Vec<u8>> = refs.iter().map(|(_, b)| b.clone()).collect();
     let qb: Vec<Vec<u8>> = queries.iter().map(|(_, b)| b.clone()).collect();
