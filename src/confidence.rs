@@ -145,6 +145,8 @@ fn local_ratio(
 /// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
 /// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end).
 /// Trips use it with the scored row last (a causal window: only frames seen so far).
+// The passes read neighbouring columns of several rows; indices say that more plainly.
+#[allow(clippy::needless_range_loop)]
 pub fn window_ratio(
     rows: &[&[f32]],
     scored: usize,
@@ -248,6 +250,7 @@ mod tests {
         // Enumerate, per row, the segment [entry..=exit] and the kind.
         let mut best_in = f64::INFINITY;
         let mut best_out = f64::INFINITY;
+        #[allow(clippy::too_many_arguments, clippy::type_complexity)]
         fn rec(
             chat: &Matrix,
             g: &GraphParams,

@@ -13,7 +13,7 @@ use crate::solver::{solve, Solution, SolverParams};
 use crate::{Matrix, Result};
 
 /// Options of [`localize`].
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct LocalizeOptions {
     /// Graph and solver parameters.
     pub solver: SolverParams,
@@ -21,16 +21,6 @@ pub struct LocalizeOptions {
     pub normalization: Normalization,
     /// How per-query confidences are computed.
     pub confidence: ConfidenceParams,
-}
-
-impl Default for LocalizeOptions {
-    fn default() -> Self {
-        LocalizeOptions {
-            solver: SolverParams::default(),
-            normalization: Normalization::default(),
-            confidence: ConfidenceParams::default(),
-        }
-    }
 }
 
 /// Seconds spent per stage.

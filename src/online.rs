@@ -165,6 +165,8 @@ impl OnlineSolver {
 
     /// Extends the path by one row of `ĉ` (length `D`, finite). Returns the row that left the
     /// lag window with its committed estimate, if one did.
+    // The row update reads neighbouring columns; indices say that more plainly.
+    #[allow(clippy::needless_range_loop)]
     pub fn push_row(&mut self, chat_row: &[f32]) -> Result<Option<RowEstimate>> {
         if chat_row.len() != self.d {
             return Err(Error::Shape(format!(
