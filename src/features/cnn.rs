@@ -492,7 +492,10 @@ mod tests {
         let err = CnnSpec::new(options).unwrap_err();
         let (name, reason) = param_error(&err);
         assert_eq!(name, "cnn_input_size");
-        assert!(reason.contains("8x8") && reason.contains("block10"), "{reason}");
+        assert!(
+            reason.contains("8x8") && reason.contains("block10"),
+            "{reason}"
+        );
     }
 
     #[test]

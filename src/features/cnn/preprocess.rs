@@ -61,7 +61,7 @@ pub(crate) fn short_side_size(width: u32, height: u32, short_side: u32) -> (u32,
 /// Left/top offset of a centred window of `inner` pixels in `outer` pixels (`inner <= outer`),
 /// rounded like torchvision's `CenterCrop`.
 fn centre_offset(outer: u32, inner: u32) -> u32 {
-    (outer.saturating_sub(inner) + 1) / 2
+    outer.saturating_sub(inner).div_ceil(2)
 }
 
 fn resize_if_needed(rgb: Cow<'_, RgbImage>, width: u32, height: u32) -> Cow<'_, RgbImage> {
