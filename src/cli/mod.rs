@@ -32,7 +32,7 @@ pub enum Command {
     /// Solve the data-association graph on a similarity matrix (.npy) and print the hypotheses.
     Solve(solve::SolveArgs),
     /// Localize a query image folder against a reference folder and score it against ground truth.
-    Eval(eval::EvalArgs),
+    Eval(Box<eval::EvalArgs>),
     /// Run the HTTP service on the embedded store (see docs/service.md).
     Serve(crate::config::ServeArgs),
 }

@@ -501,7 +501,8 @@ mod tests {
     #[test]
     fn settings_are_validated_before_the_model_is_read() {
         let base = CnnOptions::efficientnet_lite0("/nonexistent/model.onnx");
-        let cases: [(&str, fn(&mut CnnOptions)); 6] = [
+        type Edit = fn(&mut CnnOptions);
+        let cases: [(&str, Edit); 6] = [
             ("cnn_layer", |o| o.layer = " ".into()),
             ("cnn_input_size", |o| o.input_size = (0, 224)),
             ("cnn_input_size", |o| o.input_size = (224, 100_000)),
