@@ -16,6 +16,7 @@
 pub mod baselines;
 pub mod cli;
 pub mod confidence;
+pub mod cooc;
 pub mod error;
 pub mod eval;
 pub mod features;
