@@ -44,14 +44,27 @@ fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
         scenes.push(s);
     }
     let mut map = LocationMap::new(SpatialGrid::new(12, 8).expect("valid grid"), 0, true);
-    let images = scenes.iter().enumerate().map(|(l, s)| (l as u32, s.clone())).collect();
-    map.add_drive(DriveRecord { time: 0.0, images }).expect("valid drive");
+    let images = scenes
+        .iter()
+        .enumerate()
+        .map(|(l, s)| (l as u32, s.clone()))
+        .collect();
+    map.add_drive(DriveRecord { time: 0.0, images })
+        .expect("valid drive");
     let queries = (0..20)
         .map(|k| {
             let loc = (k * 113) % LOCATIONS;
-            let mut q: Vec<Word> = scenes[loc].iter().filter(|_| rng.below(3) > 0).copied().collect();
+            let mut q: Vec<Word> = scenes[loc]
+                .iter()
+                .filter(|_| rng.below(3) > 0)
+                .copied()
+                .collect();
             for _ in 0..FEATURES / 2 {
-                q.push(Word::new(rng.below(VOCABULARY) as u32, rng.unit(), rng.unit()));
+                q.push(Word::new(
+                    rng.below(VOCABULARY) as u32,
+                    rng.unit(),
+                    rng.unit(),
+                ));
             }
             (loc, q)
         })
@@ -62,7 +75,11 @@ fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
 fn bench_recognition(c: &mut Criterion) {
     let (map, queries) = fixture();
     // Sanity and work counts, printed once so BENCHMARKS-cooc.md can quote them.
-    for schedule in [Schedule::Exhaustive, Schedule::Lockstep, Schedule::BestFirst] {
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
         let mut evaluated = 0;
         for (loc, q) in &queries {
             let r = recognize_query(&map, q, schedule).expect("queries share words with the map");
@@ -76,14 +93,22 @@ fn bench_recognition(c: &mut Criterion) {
     }
     let mut group = c.benchmark_group("cooc_recognize_2400_locations");
     group.sample_size(10);
-    for schedule in [Schedule::Exhaustive, Schedule::Lockstep, Schedule::BestFirst] {
-        group.bench_with_input(BenchmarkId::from_parameter(format!("{schedule:?}")), &schedule, |b, &s| {
-            b.iter(|| {
-                for (_, q) in &queries {
-                    std::hint::black_box(recognize_query(&map, q, s));
-                }
-            })
-        });
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for (_, q) in &queries {
+                        std::hint::black_box(recognize_query(&map, q, s));
+                    }
+                })
+            },
+        );
     }
     group.finish();
 }
@@ -94,9 +119,14 @@ fn bench_keypoints(c: &mut Criterion) {
     let image: GrayImage = match image::open(&path) {
         Ok(img) => img.to_luma8(),
         Err(_) => {
-            eprintln!("{} not found: using a generated 64x32 frame", path.display());
+            eprintln!(
+                "{} not found: using a generated 64x32 frame",
+                path.display()
+            );
             let mut rng = Rng(7);
-            GrayImage::from_fn(64, 32, |x, y| Luma([((x * 7 + y * 13) as u64 % 200 + rng.below(40)) as u8]))
+            GrayImage::from_fn(64, 32, |x, y| {
+                Luma([((x * 7 + y * 13) as u64 % 200 + rng.below(40)) as u8])
+            })
         }
     };
     let params = KeypointParams::default();

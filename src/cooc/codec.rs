@@ -68,7 +68,10 @@ impl Reader<'_> {
     fn take<const N: usize>(&mut self, what: &str) -> Result<[u8; N]> {
         let end = self.at.checked_add(N).filter(|&e| e <= self.b.len());
         let Some(end) = end else {
-            return Err(corrupt(format!("truncated at byte {} while reading {what}", self.at)));
+            return Err(corrupt(format!(
+                "truncated at byte {} while reading {what}",
+                self.at
+            )));
         };
         let mut out = [0u8; N];
         out.copy_from_slice(&self.b[self.at..end]);
@@ -277,7 +280,10 @@ mod tests {
         let night = (0..6).map(|s| scene(s, true)).collect();
         CoocMap::build(
             &p,
-            &[Drive::sequential(9.0, day).unwrap(), Drive::sequential(21.0, night).unwrap()],
+            &[
+                Drive::sequential(9.0, day).unwrap(),
+                Drive::sequential(21.0, night).unwrap(),
+            ],
         )
         .unwrap()
     }
@@ -298,15 +304,29 @@ mod tests {
         assert!(err.contains("truncated"), "{err}");
         let mut bad = bytes.clone();
         bad[0] = b'X';
-        assert!(CoocMap::from_bytes(&bad).unwrap_err().to_string().contains("magic"));
+        assert!(CoocMap::from_bytes(&bad)
+            .unwrap_err()
+            .to_string()
+            .contains("magic"));
         let mut bad = bytes.clone();
         bad[8] = 9;
-        assert!(CoocMap::from_bytes(&bad).unwrap_err().to_string().contains("version 9"));
-        let err = CoocMap::from_bytes(&bytes[..bytes.len() - 3]).unwrap_err().to_string();
-        assert!(err.contains("truncated") || err.contains("exceeds the remaining"), "{err}");
+        assert!(CoocMap::from_bytes(&bad)
+            .unwrap_err()
+            .to_string()
+            .contains("version 9"));
+        let err = CoocMap::from_bytes(&bytes[..bytes.len() - 3])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("truncated") || err.contains("exceeds the remaining"),
+            "{err}"
+        );
         let mut long = bytes.clone();
         long.push(0);
-        assert!(CoocMap::from_bytes(&long).unwrap_err().to_string().contains("trailing"));
+        assert!(CoocMap::from_bytes(&long)
+            .unwrap_err()
+            .to_string()
+            .contains("trailing"));
     }
 
     proptest::proptest! {

@@ -49,8 +49,8 @@ impl Default for KeypointParams {
             upsample: 4,
             max_keypoints: 60,
             harris_k: 0.04,
-            relative_threshold: 0.01,
-            min_response: 1e-7,
+            relative_threshold: 1e-4,
+            min_response: 1e-9,
             nms_radius: 4,
             cell_size: 6,
         }
@@ -159,13 +159,20 @@ pub fn extract(name: &str, image: &GrayImage, params: &KeypointParams) -> Result
     }
     let up = upsample(image, params.upsample);
     let smooth = blur(&up, 0.5 * params.upsample as f32);
-    let (gx, gy) = gradients(&smooth);
+    let (gx, gy) = gradients(&smooth, params.upsample as f32);
     let response = harris(&gx, &gy, params.upsample as f32, params.harris_k);
     let mut kps = select(&response, params);
     let (w, h) = (up.w as f32, up.h as f32);
     let mut descriptors = Vec::with_capacity(kps.len() * DESCRIPTOR_DIM);
     for kp in &kps {
-        describe(&gx, &gy, kp.0, kp.1, params.cell_size as usize, &mut descriptors);
+        describe(
+            &gx,
+            &gy,
+            kp.0,
+            kp.1,
+            params.cell_size as usize,
+            &mut descriptors,
+        );
     }
     let keypoints = kps
         .drain(..)
@@ -186,7 +193,11 @@ fn upsample(image: &GrayImage, factor: u32) -> Plane {
     let (w0, h0) = (image.width() as usize, image.height() as usize);
     let f = factor as usize;
     let (w, h) = (w0 * f, h0 * f);
-    let src: Vec<f32> = image.as_raw().iter().map(|&p| f32::from(p) / 255.0).collect();
+    let src: Vec<f32> = image
+        .as_raw()
+        .iter()
+        .map(|&p| f32::from(p) / 255.0)
+        .collect();
     let mut v = vec![0.0f32; w * h];
     for y in 0..h {
         let sy = ((y as f32 + 0.5) / f as f32 - 0.5).clamp(0.0, (h0 - 1) as f32);
@@ -244,8 +255,9 @@ fn blur(p: &Plane, sigma: f32) -> Plane {
     }
 }
 
-/// Central-difference gradients (one-sided at the borders).
-fn gradients(p: &Plane) -> (Plane, Plane) {
+/// Central-difference gradients (one-sided at the borders), per *original* pixel (`scale` =
+/// upsampling factor), so responses and thresholds do not depend on the upsampling.
+fn gradients(p: &Plane, scale: f32) -> (Plane, Plane) {
     let (w, h) = (p.w, p.h);
     let mut gx = vec![0.0f32; w * h];
     let mut gy = vec![0.0f32; w * h];
@@ -253,8 +265,8 @@ fn gradients(p: &Plane) -> (Plane, Plane) {
         for x in 0..w {
             let (xl, xr) = (x.saturating_sub(1), (x + 1).min(w - 1));
             let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
-            gx[y * w + x] = (p.at(xr, y) - p.at(xl, y)) / (xr - xl).max(1) as f32;
-            gy[y * w + x] = (p.at(x, yd) - p.at(x, yu)) / (yd - yu).max(1) as f32;
+            gx[y * w + x] = scale * (p.at(xr, y) - p.at(xl, y)) / (xr - xl).max(1) as f32;
+            gy[y * w + x] = scale * (p.at(x, yd) - p.at(x, yu)) / (yd - yu).max(1) as f32;
         }
     }
     (Plane { w, h, v: gx }, Plane { w, h, v: gy })
@@ -405,7 +417,11 @@ pub(crate) mod tests {
                 .keypoints
                 .iter()
                 .any(|k| (k.x - nx).abs() < 1.5 / 64.0 && (k.y - ny).abs() < 1.5 / 32.0);
-            assert!(near, "no keypoint near corner ({cx}, {cy}): {:?}", f.keypoints);
+            assert!(
+                near,
+                "no keypoint near corner ({cx}, {cy}): {:?}",
+                f.keypoints
+            );
         }
         assert_eq!(f.descriptors.len(), f.keypoints.len() * DESCRIPTOR_DIM);
     }
@@ -429,11 +445,18 @@ pub(crate) mod tests {
         let find = |cx: f32, cy: f32| {
             f.keypoints
                 .iter()
-                .position(|k| (k.x - cx / 64.0).abs() < 1.5 / 64.0 && (k.y - cy / 32.0).abs() < 1.5 / 32.0)
+                .position(|k| {
+                    (k.x - cx / 64.0).abs() < 1.5 / 64.0 && (k.y - cy / 32.0).abs() < 1.5 / 32.0
+                })
                 .expect("corner detected")
         };
         let (a, b) = (find(20.0, 8.0), find(32.0, 20.0));
-        let dot: f32 = f.descriptor(a).iter().zip(f.descriptor(b)).map(|(x, y)| x * y).sum();
+        let dot: f32 = f
+            .descriptor(a)
+            .iter()
+            .zip(f.descriptor(b))
+            .map(|(x, y)| x * y)
+            .sum();
         assert!(dot < 0.5, "opposite corners too similar: {dot}");
     }
 
@@ -451,9 +474,13 @@ pub(crate) mod tests {
 
     #[test]
     fn rejects_tiny_images_by_name() {
-        let err = extract("tiny.png", &GrayImage::new(3, 3), &KeypointParams::default())
-            .unwrap_err()
-            .to_string();
+        let err = extract(
+            "tiny.png",
+            &GrayImage::new(3, 3),
+            &KeypointParams::default(),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("tiny.png"), "{err}");
     }
 

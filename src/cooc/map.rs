@@ -87,7 +87,9 @@ impl CoocMap {
     pub fn build(params: &CoocParams, drives: &[Drive]) -> Result<Self> {
         params.validate()?;
         if drives.iter().all(Drive::is_empty) {
-            return Err(Error::Empty("a co-occurrence map needs at least one image".into()));
+            return Err(Error::Empty(
+                "a co-occurrence map needs at least one image".into(),
+            ));
         }
         let features: Vec<Vec<keypoints::Features>> = drives
             .iter()
@@ -104,7 +106,10 @@ impl CoocMap {
         // An even stride over all descriptors keeps every part of the route represented.
         let stride = total.div_ceil(params.max_training_descriptors);
         let mut training = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
-        let all = features.iter().flatten().flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
+        let all = features
+            .iter()
+            .flatten()
+            .flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
         for d in all.step_by(stride) {
             training.extend_from_slice(d);
         }
@@ -227,18 +232,41 @@ impl CoocMap {
     }
 }
 
-fn extract_all(params: &CoocParams, drive: usize, images: &[GrayImage]) -> Result<Vec<keypoints::Features>> {
+fn extract_all(
+    params: &CoocParams,
+    drive: usize,
+    images: &[GrayImage],
+) -> Result<Vec<keypoints::Features>> {
     images
         .par_iter()
         .enumerate()
-        .map(|(i, img)| keypoints::extract(&format!("drive {drive} image {i}"), img, &params.keypoints))
+        .map(|(i, img)| {
+            keypoints::extract(&format!("drive {drive} image {i}"), img, &params.keypoints)
+        })
         .collect()
+}
+
+/// The co-occurrence scores as the similarity matrix `C` of the network-flow graph: `s + 1`.
+///
+/// Most scores are 0 (no shared word, or no consistent pair), and a graph node with similarity 0
+/// is unusable, which would break paths at every frame without features (tunnels). Adding one
+/// keeps every node usable at a high cost while preserving the order of scores; apply the usual
+/// column normalisation (Eq. 2) afterwards, which then also discounts locations that score
+/// highly against every query (e.g. feature-rich scenes).
+pub fn flow_similarity(scores: &Matrix) -> Matrix {
+    let mut c = scores.clone();
+    c.as_mut_slice().iter_mut().for_each(|v| *v += 1.0);
+    c
 }
 
 /// Single-image recognition (Sections II-C, II-D): for each query the best location, with the
 /// size of its spatially consistent group as confidence; no prediction for a query that shares
 /// no visual word with the map.
-pub fn recognize(map: &CoocMap, queries: &[GrayImage], schedule: Schedule) -> Result<Vec<Prediction>> {
+pub fn recognize(
+    map: &CoocMap,
+    queries: &[GrayImage],
+    schedule: Schedule,
+) -> Result<Vec<Prediction>> {
     let words = map.quantize_all(queries)?;
     Ok(words
         .par_iter()
@@ -255,7 +283,11 @@ pub fn recognize(map: &CoocMap, queries: &[GrayImage], schedule: Schedule) -> Re
 
 /// Forward-only, variable-speed sequence matching (Section II-F) on the co-occurrence scores of
 /// `queries` (in driving order); one prediction per query.
-pub fn sequence_match(map: &CoocMap, queries: &[GrayImage], params: &SequenceParams) -> Result<Vec<Prediction>> {
+pub fn sequence_match(
+    map: &CoocMap,
+    queries: &[GrayImage],
+    params: &SequenceParams,
+) -> Result<Vec<Prediction>> {
     let scores = map.score_matrix(queries)?;
     match_sequences(&scores, params)
 }
@@ -270,11 +302,17 @@ pub(crate) mod tests {
     /// of every other element and drops a third of them (a different appearance of the place).
     pub(crate) fn scene(seed: u64, night: bool) -> GrayImage {
         let mut rng = crate::cooc::SplitMix64::new(seed);
-        let corners: Vec<(u32, u32)> = (0..6).map(|_| (rng.below(52) as u32, rng.below(22) as u32)).collect();
+        let corners: Vec<(u32, u32)> = (0..6)
+            .map(|_| (rng.below(52) as u32, rng.below(22) as u32))
+            .collect();
         let mut img = squares(64, 32, &corners, 7 + (seed % 3) as u32);
         for k in 0..4 {
             let (x, y) = (rng.below(56) as u32, rng.below(26) as u32);
-            let (v, w) = if night ^ (k % 2 == 0) { (60u8, 3) } else { (160u8, 2) };
+            let (v, w) = if night ^ (k % 2 == 0) {
+                (60u8, 3)
+            } else {
+                (160u8, 2)
+            };
             for yy in y..y + 6 {
                 for xx in x..x + w {
                     img.put_pixel(xx, yy, Luma([v]));
@@ -301,7 +339,8 @@ pub(crate) mod tests {
     #[test]
     fn recognizes_generated_scenes_end_to_end() {
         let refs: Vec<GrayImage> = (0..12).map(|s| scene(s, false)).collect();
-        let map = CoocMap::build(&params(), &[Drive::sequential(12.0, refs.clone()).unwrap()]).unwrap();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(12.0, refs.clone()).unwrap()]).unwrap();
         assert_eq!(map.location_count(), 12);
         let p = recognize(&map, &refs, Schedule::BestFirst).unwrap();
         let correct = p.iter().filter(|x| x.reference == x.query).count();
@@ -319,7 +358,8 @@ pub(crate) mod tests {
         let day: Vec<GrayImage> = (0..10).map(|s| scene(s, false)).collect();
         let night: Vec<GrayImage> = (0..10).map(|s| scene(s, true)).collect();
         let p = params();
-        let day_only = CoocMap::build(&p, &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        let day_only =
+            CoocMap::build(&p, &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
         let mut fused = CoocMap::build(
             &p,
             &[
@@ -337,20 +377,36 @@ pub(crate) mod tests {
         };
         assert_eq!(hits(&fused, &day), 10);
         assert_eq!(hits(&fused, &night), 10);
-        assert!(hits(&day_only, &night) < 10, "night should not match a day-only map");
+        assert!(
+            hits(&day_only, &night) < 10,
+            "night should not match a day-only map"
+        );
         // A further drive (reversed location order) updates the same models.
         let before = fused.locations().entries();
         let order: Vec<usize> = (0..10).rev().collect();
-        let again: Vec<GrayImage> = order.iter().map(|&s| scene(s as u64 + 100, false)).collect();
-        fused.add_drive(&Drive::new(18.0, again, order).unwrap()).unwrap();
+        let again: Vec<GrayImage> = order
+            .iter()
+            .map(|&s| scene(s as u64 + 100, false))
+            .collect();
+        fused
+            .add_drive(&Drive::new(18.0, again, order).unwrap())
+            .unwrap();
         assert_eq!(fused.location_count(), 10);
         assert!(fused.locations().entries() > before);
         assert_eq!(fused.locations().drives().len(), 3);
     }
 
     #[test]
+    fn flow_similarity_is_positive_and_order_preserving() {
+        let s = Matrix::from_vec(1, 3, vec![0.0, 4.0, 2.0]).unwrap();
+        assert_eq!(flow_similarity(&s).as_slice(), &[1.0, 5.0, 3.0]);
+    }
+
+    #[test]
     fn drive_and_build_errors_are_precise() {
-        let err = Drive::new(0.0, vec![GrayImage::new(8, 8)], vec![]).unwrap_err().to_string();
+        let err = Drive::new(0.0, vec![GrayImage::new(8, 8)], vec![])
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("1 images but 0 location"), "{err}");
         assert!(Drive::new(f64::INFINITY, vec![], vec![]).is_err());
         let flat = vec![GrayImage::from_pixel(64, 32, Luma([9])); 3];

@@ -21,12 +21,14 @@ mod codec;
 pub mod keypoints;
 mod map;
 pub mod model;
+#[cfg(test)]
+mod nordland;
 pub mod recognition;
 pub mod sequence;
 pub mod spatial;
 pub mod vocabulary;
 
-pub use map::{recognize, sequence_match, CoocMap, Drive};
+pub use map::{flow_similarity, recognize, sequence_match, CoocMap, Drive};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;

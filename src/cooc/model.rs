@@ -185,7 +185,11 @@ impl LocationMap {
                 format!("a drive's time must be finite, got {}", drive.time),
             ));
         }
-        if let Some((l, _)) = drive.images.iter().find(|(l, _)| *l as usize >= MAX_LOCATIONS) {
+        if let Some((l, _)) = drive
+            .images
+            .iter()
+            .find(|(l, _)| *l as usize >= MAX_LOCATIONS)
+        {
             return Err(Error::param(
                 "locations",
                 format!("location {l} is beyond the limit of {MAX_LOCATIONS} locations"),

@@ -212,7 +212,11 @@ pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
 }
 
 /// The best location for `query`, or `None` when no location shares a visual word with it.
-pub fn recognize_query(map: &LocationMap, query: &[Word], schedule: Schedule) -> Option<Recognition> {
+pub fn recognize_query(
+    map: &LocationMap,
+    query: &[Word],
+    schedule: Schedule,
+) -> Option<Recognition> {
     let geo = QueryGeometry::new(map, query);
     let cands = Candidates::gather(map, query);
     if cands.groups.is_empty() {

@@ -81,7 +81,13 @@ fn dissimilarity(scores: &Matrix) -> Result<Matrix> {
 
 /// The greedy forward path from location `start` over rows `first..=last`: (cost, end).
 #[inline]
-fn greedy_path(d: &Matrix, first: usize, last: usize, start: usize, max_step: usize) -> (f32, usize) {
+fn greedy_path(
+    d: &Matrix,
+    first: usize,
+    last: usize,
+    start: usize,
+    max_step: usize,
+) -> (f32, usize) {
     let l = d.cols();
     let mut pos = start;
     let mut cost = d.get(first, start);
@@ -121,11 +127,15 @@ pub fn match_sequences(scores: &Matrix, params: &SequenceParams) -> Result<Vec<P
                     end_cost[end] = c;
                 }
             }
-            let (best_end, best) = end_cost
-                .iter()
-                .copied()
-                .enumerate()
-                .fold((0, f32::INFINITY), |acc, (j, c)| if c < acc.1 { (j, c) } else { acc });
+            let (best_end, best) =
+                end_cost
+                    .iter()
+                    .copied()
+                    .enumerate()
+                    .fold(
+                        (0, f32::INFINITY),
+                        |acc, (j, c)| if c < acc.1 { (j, c) } else { acc },
+                    );
             let second = end_cost
                 .iter()
                 .enumerate()
@@ -188,9 +198,20 @@ mod tests {
             })
             .count();
         let p = match_sequences(&s, &SequenceParams::default()).unwrap();
-        let seq = p.iter().skip(5).filter(|x| x.reference == path[x.query]).count();
-        assert!(single < 5, "decoys should fool single-image matching ({single})");
-        assert!(seq >= path.len() - 8, "sequence matching found only {seq} of {}", path.len() - 5);
+        let seq = p
+            .iter()
+            .skip(5)
+            .filter(|x| x.reference == path[x.query])
+            .count();
+        assert!(
+            single < 5,
+            "decoys should fool single-image matching ({single})"
+        );
+        assert!(
+            seq >= path.len() - 8,
+            "sequence matching found only {seq} of {}",
+            path.len() - 5
+        );
     }
 
     proptest::proptest! {
@@ -211,7 +232,15 @@ mod tests {
     #[test]
     fn confidence_is_bounded() {
         let s = path_scores(20, &[10, 9, 8, 7, 6], 3);
-        let p = match_sequences(&s, &SequenceParams { length: 5, max_step: 2, exclusion: 2 }).unwrap();
+        let p = match_sequences(
+            &s,
+            &SequenceParams {
+                length: 5,
+                max_step: 2,
+                exclusion: 2,
+            },
+        )
+        .unwrap();
         assert_eq!(p.len(), 5);
         assert!(p.iter().all(|x| (0.0..=1.0).contains(&x.confidence)));
         assert!(p.iter().enumerate().all(|(i, x)| x.query == i));
@@ -220,11 +249,19 @@ mod tests {
     #[test]
     fn rejects_bad_input() {
         let s = Matrix::from_vec(1, 2, vec![1.0, -1.0]).unwrap();
-        let err = match_sequences(&s, &SequenceParams::default()).unwrap_err().to_string();
+        let err = match_sequences(&s, &SequenceParams::default())
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("(0, 1)"), "{err}");
         let s = Matrix::from_vec(1, 1, vec![f32::NAN]).unwrap();
-        assert!(matches!(match_sequences(&s, &SequenceParams::default()), Err(Error::NonFinite { .. })));
-        let bad = SequenceParams { length: 0, ..SequenceParams::default() };
+        assert!(matches!(
+            match_sequences(&s, &SequenceParams::default()),
+            Err(Error::NonFinite { .. })
+        ));
+        let bad = SequenceParams {
+            length: 0,
+            ..SequenceParams::default()
+        };
         assert!(match_sequences(&Matrix::zeros(1, 1), &bad).is_err());
     }
 }

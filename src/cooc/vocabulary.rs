@@ -125,7 +125,14 @@ impl Vocabulary {
         if level == spec.depth || members.len() <= spec.branching {
             return;
         }
-        let centers = kmeans(members, data, self.dim, spec.branching, spec.iterations, rng);
+        let centers = kmeans(
+            members,
+            data,
+            self.dim,
+            spec.branching,
+            spec.iterations,
+            rng,
+        );
         let assign = assign(members, data, self.dim, &centers);
         let k = centers.len() / self.dim;
         let mut groups: Vec<Vec<u32>> = vec![Vec::new(); k];
@@ -169,8 +176,7 @@ impl Vocabulary {
     pub(crate) fn check(&self) -> Result<()> {
         let nodes = self.children.len();
         let bad = |reason: String| Err(Error::Shape(format!("vocabulary tree: {reason}")));
-        if nodes == 0 || self.centroids.len() != nodes * self.dim || self.leaf_word.len() != nodes
-        {
+        if nodes == 0 || self.centroids.len() != nodes * self.dim || self.leaf_word.len() != nodes {
             return bad(format!("{nodes} nodes with inconsistent arrays"));
         }
         let mut seen = vec![false; self.words as usize];
@@ -227,7 +233,10 @@ fn kmeans(
     let row = |m: u32| &data[m as usize * dim..(m as usize + 1) * dim];
     let mut centers: Vec<f32> = Vec::with_capacity(k * dim);
     centers.extend_from_slice(row(members[rng.below(members.len())]));
-    let mut d2: Vec<f32> = members.iter().map(|&m| sq_dist(row(m), &centers[..dim])).collect();
+    let mut d2: Vec<f32> = members
+        .iter()
+        .map(|&m| sq_dist(row(m), &centers[..dim]))
+        .collect();
     while centers.len() < k * dim {
         let total: f64 = d2.iter().map(|&v| f64::from(v)).sum();
         if total <= 0.0 {
@@ -294,7 +303,11 @@ mod tests {
         for c in 0..clusters {
             for _ in 0..per {
                 for d in 0..4 {
-                    let centre = if d == c % 4 { 10.0 * (1 + c / 4) as f32 } else { 0.0 };
+                    let centre = if d == c % 4 {
+                        10.0 * (1 + c / 4) as f32
+                    } else {
+                        0.0
+                    };
                     data.push(centre + (rng.next_f64() as f32 - 0.5) * 0.1);
                 }
             }

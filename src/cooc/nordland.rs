@@ -1,0 +1,78 @@
+//! Measurements on the real Nordland dev data (`../shared/data/nordland_64x32` beside the
+//! crate), as `#[ignore]` tests that print numbers for `docs/cooc.md`; they skip with a message
+//! when the data is absent. Run: `cargo test --release --lib cooc::nordland -- --ignored --nocapture`.
+
+use std::path::PathBuf;
+
+use image::GrayImage;
+
+use super::keypoints::{extract, KeypointParams};
+
+fn data_dir() -> Option<PathBuf> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
+    if dir.join("summer").is_dir() {
+        Some(dir)
+    } else {
+        eprintln!("skipping: {} not found", dir.display());
+        None
+    }
+}
+
+fn frame(dir: &std::path::Path, season: &str, i: usize) -> GrayImage {
+    let path = dir
+        .join(season)
+        .join(format!("images-{:05}.png", (i + 1) * 10));
+    image::open(&path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .to_luma8()
+}
+
+/// Keypoint repeatability across seasons: the fraction of summer keypoints with a winter
+/// keypoint within `radius` original pixels in the same frame, over frames 17, 27, ..., 2397.
+#[test]
+#[ignore = "reads the shared Nordland data; prints measurements"]
+fn keypoint_repeatability_summer_vs_winter() {
+    let Some(dir) = data_dir() else { return };
+    for upsample in [1u32, 2, 4] {
+        let params = KeypointParams {
+            upsample,
+            nms_radius: upsample,
+            ..KeypointParams::default()
+        };
+        let (mut hit, mut total, mut count) = (0usize, 0usize, 0usize);
+        let frames: Vec<usize> = (17..2400).step_by(10).collect();
+        for &i in &frames {
+            let s = extract("summer", &frame(&dir, "summer", i), &params).expect("valid frame");
+            let w = extract("winter", &frame(&dir, "winter", i), &params).expect("valid frame");
+            count += s.keypoints.len() + w.keypoints.len();
+            for a in &s.keypoints {
+                total += 1;
+                let near = w.keypoints.iter().any(|b| {
+                    ((a.x - b.x) * 64.0).abs() <= 1.0 && ((a.y - b.y) * 32.0).abs() <= 1.0
+                });
+                hit += usize::from(near);
+            }
+        }
+        // Chance level: the same test against the winter keypoints of a frame 500 away.
+        let mut chance = 0usize;
+        let mut chance_total = 0usize;
+        for &i in frames.iter().take(60) {
+            let s = extract("summer", &frame(&dir, "summer", i), &params).expect("valid frame");
+            let w = extract("winter", &frame(&dir, "winter", (i + 500) % 2400), &params)
+                .expect("valid frame");
+            for a in &s.keypoints {
+                chance_total += 1;
+                chance += usize::from(w.keypoints.iter().any(|b| {
+                    ((a.x - b.x) * 64.0).abs() <= 1.0 && ((a.y - b.y) * 32.0).abs() <= 1.0
+                }));
+            }
+        }
+        println!(
+            "upsample {upsample}: {:.1} keypoints/image, repeatability within 1 px {:.3} (chance {:.3})",
+            count as f64 / (2 * frames.len()) as f64,
+            hit as f64 / total.max(1) as f64,
+            chance as f64 / chance_total.max(1) as f64
+        );
+        assert!(total > 0, "no keypoints at all");
+    }
+}
