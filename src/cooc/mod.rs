@@ -66,13 +66,13 @@ impl Default for CoocParams {
     fn default() -> Self {
         CoocParams {
             keypoints: keypoints::KeypointParams::default(),
-            vocabulary_branching: 10,
-            vocabulary_depth: 3,
+            vocabulary_branching: 16,
+            vocabulary_depth: 2,
             kmeans_iterations: 8,
             max_training_descriptors: 40_000,
             grid_cols: 12,
             grid_rows: 8,
-            spatial_tolerance: 0,
+            spatial_tolerance: 1,
             merge_adjacent_drives: true,
             seed: 0x5ea5_0c00,
         }

@@ -25,7 +25,7 @@
 //! below its final score) proves it cannot beat or tie-win against the current best.
 
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, HashMap};
 
 use super::model::{LocationMap, Word};
 
@@ -188,16 +188,25 @@ impl Candidates {
 
     fn elimination(&self, map: &LocationMap, geo: &QueryGeometry, group: usize) -> Elimination {
         let (loc, s, e) = self.groups[group];
-        let model = map.model(loc as usize);
-        let items = &self.items[s..e];
-        let (grid, tol) = (map.grid(), map.tolerance());
-        Elimination::new(items.len(), |a, b| {
-            let (qa, ra) = items[a];
-            let (qb, rb) = items[b];
-            let obs = geo.offsets[qa as usize * geo.n + qb as usize];
-            model.consistent(ra, rb, obs, grid, tol)
-        })
+        consistency(map, geo, loc as usize, &self.items[s..e])
     }
+}
+
+/// The consistency matrix `J` of location `loc` for candidates `(query feature, row)`.
+fn consistency(
+    map: &LocationMap,
+    geo: &QueryGeometry,
+    loc: usize,
+    items: &[(u32, u32)],
+) -> Elimination {
+    let model = map.model(loc);
+    let (grid, tol) = (map.grid(), map.tolerance());
+    Elimination::new(items.len(), |a, b| {
+        let (qa, ra) = items[a];
+        let (qb, rb) = items[b];
+        let obs = geo.offsets[qa as usize * geo.n + qb as usize];
+        model.consistent(ra, rb, obs, grid, tol)
+    })
 }
 
 /// Every location's score for `query` (0 where it has no candidate): full elimination of each.
@@ -211,6 +220,60 @@ pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
     out
 }
 
+/// Best-first search: candidate *counts* come from the inverted index (no grouping of the
+/// correspondences), and a location's candidates and `J` are only materialised when its bound
+/// is the highest of all. Returns `((score, location), evaluated)`.
+fn best_first(
+    map: &LocationMap,
+    query: &[Word],
+    geo: &QueryGeometry,
+) -> (Option<(usize, usize)>, usize) {
+    let mut counts = vec![0u32; map.locations()];
+    let mut touched = Vec::new();
+    for f in query {
+        for &(loc, _) in map.postings(f.word) {
+            let c = &mut counts[loc as usize];
+            if *c == 0 {
+                touched.push(loc as usize);
+            }
+            *c += 1;
+        }
+    }
+    let mut heap: BinaryHeap<(usize, Reverse<usize>)> = touched
+        .iter()
+        .map(|&l| (counts[l] as usize, Reverse(l)))
+        .collect();
+    let mut states: HashMap<usize, Elimination> = HashMap::new();
+    let mut evaluated = 0;
+    while let Some((_, Reverse(l))) = heap.pop() {
+        let e = states.entry(l).or_insert_with(|| {
+            evaluated += 1;
+            let model = map.model(l);
+            let items: Vec<(u32, u32)> = query
+                .iter()
+                .enumerate()
+                .filter_map(|(q, f)| model.row(f.word).map(|r| (q as u32, r)))
+                .collect();
+            consistency(map, geo, l, &items)
+        });
+        if e.step() {
+            heap.push((e.bound(), Reverse(l)));
+        } else {
+            // Highest bound of all, ties to the lowest location: this is the answer.
+            return (Some((e.bound(), l)), evaluated);
+        }
+    }
+    (None, evaluated)
+}
+
+/// `better(score, location, best)`: higher score wins, ties go to the lower location.
+fn better(score: usize, l: usize, best: &Option<(usize, usize)>) -> bool {
+    match best {
+        None => true,
+        Some((bs, bl)) => score > *bs || (score == *bs && l < *bl),
+    }
+}
+
 /// The best location for `query`, or `None` when no location shares a visual word with it.
 pub fn recognize_query(
     map: &LocationMap,
@@ -218,68 +281,38 @@ pub fn recognize_query(
     schedule: Schedule,
 ) -> Option<Recognition> {
     let geo = QueryGeometry::new(map, query);
-    let cands = Candidates::gather(map, query);
-    if cands.groups.is_empty() {
-        return None;
-    }
-    let loc = |g: usize| cands.groups[g].0 as usize;
-    let better = |score: usize, l: usize, best: &Option<(usize, usize)>| match best {
-        None => true,
-        Some((bs, bl)) => score > *bs || (score == *bs && l < *bl),
-    };
     let (best, evaluated) = match schedule {
+        Schedule::BestFirst => best_first(map, query, &geo),
         Schedule::Exhaustive => {
+            let cands = Candidates::gather(map, query);
             let mut best = None;
             for g in 0..cands.groups.len() {
                 let s = cands.elimination(map, &geo, g).run();
-                if better(s, loc(g), &best) {
-                    best = Some((s, loc(g)));
+                let l = cands.groups[g].0 as usize;
+                if better(s, l, &best) {
+                    best = Some((s, l));
                 }
             }
             (best, cands.groups.len())
         }
         Schedule::Lockstep => {
+            let cands = Candidates::gather(map, query);
             let mut live: Vec<(usize, Elimination)> = (0..cands.groups.len())
-                .map(|g| (g, cands.elimination(map, &geo, g)))
+                .map(|g| (cands.groups[g].0 as usize, cands.elimination(map, &geo, g)))
                 .collect();
             let evaluated = live.len();
             let mut best: Option<(usize, usize)> = None;
             while !live.is_empty() {
-                live.retain_mut(|(g, e)| {
-                    if !better(e.bound(), loc(*g), &best) {
+                live.retain_mut(|(l, e)| {
+                    if !better(e.bound(), *l, &best) {
                         return false; // cannot beat the best any more
                     }
                     if e.step() {
                         return true;
                     }
-                    best = Some((e.bound(), loc(*g)));
+                    best = Some((e.bound(), *l));
                     false
                 });
-            }
-            (best, evaluated)
-        }
-        Schedule::BestFirst => {
-            let mut heap: BinaryHeap<(usize, Reverse<usize>, usize)> = cands
-                .groups
-                .iter()
-                .enumerate()
-                .map(|(g, &(l, s, e))| (e - s, Reverse(l as usize), g))
-                .collect();
-            let mut states: Vec<Option<Elimination>> = vec![None; cands.groups.len()];
-            let mut evaluated = 0;
-            let mut best = None;
-            while let Some((_, Reverse(l), g)) = heap.pop() {
-                let e = states[g].get_or_insert_with(|| {
-                    evaluated += 1;
-                    cands.elimination(map, &geo, g)
-                });
-                if e.step() {
-                    heap.push((e.bound(), Reverse(l), g));
-                } else {
-                    // Highest bound of all, ties to the lowest location: this is the answer.
-                    best = Some((e.bound(), l));
-                    break;
-                }
             }
             (best, evaluated)
         }
