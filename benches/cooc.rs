@@ -10,6 +10,7 @@ use seasonloc::cooc::keypoints::{extract, KeypointParams};
 use seasonloc::cooc::model::{DriveRecord, LocationMap, Word};
 use seasonloc::cooc::recognition::{recognize_query, Schedule};
 use seasonloc::cooc::spatial::SpatialGrid;
+use seasonloc::cooc::{CoocMap, CoocParams, Drive};
 
 /// SplitMix64, so the fixture is identical on every run.
 struct Rng(u64);
@@ -113,6 +114,77 @@ fn bench_recognition(c: &mut Criterion) {
     group.finish();
 }
 
+/// The same comparison on the real Nordland map (2,400 summer frames, default parameters) with
+/// 21 winter queries; skipped when the shared data is absent. Building the map takes ~45 s.
+fn bench_recognition_nordland(c: &mut Criterion) {
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
+    if !dir.join("summer").is_dir() {
+        eprintln!(
+            "{} not found: skipping the Nordland recognition bench",
+            dir.display()
+        );
+        return;
+    }
+    let load = |season: &str, i: usize| -> GrayImage {
+        let path = dir
+            .join(season)
+            .join(format!("images-{:05}.png", (i + 1) * 10));
+        image::open(&path)
+            .expect("readable Nordland frame")
+            .to_luma8()
+    };
+    let summer: Vec<GrayImage> = (0..2400).map(|i| load("summer", i)).collect();
+    let params = CoocParams::default();
+    let map = CoocMap::build(
+        &params,
+        &[Drive::sequential(0.0, summer).expect("valid drive")],
+    )
+    .expect("map builds");
+    let queries: Vec<Vec<Word>> = (17..2400)
+        .step_by(119)
+        .map(|i| {
+            map.quantize("winter", &load("winter", i))
+                .expect("valid frame")
+        })
+        .collect();
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        let built: usize = queries
+            .iter()
+            .filter_map(|q| map.recognize_words(q, schedule))
+            .map(|r| r.evaluated)
+            .sum();
+        eprintln!(
+            "Nordland {schedule:?}: consistency matrices built per query = {:.1}",
+            built as f64 / queries.len() as f64
+        );
+    }
+    let mut group = c.benchmark_group("cooc_recognize_nordland_2400");
+    group.sample_size(10);
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for q in &queries {
+                        std::hint::black_box(map.recognize_words(q, s));
+                    }
+                })
+            },
+        );
+    }
+    group.finish();
+}
+
 fn bench_keypoints(c: &mut Criterion) {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../shared/data/nordland_64x32/winter/images-05000.png");
@@ -135,5 +207,10 @@ fn bench_keypoints(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench_recognition, bench_keypoints);
+criterion_group!(
+    benches,
+    bench_recognition,
+    bench_keypoints,
+    bench_recognition_nordland
+);
 criterion_main!(benches);

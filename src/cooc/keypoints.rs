@@ -46,13 +46,13 @@ pub struct KeypointParams {
 impl Default for KeypointParams {
     fn default() -> Self {
         KeypointParams {
-            upsample: 4,
+            upsample: 2,
             max_keypoints: 80,
             harris_k: 0.04,
             relative_threshold: 1e-5,
             min_response: 0.0,
-            nms_radius: 4,
-            cell_size: 6,
+            nms_radius: 2,
+            cell_size: 3,
         }
     }
 }

@@ -44,7 +44,7 @@ pub struct TreeSpec {
 impl Vocabulary {
     /// Trains a tree on `data` (`n * dim` values, one descriptor per row).
     pub fn train(data: &[f32], dim: usize, spec: TreeSpec) -> Result<Self> {
-        if dim == 0 || data.len() % dim != 0 {
+        if data.len().checked_rem(dim) != Some(0) {
             return Err(Error::Shape(format!(
                 "{} training values are not a whole number of {dim}-D descriptors",
                 data.len()
