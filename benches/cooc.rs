@@ -202,7 +202,7 @@ fn bench_keypoints(c: &mut Criterion) {
         }
     };
     let params = KeypointParams::default();
-    c.bench_function("cooc_keypoints_64x32_upsample4", |b| {
+    c.bench_function("cooc_keypoints_64x32_default", |b| {
         b.iter(|| extract("bench", std::hint::black_box(&image), &params).expect("valid image"))
     });
 }
