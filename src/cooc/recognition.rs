@@ -256,11 +256,17 @@ fn best_first(
                 .collect();
             consistency(map, geo, l, &items)
         });
-        if e.step() {
-            heap.push((e.bound(), Reverse(l)));
-        } else {
-            // Highest bound of all, ties to the lowest location: this is the answer.
-            return (Some((e.bound(), l)), evaluated);
+        // Keep eliminating while this location stays at the top (same as push + pop).
+        loop {
+            if !e.step() {
+                // Highest bound of all, ties to the lowest location: this is the answer.
+                return (Some((e.bound(), l)), evaluated);
+            }
+            let key = (e.bound(), Reverse(l));
+            if heap.peek().is_some_and(|&top| top > key) {
+                heap.push(key);
+                break;
+            }
         }
     }
     (None, evaluated)
