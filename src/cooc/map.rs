@@ -397,6 +397,28 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn sequence_match_follows_the_route_and_survives_encoding() {
+        let refs: Vec<GrayImage> = (0..16).map(|s| scene(s, false)).collect();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(0.0, refs.clone()).unwrap()]).unwrap();
+        // The query drive stops at location 5 for three frames, then skips ahead two at a time.
+        let path = [3usize, 4, 5, 5, 5, 6, 8, 10, 12, 14];
+        let queries: Vec<GrayImage> = path.iter().map(|&l| refs[l].clone()).collect();
+        let seq = SequenceParams {
+            length: 4,
+            max_step: 2,
+            exclusion: 2,
+        };
+        let p = sequence_match(&map, &queries, &seq).unwrap();
+        assert_eq!(p.len(), path.len());
+        for (pred, &truth) in p.iter().zip(&path) {
+            assert_eq!(pred.reference, truth, "query {}", pred.query);
+        }
+        let back = CoocMap::from_bytes(&map.to_bytes()).unwrap();
+        assert_eq!(sequence_match(&back, &queries, &seq).unwrap(), p);
+    }
+
+    #[test]
     fn flow_similarity_is_positive_and_order_preserving() {
         let s = Matrix::from_vec(1, 3, vec![0.0, 4.0, 2.0]).unwrap();
         assert_eq!(flow_similarity(&s).as_slice(), &[1.0, 5.0, 3.0]);
