@@ -31,6 +31,7 @@
 use rayon::prelude::*;
 
 use crate::solver::Hypothesis;
+use crate::window::{leading_min, trailing_min};
 use crate::{Error, Matrix, Result};
 
 /// Parameters of the local min-marginal ratio.
@@ -135,9 +136,26 @@ fn local_ratio(
     i: usize,
     j_star: usize,
 ) -> f64 {
-    let d = chat.cols();
     let first = i.saturating_sub(params.half_window);
     let last = (i + params.half_window).min(chat.rows() - 1);
+    let rows: Vec<&[f32]> = (first..=last).map(|t| chat.row(t)).collect();
+    window_ratio(&rows, i - first, graph, params.radius, j_star)
+}
+
+/// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
+/// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end).
+/// Trips use it with the scored row last (a causal window: only frames seen so far).
+// The passes read neighbouring columns of several rows; indices say that more plainly.
+#[allow(clippy::needless_range_loop)]
+pub fn window_ratio(
+    rows: &[&[f32]],
+    scored: usize,
+    graph: &GraphParams,
+    radius: usize,
+    j_star: usize,
+) -> f64 {
+    let d = rows[scored].len();
+    let (first, i, last) = (0, scored, rows.len() - 1);
     let w = graph.hidden_cost;
     let k = graph.fan_out;
 
@@ -153,9 +171,9 @@ fn local_ratio(
             for (m, (x, h)) in best_prev.iter_mut().zip(fx.iter().zip(&fh)) {
                 *m = x.min(*h);
             }
-            trailing_window_min(&best_prev, k, &mut pred);
+            trailing_min(&best_prev, k, &mut pred);
         }
-        let row = chat.row(t);
+        let row = rows[t];
         for j in 0..d {
             fx[j] = pred[j] + match_cost(row[j]);
             fh[j] = pred[j] + w;
@@ -174,15 +192,15 @@ fn local_ratio(
     let mut next = vec![0.0f64; d];
     let mut succ = vec![0.0f64; d];
     for t in (i..last).rev() {
-        let below = chat.row(t + 1);
+        let below = rows[t + 1];
         for j in 0..d {
             next[j] = (match_cost(below[j]) + bx[j]).min(w + bh[j]);
         }
-        leading_window_min(&next, k, &mut succ);
+        leading_min(&next, k, &mut succ);
         bx.copy_from_slice(&succ);
         bh.copy_from_slice(&succ);
         if graph.horizontal {
-            let row = chat.row(t);
+            let row = rows[t];
             for j in (0..d - 1).rev() {
                 bx[j] = bx[j].min(match_cost(row[j + 1]) + bx[j + 1]);
                 bh[j] = bh[j].min(bh[j + 1]);
@@ -190,8 +208,8 @@ fn local_ratio(
         }
     }
 
-    let lo = j_star.saturating_sub(params.radius);
-    let hi = (j_star + params.radius).min(d - 1);
+    let lo = j_star.saturating_sub(radius);
+    let hi = (j_star + radius).min(d - 1);
     let mut inside = f64::INFINITY;
     let mut outside = f64::INFINITY;
     for j in 0..d {
@@ -210,92 +228,11 @@ fn local_ratio(
     }
 }
 
-/// `out[j] = min(m[j-k ..= j])` (clamped at 0), in O(len) for any `k` (van Herk / Gil-Werman).
-pub(crate) fn trailing_window_min(m: &[f64], k: usize, out: &mut [f64]) {
-    let n = m.len();
-    if k == 0 {
-        out.copy_from_slice(m);
-        return;
-    }
-    let (prefix, suffix) = block_min_scans(m, k + 1);
-    for j in 0..n {
-        out[j] = if j < k {
-            prefix[j]
-        } else {
-            suffix[j - k].min(prefix[j])
-        };
-    }
-}
-
-/// `out[j] = min(m[j ..= j+k])` (clamped at the end), in O(len) for any `k`.
-pub(crate) fn leading_window_min(m: &[f64], k: usize, out: &mut [f64]) {
-    let n = m.len();
-    if k == 0 {
-        out.copy_from_slice(m);
-        return;
-    }
-    let (prefix, suffix) = block_min_scans(m, k + 1);
-    for j in 0..n {
-        out[j] = suffix[j].min(prefix[(j + k).min(n - 1)]);
-    }
-}
-
-/// Running minima within consecutive blocks of `size`: from each block's start (`prefix`) and
-/// to each block's end (`suffix`). Any window of `size` elements spans at most two blocks.
-fn block_min_scans(m: &[f64], size: usize) -> (Vec<f64>, Vec<f64>) {
-    let n = m.len();
-    let mut prefix = m.to_vec();
-    let mut suffix = m.to_vec();
-    for start in (0..n).step_by(size) {
-        let end = (start + size).min(n);
-        for j in start + 1..end {
-            prefix[j] = prefix[j].min(prefix[j - 1]);
-        }
-        for j in (start..end - 1).rev() {
-            suffix[j] = suffix[j].min(suffix[j + 1]);
-        }
-    }
-    (prefix, suffix)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::solver::{Match, RowAssignment};
     use proptest::prelude::*;
-
-    fn naive_trailing(m: &[f64], k: usize) -> Vec<f64> {
-        (0..m.len())
-            .map(|j| {
-                m[j.saturating_sub(k)..=j]
-                    .iter()
-                    .copied()
-                    .fold(f64::INFINITY, f64::min)
-            })
-            .collect()
-    }
-
-    fn naive_leading(m: &[f64], k: usize) -> Vec<f64> {
-        (0..m.len())
-            .map(|j| {
-                m[j..=(j + k).min(m.len() - 1)]
-                    .iter()
-                    .copied()
-                    .fold(f64::INFINITY, f64::min)
-            })
-            .collect()
-    }
-
-    proptest! {
-        #[test]
-        fn window_minima_match_naive(m in prop::collection::vec(-5.0f64..5.0, 1..40), k in 0usize..12) {
-            let mut out = vec![0.0; m.len()];
-            trailing_window_min(&m, k, &mut out);
-            prop_assert_eq!(&out, &naive_trailing(&m, k));
-            leading_window_min(&m, k, &mut out);
-            prop_assert_eq!(&out, &naive_leading(&m, k));
-        }
-    }
 
     /// Every path through the window graph, by brute force: (node per row as (col, hidden)),
     /// costs summed over nodes. Used to check `local_ratio` on tiny matrices.
@@ -313,6 +250,7 @@ mod tests {
         // Enumerate, per row, the segment [entry..=exit] and the kind.
         let mut best_in = f64::INFINITY;
         let mut best_out = f64::INFINITY;
+        #[allow(clippy::too_many_arguments, clippy::type_complexity)]
         fn rec(
             chat: &Matrix,
             g: &GraphParams,

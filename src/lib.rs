@@ -6,24 +6,32 @@
 //!   algorithms on images, descriptor matrices and similarity matrices. They know nothing of
 //!   HTTP, JSON or the store, and report failures as [`Error`].
 //! * **cli** — the `seasonloc solve` / `seasonloc eval` front end (`src/cli`).
-//! * **store** and **api** — the HTTP service on the embedded store (later issues).
+//! * **store** and **api** — the HTTP service on the embedded store ([`store`], [`api`],
+//!   [`config`], [`service`]): only `store` knows sled, only `api` knows axum and JSON.
 //!
 //! The method is Naseer, Burgard & Stachniss, *Robust Visual Localization Across Seasons*:
 //! global descriptors -> cosine similarity matrix (Eq. 1) -> column normalisation (Eq. 2)
 //! -> min-cost flow on a DAG of matching and hidden nodes.
 #![warn(missing_docs)]
 
+pub mod api;
 pub mod baselines;
 pub mod cli;
 pub mod confidence;
+pub mod config;
 pub mod cooc;
 pub mod error;
 pub mod eval;
 pub mod features;
 pub mod localize;
 pub mod matrix;
+pub mod online;
+pub mod service;
 pub mod similarity;
 pub mod solver;
+pub mod store;
+pub mod trip;
+pub mod window;
 
 pub use error::{Error, Result};
 pub use matrix::Matrix;

@@ -8,28 +8,19 @@ use std::time::Instant;
 
 use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
 use crate::eval::Prediction;
+use crate::similarity::{self, Normalization};
 use crate::solver::{solve, Solution, SolverParams};
-use crate::{similarity, Matrix, Result};
+use crate::{Matrix, Result};
 
 /// Options of [`localize`].
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct LocalizeOptions {
     /// Graph and solver parameters.
     pub solver: SolverParams,
-    /// Apply the column normalisation of Eq. 2 (default true).
-    pub normalize: bool,
+    /// How `C` is normalised before the graph (default: Eq. 2 with a floored column mean).
+    pub normalization: Normalization,
     /// How per-query confidences are computed.
     pub confidence: ConfidenceParams,
-}
-
-impl Default for LocalizeOptions {
-    fn default() -> Self {
-        LocalizeOptions {
-            solver: SolverParams::default(),
-            normalize: true,
-            confidence: ConfidenceParams::default(),
-        }
-    }
 }
 
 /// Seconds spent per stage.
@@ -62,11 +53,7 @@ pub fn localize(
     options.solver.validate()?;
     let started = Instant::now();
     let c = similarity::cosine_matrix(queries, references)?;
-    let chat = if options.normalize {
-        similarity::normalize_columns(&c)?
-    } else {
-        c
-    };
+    let chat = options.normalization.apply(&c)?;
     let similarity_seconds = started.elapsed().as_secs_f64();
     let (solution, predictions) = solve_with_confidence(&chat, options)?;
     Ok(Localization {

@@ -3,14 +3,19 @@
 
 use std::process::ExitCode;
 
+use clap::error::ErrorKind;
 use clap::Parser;
 use seasonloc::cli::{self, Cli, Command};
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(err) => return usage_error(err),
+    };
     let result = match &cli.command {
         Command::Solve(args) => cli::solve::run(args).map(Some),
         Command::Eval(args) => cli::eval::run(args).map(Some),
+        Command::Serve(args) => seasonloc::service::run_serve(args.clone()).map(|()| None),
     };
     match result {
         Ok(Some(json)) => {
@@ -21,6 +26,22 @@ fn main() -> ExitCode {
         Err(err) => {
             eprintln!("seasonloc: {err:#}");
             ExitCode::FAILURE
+        }
+    }
+}
+
+/// Help and version go to stdout as clap renders them; every other parse error becomes one line
+/// on stderr (clap's first line, without the usage block) and exit code 2.
+fn usage_error(err: clap::Error) -> ExitCode {
+    match err.kind() {
+        ErrorKind::DisplayHelp
+        | ErrorKind::DisplayVersion
+        | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => err.exit(),
+        _ => {
+            let rendered = err.render().to_string();
+            let line = rendered.lines().next().unwrap_or("invalid arguments");
+            eprintln!("seasonloc: {}", line.trim_start_matches("error: "));
+            ExitCode::from(2)
         }
     }
 }

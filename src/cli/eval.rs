@@ -23,7 +23,7 @@ use crate::eval::{
 };
 use crate::features::{extract_files, list_images, Extractor};
 use crate::localize::{solve_with_confidence, LocalizeOptions};
-use crate::similarity::{cosine_matrix, normalize_columns};
+use crate::similarity::{cosine_matrix, Normalization};
 use crate::Matrix;
 
 /// Localization methods `eval` can score.
@@ -43,6 +43,27 @@ impl Method {
             Method::Flow => "flow",
             Method::BestMatch => "best-match",
             Method::Seqslam => "seqslam",
+        }
+    }
+}
+
+/// `--normalization` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum NormalizationArg {
+    /// Eq. 2 with the column mean floored at half the median column mean (default).
+    Floored,
+    /// The paper's Eq. 2 exactly.
+    Eq2,
+    /// Raw cosine similarities.
+    None,
+}
+
+impl From<NormalizationArg> for Normalization {
+    fn from(n: NormalizationArg) -> Self {
+        match n {
+            NormalizationArg::Floored => Normalization::FlooredColumns,
+            NormalizationArg::Eq2 => Normalization::Columns,
+            NormalizationArg::None => Normalization::None,
         }
     }
 }
@@ -78,9 +99,14 @@ pub struct EvalArgs {
     /// Write a precision-recall plot (PNG) of all scored methods here.
     #[arg(long)]
     pub plot: Option<PathBuf>,
-    /// Use raw cosine similarities in the graph instead of the column-normalised ĉ (Eq. 2).
+    /// Write the raw cosine similarity matrix C (Q x D, float32 .npy) here, e.g. to feed
+    /// `seasonloc solve --normalize`.
     #[arg(long)]
-    pub no_normalize: bool,
+    pub save_similarity: Option<PathBuf>,
+    /// Normalisation of C before the graph: `floored` (Eq. 2 with the column mean floored at
+    /// half the median column mean), `eq2` (the paper's Eq. 2 exactly) or `none`.
+    #[arg(long, value_enum, default_value_t = NormalizationArg::Floored)]
+    pub normalization: NormalizationArg,
     /// Descriptor settings.
     #[command(flatten)]
     pub descriptor: DescriptorArgs,
@@ -95,7 +121,10 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     let solver = args.solver.to_params()?;
     let extractor = args.descriptor.to_extractor()?;
     let exclusions = Exclusions::parse(&args.exclude)?;
-    for out in [&args.predictions, &args.plot].into_iter().flatten() {
+    for out in [&args.predictions, &args.plot, &args.save_similarity]
+        .into_iter()
+        .flatten()
+    {
         check_output_location(out)?;
     }
     let ground_truth = GroundTruth::from_csv(&args.ground_truth)?;
@@ -119,16 +148,16 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
 
     let t = Instant::now();
     let c = cosine_matrix(&queries, &references)?;
-    let chat = if args.no_normalize {
-        c.clone()
-    } else {
-        normalize_columns(&c)?
-    };
+    let normalization = args.normalization.into();
+    let chat = Normalization::apply(normalization, &c)?;
     let similarity_seconds = t.elapsed().as_secs_f64();
+    if let Some(path) = &args.save_similarity {
+        super::npy::write_matrix(path, &c)?;
+    }
 
     let options = LocalizeOptions {
         solver,
-        normalize: !args.no_normalize,
+        normalization,
         ..LocalizeOptions::default()
     };
     let mut methods = vec![args.method];
@@ -184,6 +213,10 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     obj.insert("queries".into(), json!(queries.rows()));
     obj.insert("references".into(), json!(references.rows()));
     obj.insert("descriptor_dim".into(), json!(queries.cols()));
+    obj.insert(
+        "normalization".into(),
+        json!(format!("{:?}", args.normalization).to_lowercase()),
+    );
     obj.insert("tolerance".into(), json!(args.tolerance));
     obj.insert("exclude".into(), json!(args.exclude));
     let solve_seconds = obj

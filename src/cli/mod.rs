@@ -30,6 +30,8 @@ pub enum Command {
     Solve(solve::SolveArgs),
     /// Localize a query image folder against a reference folder and score it against ground truth.
     Eval(eval::EvalArgs),
+    /// Run the HTTP service on the embedded store (see docs/service.md).
+    Serve(crate::config::ServeArgs),
 }
 
 /// Graph and solver flags shared by `solve` and `eval`.

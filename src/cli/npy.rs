@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use npyz::{DType, NpyFile, Order, TypeChar};
+use npyz::{DType, NpyFile, Order, TypeChar, WriterBuilder};
 
 use crate::Matrix;
 
@@ -59,6 +59,24 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
     Ok(Matrix::from_vec(rows, cols, data)?)
 }
 
+/// Writes `m` as a 2-D little-endian float32 `.npy` file (C order).
+pub fn write_matrix(path: &Path, m: &Matrix) -> Result<()> {
+    let file = std::fs::File::create(path).with_context(|| format!("{}", path.display()))?;
+    let mut writer = npyz::WriteOptions::<f32>::new()
+        .default_dtype()
+        .shape(&[m.rows() as u64, m.cols() as u64])
+        .writer(std::io::BufWriter::new(file))
+        .begin_nd()
+        .with_context(|| format!("{}: writing the .npy header", path.display()))?;
+    writer
+        .extend(m.as_slice().iter().copied())
+        .with_context(|| format!("{}: writing data", path.display()))?;
+    writer
+        .finish()
+        .with_context(|| format!("{}: finishing the file", path.display()))?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -110,6 +128,15 @@ mod tests {
         let m = read_matrix(&p).unwrap();
         // Fortran order: column-major data 1..6 -> rows [1,3,5], [2,4,6].
         assert_eq!(m.row(0), &[1.0, 3.0, 5.0]);
+    }
+
+    #[test]
+    fn written_matrices_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("w.npy");
+        let m = Matrix::from_vec(2, 3, vec![0.5, -1.0, 2.0, 3.0, 4.5, 0.0]).unwrap();
+        write_matrix(&p, &m).unwrap();
+        assert_eq!(read_matrix(&p).unwrap(), m);
     }
 
     #[test]

@@ -1,4 +1,19 @@
-//! Evaluation protocol of `spec.md` §4.
+//! Evaluation protocol of `spec.md` §4: ground truth, query exclusions, precision-recall
+//! metrics, prediction CSVs and PR plots.
+//!
+//! Every method reduces its result to at most one [`Prediction`] per query; [`evaluate`] sweeps
+//! the confidence threshold over them. The protocol is method-agnostic: it only sees
+//! `(query, reference, confidence)` triples.
+
+mod ground_truth;
+mod metrics;
+mod plot;
+mod predictions;
+
+pub use ground_truth::{Exclusions, GroundTruth};
+pub use metrics::{evaluate, Metrics, PrPoint};
+pub use plot::{plot_pr, PLOT_SIZE};
+pub use predictions::write_predictions_csv;
 
 /// One method's answer for one query: at most one per query, higher confidence = more certain.
 #[derive(Clone, Copy, Debug, PartialEq)]

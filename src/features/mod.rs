@@ -4,8 +4,25 @@
 //! An extractor turns one decoded image into one global descriptor vector. Its length depends
 //! only on the extractor's validated settings and the image size (after any resize the settings
 //! ask for), so a map's descriptors are comparable with each other.
+//!
+//! Batch helpers run one rayon task per image and keep the input order in the output rows.
+//! On failure they report the *first* bad image in input order (deterministically, whatever the
+//! thread timing) and skip the work after it.
 
-use crate::{Matrix, Result};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use image::DynamicImage;
+use rayon::prelude::*;
+
+use crate::{Error, Matrix, Result};
+
+pub mod hog;
+mod image_io;
+
+pub use image_io::{
+    decode_image, list_images, load_image_file, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
+};
 
 /// Turns one image into one global descriptor.
 pub trait Extractor: Send + Sync {
@@ -18,17 +35,354 @@ pub trait Extractor: Send + Sync {
 }
 
 /// Extracts the descriptors of `images` in parallel (rayon) into one row per image, in order.
-pub fn extract_batch(
-    _extractor: &dyn Extractor,
-    _images: &[image::DynamicImage],
-) -> Result<Matrix> {
-    todo!("features helper")
+///
+/// Sizes are checked before any extraction: an image the extractor cannot use is an error
+/// named `image #i`, and an image whose descriptor length differs from image 0's is an
+/// [`Error::Shape`] naming both images and their sizes. An empty slice is [`Error::Empty`].
+pub fn extract_batch(extractor: &dyn Extractor, images: &[DynamicImage]) -> Result<Matrix> {
+    let first = images
+        .first()
+        .ok_or_else(|| Error::Empty("no images to extract descriptors from".into()))?;
+    let size = |img: &DynamicImage| (img.width(), img.height());
+    let (w0, h0) = size(first);
+    let dim = extractor
+        .dim_for(w0, h0)
+        .map_err(|e| rename(e, &label(0)))?;
+    for (i, img) in images.iter().enumerate().skip(1) {
+        let (w, h) = size(img);
+        let d = extractor.dim_for(w, h).map_err(|e| rename(e, &label(i)))?;
+        if d != dim {
+            return Err(Error::Shape(format!(
+                "image #{i} is {w}x{h} px and gives {d} descriptor values, but image #0 is \
+                 {w0}x{h0} px and gives {dim}; resize the images to one size"
+            )));
+        }
+    }
+    let mut out = Matrix::zeros(images.len(), dim);
+    let first_bad = AtomicUsize::new(usize::MAX);
+    let results: Vec<Result<()>> = out
+        .as_mut_slice()
+        .par_chunks_mut(dim.max(1))
+        .zip(images.par_iter())
+        .enumerate()
+        .map(|(i, (row, img))| {
+            if i > first_bad.load(Ordering::Relaxed) {
+                return Ok(());
+            }
+            extractor
+                .extract(img)
+                .and_then(|d| fill_row(row, &d, &label(i)))
+                .inspect_err(|_| {
+                    first_bad.fetch_min(i, Ordering::Relaxed);
+                })
+        })
+        .collect();
+    results.into_iter().collect::<Result<()>>()?;
+    Ok(out)
 }
 
-pub mod hog;
+/// Decodes and extracts the image files `paths` in parallel, one row per file, in order.
+///
+/// Each rayon task reads, decodes and extracts one file and then drops the decoded image, so
+/// at most one decoded image per worker thread is alive at a time. `progress` is called once
+/// per finished image (from worker threads). The first bad file in input order is reported
+/// by path; descriptor lengths that differ from the first file's are an [`Error::Shape`]
+/// naming both files. An empty list is [`Error::Empty`].
+pub fn extract_files(
+    extractor: &dyn Extractor,
+    paths: &[PathBuf],
+    progress: &(dyn Fn() + Sync),
+) -> Result<Matrix> {
+    if paths.is_empty() {
+        return Err(Error::Empty(
+            "no image files to extract descriptors from".into(),
+        ));
+    }
+    let first_bad = AtomicUsize::new(usize::MAX);
+    let rows: Vec<Result<Option<FileRow>>> = paths
+        .par_iter()
+        .enumerate()
+        .map(|(i, path)| {
+            if i > first_bad.load(Ordering::Relaxed) {
+                return Ok(None);
+            }
+            let row = extract_file(extractor, path);
+            match &row {
+                Ok(_) => progress(),
+                Err(_) => {
+                    first_bad.fetch_min(i, Ordering::Relaxed);
+                }
+            }
+            row.map(Some)
+        })
+        .collect();
+    let mut data = Vec::new();
+    let mut first: Option<(usize, u32, u32, usize)> = None;
+    for (i, row) in rows.into_iter().enumerate() {
+        // A file is skipped only after a failure at a lower index, whose error returned above.
+        let Some((w, h, values)) = row? else {
+            continue;
+        };
+        match first {
+            None => {
+                data.reserve(values.len() * paths.len());
+                first = Some((0, w, h, values.len()));
+            }
+            Some((f, w0, h0, dim)) if values.len() != dim => {
+                return Err(Error::Shape(format!(
+                    "{} is {w}x{h} px and gives {} descriptor values, but {} is {w0}x{h0} px \
+                     and gives {dim}; resize the images to one size",
+                    paths[i].display(),
+                    values.len(),
+                    paths[f].display()
+                )));
+            }
+            Some(_) => {}
+        }
+        data.extend_from_slice(&values);
+    }
+    let dim = first.map_or(0, |(_, _, _, d)| d);
+    Matrix::from_vec(paths.len(), dim, data)
+}
 
-/// Decodes one JPEG/PNG image given as bytes; `name` (file or multipart part name) appears in
-/// errors. Images with more than `max_pixels` pixels are rejected before being decoded.
-pub fn decode_image(_name: &str, _bytes: &[u8], _max_pixels: u64) -> Result<image::DynamicImage> {
-    todo!("features helper")
+/// A file's image size and descriptor.
+type FileRow = (u32, u32, Vec<f32>);
+
+fn extract_file(extractor: &dyn Extractor, path: &Path) -> Result<FileRow> {
+    let image = load_image_file(path)?;
+    let values = extractor
+        .extract(&image)
+        .map_err(|e| rename(e, &path.display().to_string()))?;
+    Ok((image.width(), image.height(), values))
+}
+
+/// How batch errors name the image at index `i`.
+fn label(i: usize) -> String {
+    format!("#{i}")
+}
+
+/// Puts `name` into an [`Error::Image`] raised by an extractor that did not know the image's
+/// name; other errors pass through.
+fn rename(err: Error, name: &str) -> Error {
+    match err {
+        Error::Image { reason, .. } => Error::Image {
+            name: name.to_string(),
+            reason,
+        },
+        other => other,
+    }
+}
+
+/// Copies a descriptor into its matrix row, checking the extractor kept its `dim_for` promise.
+fn fill_row(row: &mut [f32], values: &[f32], name: &str) -> Result<()> {
+    if row.len() != values.len() {
+        return Err(Error::Shape(format!(
+            "image {name}: the extractor produced {} values but announced {}",
+            values.len(),
+            row.len()
+        )));
+    }
+    row.copy_from_slice(values);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::hog::{HogOptions, HogSpec};
+    use super::*;
+    use image::{GrayImage, Luma};
+    use std::sync::atomic::AtomicU32;
+
+    fn textured(w: u32, h: u32, seed: u32) -> DynamicImage {
+        DynamicImage::ImageLuma8(GrayImage::from_fn(w, h, |x, y| {
+            Luma([((x * x + 3 * y * seed + x * y * seed) % 251) as u8])
+        }))
+    }
+
+    fn hog(cell: u32, resize: Option<(u32, u32)>) -> HogSpec {
+        HogSpec::new(HogOptions {
+            cell_size: cell,
+            resize,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn batch_equals_sequential_extraction_in_order() {
+        let spec = hog(8, None);
+        let images: Vec<_> = (0..13).map(|s| textured(40, 24, s + 1)).collect();
+        let m = extract_batch(&spec, &images).unwrap();
+        assert_eq!((m.rows(), m.cols()), (13, spec.dim_for(40, 24).unwrap()));
+        for (i, img) in images.iter().enumerate() {
+            assert_eq!(m.row(i), spec.extract(img).unwrap().as_slice(), "row {i}");
+        }
+    }
+
+    #[test]
+    fn batch_with_mixed_sizes_needs_a_resize() {
+        let images = vec![
+            textured(40, 24, 1),
+            textured(40, 24, 2),
+            textured(48, 24, 3),
+        ];
+        match extract_batch(&hog(8, None), &images) {
+            Err(Error::Shape(msg)) => {
+                assert!(msg.contains("image #2 is 48x24"), "{msg}");
+                assert!(msg.contains("image #0 is 40x24"), "{msg}");
+            }
+            other => panic!("expected Shape, got {other:?}"),
+        }
+        let m = extract_batch(&hog(8, Some((32, 16))), &images).unwrap();
+        assert_eq!((m.rows(), m.cols()), (3, 3 * 36));
+    }
+
+    #[test]
+    fn batch_names_the_first_unusable_image() {
+        let images = vec![textured(40, 24, 1), textured(4, 4, 2), textured(3, 3, 3)];
+        match extract_batch(&hog(8, None), &images) {
+            Err(Error::Image { name, reason }) => {
+                assert_eq!(name, "#1");
+                assert!(
+                    reason.contains("4x4 px is smaller than one HOG cell of 8x8"),
+                    "{reason}"
+                );
+            }
+            other => panic!("expected Image, got {other:?}"),
+        }
+        assert!(matches!(
+            extract_batch(&hog(8, None), &[]),
+            Err(Error::Empty(_))
+        ));
+    }
+
+    fn write_pngs(dir: &Path, sizes: &[(u32, u32)]) -> Vec<PathBuf> {
+        sizes
+            .iter()
+            .enumerate()
+            .map(|(i, &(w, h))| {
+                let path = dir.join(format!("f{i:02}.png"));
+                textured(w, h, i as u32 + 1).save(&path).unwrap();
+                path
+            })
+            .collect()
+    }
+
+    #[test]
+    fn extract_files_matches_batch_and_reports_progress() {
+        let dir = tempfile::tempdir().unwrap();
+        let paths = write_pngs(dir.path(), &[(40, 24); 9]);
+        let calls = AtomicU32::new(0);
+        let spec = hog(8, None);
+        let m = extract_files(&spec, &paths, &|| {
+            calls.fetch_add(1, Ordering::Relaxed);
+        })
+        .unwrap();
+        let images: Vec<_> = paths.iter().map(|p| load_image_file(p).unwrap()).collect();
+        assert_eq!(m, extract_batch(&spec, &images).unwrap());
+        assert_eq!(calls.load(Ordering::Relaxed), 9);
+    }
+
+    #[test]
+    fn extract_files_reports_the_first_bad_file_by_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut paths = write_pngs(dir.path(), &[(40, 24); 6]);
+        std::fs::write(&paths[2], b"broken").unwrap();
+        std::fs::write(&paths[4], b"broken too").unwrap();
+        match extract_files(&hog(8, None), &paths, &|| {}) {
+            Err(Error::Image { name, .. }) => assert_eq!(name, paths[2].display().to_string()),
+            other => panic!("expected Image, got {other:?}"),
+        }
+        paths[2] = dir.path().join("gone.png");
+        match extract_files(&hog(8, None), &paths, &|| {}) {
+            Err(Error::Io { path, .. }) => assert_eq!(path, paths[2]),
+            other => panic!("expected Io, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn extract_files_names_small_and_mismatched_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let paths = write_pngs(dir.path(), &[(40, 24), (40, 24), (5, 5), (48, 24)]);
+        match extract_files(&hog(8, None), &paths, &|| {}) {
+            Err(Error::Image { name, reason }) => {
+                assert_eq!(name, paths[2].display().to_string());
+                assert!(reason.contains("5x5 px"), "{reason}");
+            }
+            other => panic!("expected Image, got {other:?}"),
+        }
+        match extract_files(&hog(8, None), &[paths[0].clone(), paths[3].clone()], &|| {}) {
+            Err(Error::Shape(msg)) => {
+                assert!(
+                    msg.contains(&format!("{} is 48x24", paths[3].display())),
+                    "{msg}"
+                )
+            }
+            other => panic!("expected Shape, got {other:?}"),
+        }
+        assert!(matches!(
+            extract_files(&hog(8, None), &[], &|| {}),
+            Err(Error::Empty(_))
+        ));
+    }
+
+    /// `shared/data/nordland_64x32` beside the repository (`../shared`, or the folder named by
+    /// `SEASONLOC_SHARED_DIR`), or `None` with a printed message.
+    fn nordland() -> Option<PathBuf> {
+        let shared = std::env::var_os("SEASONLOC_SHARED_DIR").map_or_else(
+            || Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
+            PathBuf::from,
+        );
+        let dir = shared.join("data/nordland_64x32");
+        if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
+            Some(dir)
+        } else {
+            eprintln!("skipping: Nordland data not found at {}", dir.display());
+            None
+        }
+    }
+
+    fn cosine(a: &[f32], b: &[f32]) -> f64 {
+        let dot: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x * y)).sum();
+        let na: f64 = a.iter().map(|x| f64::from(x * x)).sum::<f64>().sqrt();
+        let nb: f64 = b.iter().map(|x| f64::from(x * x)).sum::<f64>().sqrt();
+        if na == 0.0 || nb == 0.0 {
+            0.0
+        } else {
+            dot / (na * nb)
+        }
+    }
+
+    #[test]
+    fn nordland_same_place_is_more_similar_than_random_pairs() {
+        let Some(dir) = nordland() else { return };
+        let spec = hog(8, None);
+        let summer = list_images(&dir.join("summer")).unwrap();
+        let winter = list_images(&dir.join("winter")).unwrap();
+        assert_eq!(summer.len(), winter.len());
+        let frame = load_image_file(&summer[0]).unwrap();
+        assert_eq!(spec.extract(&frame).unwrap().len(), 756);
+        // Frames 0..17 are the unusable standing-still frames (README).
+        let (s, w) = (&summer[17..], &winter[17..]);
+        let ref_m = extract_files(&spec, s, &|| {}).unwrap();
+        let query_m = extract_files(&spec, w, &|| {}).unwrap();
+        assert!(ref_m.as_slice().iter().all(|v| v.is_finite()));
+        let n = s.len();
+        let same = (0..n)
+            .map(|i| cosine(query_m.row(i), ref_m.row(i)))
+            .sum::<f64>()
+            / n as f64;
+        // Deterministic "random" partners, always at least 3 frames away.
+        let mut state: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut random = 0.0;
+        for i in 0..n {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            let j = (i + 3 + (state >> 33) as usize % (n - 6)) % n;
+            random += cosine(query_m.row(i), ref_m.row(j));
+        }
+        let random = random / n as f64;
+        eprintln!("nordland HOG 8px: mean cosine same place {same:.4}, random pairs {random:.4}");
+        assert!(same > random + 0.01, "same {same:.4} vs random {random:.4}");
+    }
 }

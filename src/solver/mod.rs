@@ -13,6 +13,27 @@
 //! * `F > 1` exact: successive shortest paths with potentials on the residual graph.
 //!
 //! Matching nodes have capacity 1 (node-disjoint flows); hidden nodes carry any number of flows.
+//!
+//! Code map: the graph helpers (blocked set, input checks, path -> [`Hypothesis`]) live in
+//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs`, greedy and exact `F > 1` in
+//! `greedy.rs` / `exact.rs`, min-marginals for confidences in `marginals.rs`, and the test-only
+//! reference solvers (generic min-cost flow, brute force) in `reference.rs`.
+//!
+//! Invariants: every solver returns hypotheses with one [`RowAssignment`] per query row, matches
+//! in increasing column order, never on an unusable (`ĉ <= 0`) or blocked matching node, and a
+//! `cost` equal to the sum of the path's edge costs (recomputed in `f64` from the path).
+
+mod exact;
+mod graph;
+mod greedy;
+mod marginals;
+#[cfg(test)]
+mod reference;
+mod shortest_path;
+
+pub use graph::Blocked;
+pub use marginals::{row_alternatives, RowAlternatives};
+pub use shortest_path::shortest_path;
 
 use crate::{Error, Matrix, Result};
 
@@ -188,7 +209,118 @@ pub fn auto_hidden_cost(chat: &Matrix) -> f64 {
 
 /// Solves the graph on the normalised similarity matrix `chat` (`ĉ`, Q x D).
 ///
+/// `F = 1` is the shortest path; `F > 1` is greedy (ranked by order found) unless
+/// `params.exact`, which solves the true min-cost flow (ranked by increasing cost). The stopping
+/// rule `stop_hidden_fraction` never drops the first (rank 1) hypothesis; it stops before the
+/// first later hypothesis whose hidden fraction exceeds the limit.
+///
 /// Fails on an empty matrix, a non-finite entry or an invalid parameter.
-pub fn solve(_chat: &Matrix, _params: &SolverParams) -> Result<Solution> {
-    todo!("solver")
+pub fn solve(chat: &Matrix, params: &SolverParams) -> Result<Solution> {
+    params.validate()?;
+    graph::check_matrix(chat)?;
+    let w = match params.hidden_cost {
+        HiddenCost::Fixed(w) => w,
+        HiddenCost::Auto => auto_hidden_cost(chat),
+    };
+    graph::check_hidden_cost(w)?;
+    let hypotheses = if params.flows > 1 && params.exact {
+        exact::min_cost_flow(chat, params.fan_out, params.horizontal, w, params.flows)?
+    } else {
+        greedy::greedy_paths(
+            chat,
+            params.fan_out,
+            params.horizontal,
+            w,
+            params.flows,
+            params.stop_hidden_fraction,
+        )
+    };
+    let hypotheses = graph::apply_stop_rule(hypotheses, params.stop_hidden_fraction);
+    Ok(Solution {
+        hidden_cost: w,
+        hypotheses,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixed(flows: usize, exact: bool) -> SolverParams {
+        SolverParams {
+            hidden_cost: HiddenCost::Fixed(1.2),
+            flows,
+            exact,
+            ..SolverParams::default()
+        }
+    }
+
+    fn route(h: &Hypothesis) -> Vec<Option<usize>> {
+        h.rows
+            .iter()
+            .map(|r| r.matches.first().map(|m| m.reference))
+            .collect()
+    }
+
+    #[test]
+    fn solve_with_one_flow_is_the_shortest_path() {
+        let chat = Matrix::from_rows(&[vec![3.0, 0.5, 0.2], vec![0.4, 3.0, 0.5]]).unwrap();
+        for exact in [false, true] {
+            let sol = solve(&chat, &fixed(1, exact)).unwrap();
+            let sp = shortest_path(&chat, 4, true, 1.2, None).unwrap();
+            assert_eq!(sol.hypotheses, vec![sp]);
+            assert_eq!(sol.hidden_cost, 1.2);
+            assert!((sol.total_cost() - (1.0 / 3.0 + 1.0 / 3.0)).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn new_places_come_out_hidden() {
+        // Rows 3..6 are a detour through places the reference never saw (mediocre similarity
+        // everywhere); the route then resumes where it left the reference.
+        let mut rows = Vec::new();
+        for i in 0..9 {
+            let mut r = vec![0.6f32; 8];
+            match i {
+                0..=2 => r[i] = 4.0,
+                6..=8 => r[i - 3] = 4.0,
+                _ => {}
+            }
+            rows.push(r);
+        }
+        let chat = Matrix::from_rows(&rows).unwrap();
+        let sol = solve(&chat, &fixed(1, false)).unwrap();
+        let want = [
+            Some(0),
+            Some(1),
+            Some(2),
+            None,
+            None,
+            None,
+            Some(3),
+            Some(4),
+            Some(5),
+        ];
+        assert_eq!(route(&sol.hypotheses[0]), want);
+    }
+
+    #[test]
+    fn solve_rejects_bad_input_with_precise_errors() {
+        let chat = Matrix::from_rows(&[vec![1.0, f32::INFINITY]]).unwrap();
+        let err = solve(&chat, &fixed(1, false)).unwrap_err();
+        assert!(err.to_string().contains("row 0, column 1"), "{err}");
+        let ok = Matrix::from_rows(&[vec![1.0, 2.0]]).unwrap();
+        let err = solve(&ok, &fixed(0, false)).unwrap_err();
+        assert!(err.to_string().contains("`flows`"), "{err}");
+        let mut p = fixed(1, false);
+        p.fan_out = MAX_FAN_OUT + 1;
+        assert!(solve(&ok, &p).is_err());
+        p = fixed(1, false);
+        p.hidden_cost = HiddenCost::Fixed(-1.0);
+        assert!(solve(&ok, &p).is_err());
+        assert!(matches!(
+            solve(&Matrix::zeros(0, 0), &fixed(1, false)),
+            Err(Error::Empty(_))
+        ));
+    }
 }

@@ -1,0 +1,31 @@
+# seasonloc: multi-stage build from source; the runtime image holds only the binary.
+#
+# What the image runs (checked without a Docker engine by tests/service/docker.rs, which starts
+# the binary with this file's ENV and runs this file's HEALTHCHECK command against it):
+#   seasonloc serve   listening on 0.0.0.0:8080, store in the volume /data,
+#   as the unprivileged user `seasonloc` (uid 10001).
+
+FROM rust:1.85-slim-bookworm AS build
+WORKDIR /src
+COPY Cargo.toml Cargo.lock* ./
+COPY src ./src
+COPY benches ./benches
+COPY migrations ./migrations
+COPY openapi ./openapi
+RUN cargo build --release --locked --bin seasonloc || cargo build --release --bin seasonloc
+
+FROM debian:bookworm-slim AS runtime
+RUN useradd --system --uid 10001 --home-dir /nonexistent --shell /usr/sbin/nologin seasonloc \
+    && mkdir -p /data && chown seasonloc /data
+COPY --from=build /src/target/release/seasonloc /usr/local/bin/seasonloc
+ENV SEASONLOC_ADDR=0.0.0.0:8080
+ENV SEASONLOC_DATA_DIR=/data
+ENV RUST_LOG=info
+VOLUME /data
+EXPOSE 8080
+USER seasonloc
+# bash's /dev/tcp needs no curl in the image.
+HEALTHCHECK --interval=30s --timeout=3s --start-period=5s --retries=3 \
+    CMD ["bash", "-c", "exec 3<>/dev/tcp/127.0.0.1/8080 && printf 'GET /healthz HTTP/1.0\\r\\n\\r\\n' >&3 && head -n 1 <&3 | grep -q ' 200 '"]
+ENTRYPOINT ["seasonloc"]
+CMD ["serve"]

@@ -1,0 +1,84 @@
+//! HOG extraction benches: the paper's 1024x768 / 32 px grid single-threaded (HOG alone on a
+//! gray image, and decode + gray + resize alone), a 64x32 Nordland frame with 8 px cells, and
+//! batch throughput across all cores (`extract_batch` on decoded frames, `extract_files` with
+//! PNG decoding). Compare with `benches/opencv_hog.py`.
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use image::DynamicImage;
+use seasonloc::features::hog::{HogOptions, HogSpec};
+use seasonloc::features::{extract_batch, extract_files, load_image_file, Extractor};
+
+mod fixture;
+
+fn hog(cell_size: u32, resize: Option<(u32, u32)>) -> HogSpec {
+    HogSpec::new(HogOptions { cell_size, resize }).expect("valid bench options")
+}
+
+fn single(c: &mut Criterion) {
+    let mut g = c.benchmark_group("hog_single");
+    if let Some(gray) = fixture::sample_gray("dog", 1024, 768) {
+        let image = DynamicImage::ImageLuma8(gray);
+        let spec = hog(32, None);
+        g.bench_function("gray_1024x768_cell32", |b| {
+            b.iter(|| spec.extract(&image).expect("extracts"))
+        });
+        if fixture::thread_cpu_time().is_some() {
+            g.bench_function("gray_1024x768_cell32_thread_cpu_time", |b| {
+                b.iter_custom(|n| {
+                    fixture::cpu_time_of(n, || spec.extract(&image).expect("extracts"))
+                })
+            });
+        }
+    }
+    if let Some(path) = fixture::shared("models/samples/dog.jpg") {
+        let spec = hog(32, Some((1024, 768)));
+        g.bench_function("jpeg_decode_to_hog_1024x768_cell32", |b| {
+            b.iter(|| {
+                spec.extract(&load_image_file(&path).expect("decodes"))
+                    .expect("extracts")
+            })
+        });
+        let prepare = || {
+            let img = load_image_file(&path).expect("decodes").to_luma8();
+            image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
+        };
+        g.bench_function("jpeg_decode_gray_resize_1024x768", |b| b.iter(prepare));
+        if fixture::thread_cpu_time().is_some() {
+            g.bench_function("jpeg_decode_gray_resize_1024x768_thread_cpu_time", |b| {
+                b.iter_custom(|n| fixture::cpu_time_of(n, prepare))
+            });
+        }
+    }
+    if let Some(frames) = fixture::nordland_images("summer", 600) {
+        let spec = hog(8, None);
+        let frame = &frames[500];
+        g.bench_function("nordland_64x32_cell8", |b| {
+            b.iter(|| spec.extract(frame).expect("extracts"))
+        });
+    }
+    g.finish();
+}
+
+fn batch(c: &mut Criterion) {
+    let mut g = c.benchmark_group("hog_batch");
+    g.sample_size(10);
+    if let Some(gray) = fixture::sample_gray("eagle", 1024, 768) {
+        let images = vec![DynamicImage::ImageLuma8(gray); 200];
+        let spec = hog(32, None);
+        g.throughput(Throughput::Elements(images.len() as u64));
+        g.bench_function("extract_batch_200x_1024x768_cell32", |b| {
+            b.iter(|| extract_batch(&spec, &images).expect("extracts"))
+        });
+    }
+    if let Some(paths) = fixture::nordland_paths("winter", 200) {
+        let spec = hog(8, None);
+        g.throughput(Throughput::Elements(paths.len() as u64));
+        g.bench_function("extract_files_200_nordland_png_cell8", |b| {
+            b.iter(|| extract_files(&spec, &paths, &|| {}).expect("extracts"))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, single, batch);
+criterion_main!(benches);

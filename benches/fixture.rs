@@ -1,0 +1,75 @@
+//! Shared bench inputs: locating `../shared` beside the repository and loading the sample
+//! images and Nordland frames. Cases whose data is absent print why and are skipped.
+#![allow(dead_code)] // each bench uses only some helpers
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use image::imageops::{self, FilterType};
+use image::{DynamicImage, GrayImage};
+
+/// `../shared/<rel>` relative to the crate root (or `$SEASONLOC_SHARED_DIR/<rel>` when that
+/// variable is set), or `None` with a printed skip message.
+pub fn shared(rel: &str) -> Option<PathBuf> {
+    let root = std::env::var_os("SEASONLOC_SHARED_DIR").map_or_else(
+        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
+        PathBuf::from,
+    );
+    let path = root.join(rel);
+    if path.exists() {
+        Some(path)
+    } else {
+        eprintln!("skipping: {} not found", path.display());
+        None
+    }
+}
+
+/// A sample photo (`shared/models/samples/<name>.jpg`) as luma, resized (triangle filter) to
+/// `width x height`.
+pub fn sample_gray(name: &str, width: u32, height: u32) -> Option<GrayImage> {
+    let path = shared(&format!("models/samples/{name}.jpg"))?;
+    let image = seasonloc::features::load_image_file(&path).expect("sample photo decodes");
+    Some(imageops::resize(
+        &image.to_luma8(),
+        width,
+        height,
+        FilterType::Triangle,
+    ))
+}
+
+/// The first `n` frames of one Nordland season (`summer` or `winter`), in route order.
+pub fn nordland_paths(season: &str, n: usize) -> Option<Vec<PathBuf>> {
+    let dir = shared(&format!("data/nordland_64x32/{season}"))?;
+    let mut paths = seasonloc::features::list_images(&dir).expect("Nordland folder lists");
+    paths.truncate(n);
+    Some(paths)
+}
+
+/// The first `n` frames of one Nordland season, decoded.
+pub fn nordland_images(season: &str, n: usize) -> Option<Vec<DynamicImage>> {
+    let paths = nordland_paths(season, n)?;
+    Some(
+        paths
+            .iter()
+            .map(|p| seasonloc::features::load_image_file(p).expect("Nordland frame decodes"))
+            .collect(),
+    )
+}
+
+/// CPU time the calling thread has run so far (first field of `/proc/thread-self/schedstat`,
+/// in ns), or `None` where that file is unavailable. On a machine shared with other jobs this
+/// is a steadier single-threaded figure than wall time.
+pub fn thread_cpu_time() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns = stat.split_whitespace().next()?.parse().ok()?;
+    Some(Duration::from_nanos(ns))
+}
+
+/// For `Bencher::iter_custom`: runs `f` `iters` times and returns the thread CPU time spent.
+pub fn cpu_time_of<R>(iters: u64, mut f: impl FnMut() -> R) -> Duration {
+    let start = thread_cpu_time().expect("checked with thread_cpu_time() before");
+    for _ in 0..iters {
+        std::hint::black_box(f());
+    }
+    thread_cpu_time().expect("checked with thread_cpu_time() before") - start
+}

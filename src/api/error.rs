@@ -1,0 +1,258 @@
+//! The API's one error type: every failure of a request becomes an [`ApiError`], which maps to
+//! an HTTP status and a JSON body `{"error": {"code", "message"}}` in one exhaustive match.
+//!
+//! Codes are stable snake_case strings that clients may match on (they are listed in
+//! `openapi/openapi.yaml`). Messages of 4xx errors name the offending input; 5xx bodies say
+//! nothing internal (the cause is logged instead).
+
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+
+use crate::store::StoreError;
+
+/// Seconds a client is asked to wait after a 503.
+pub const RETRY_AFTER_SECS: u64 = 1;
+
+/// Every way a request can fail. The doc line of each variant gives its status and code.
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    /// 404 `map_not_found`.
+    #[error("map `{0}` does not exist")]
+    MapNotFound(String),
+    /// 404 `localization_not_found`.
+    #[error("localization `{0}` does not exist")]
+    LocalizationNotFound(String),
+    /// 404 `route_not_found`.
+    #[error("no route for {0}")]
+    RouteNotFound(String),
+    /// 405 `method_not_allowed`.
+    #[error("method not allowed on this route")]
+    MethodNotAllowed,
+    /// 400 `invalid_parameter`: an unknown, missing or out-of-range parameter.
+    #[error("invalid parameter `{name}`: {reason}")]
+    InvalidParameter {
+        /// The parameter, e.g. `fan_out` or `descriptor.cell_size`.
+        name: String,
+        /// Why it was rejected.
+        reason: String,
+    },
+    /// 400 `bad_request`: a malformed body (JSON syntax, multipart framing, unknown part).
+    #[error("{0}")]
+    BadRequest(String),
+    /// 400 `empty_batch`.
+    #[error("empty batch: {0}")]
+    EmptyBatch(String),
+    /// 400 `batch_too_large`.
+    #[error("batch has more than {limit} {what} (the configured limit)")]
+    BatchTooLarge {
+        /// "images" or "descriptors".
+        what: &'static str,
+        /// The configured limit.
+        limit: usize,
+    },
+    /// 409 `map_empty`: localizing against a map without reference images.
+    #[error("map `{0}` has no reference images yet")]
+    MapEmpty(String),
+    /// 409 `map_full`.
+    #[error("map `{0}` cannot hold more images")]
+    MapFull(String),
+    /// 413 `payload_too_large`: the body exceeds the configured size limit.
+    #[error("request body is larger than the configured limit of {0} bytes")]
+    PayloadTooLarge(usize),
+    /// 413 `image_too_large`: an image exceeds the configured pixel limit.
+    #[error(
+        "{part} is {width}x{height} = {pixels} pixels, more than the configured limit of {limit}"
+    )]
+    ImageTooLarge {
+        /// The part, e.g. `image #2 ("a.png")`.
+        part: String,
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+        /// `width * height`.
+        pixels: u64,
+        /// The configured limit.
+        limit: u64,
+    },
+    /// 415 `unsupported_media_type`.
+    #[error("{0}")]
+    UnsupportedMediaType(String),
+    /// 422 `invalid_image`: a part that is not a decodable JPEG/PNG.
+    #[error("{part}: {reason}")]
+    InvalidImage {
+        /// The part.
+        part: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// 422 `descriptor_length`: descriptors (or images giving them) do not fit the map.
+    #[error("{0}")]
+    DescriptorLength(String),
+    /// 422 `non_finite`: NaN or infinity in a descriptor.
+    #[error("{0}")]
+    NonFinite(String),
+    /// 422 `shape_mismatch`: inputs whose shapes do not fit together.
+    #[error("{0}")]
+    ShapeMismatch(String),
+    /// 503 `queue_full` with `Retry-After`: the localize queue is full.
+    #[error("the localize queue is full; retry later")]
+    QueueFull,
+    /// 503 `overloaded` with `Retry-After`: the concurrency limit is reached.
+    #[error("the server is at its concurrency limit; retry later")]
+    Overloaded,
+    /// 503 `timeout`: the request took longer than the configured timeout.
+    #[error("the request took longer than the configured timeout")]
+    Timeout,
+    /// 503 `not_ready`: the store is not usable.
+    #[error("the store is not ready")]
+    NotReady(String),
+    /// 500 `internal`: the message is logged, never sent.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl ApiError {
+    /// Status, machine-readable code, and whether to send `Retry-After`.
+    pub fn parts(&self) -> (StatusCode, &'static str, bool) {
+        use StatusCode as S;
+        match self {
+            ApiError::MapNotFound(_) => (S::NOT_FOUND, "map_not_found", false),
+            ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
+            ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
+            ApiError::MethodNotAllowed => (S::METHOD_NOT_ALLOWED, "method_not_allowed", false),
+            ApiError::InvalidParameter { .. } => (S::BAD_REQUEST, "invalid_parameter", false),
+            ApiError::BadRequest(_) => (S::BAD_REQUEST, "bad_request", false),
+            ApiError::EmptyBatch(_) => (S::BAD_REQUEST, "empty_batch", false),
+            ApiError::BatchTooLarge { .. } => (S::BAD_REQUEST, "batch_too_large", false),
+            ApiError::MapEmpty(_) => (S::CONFLICT, "map_empty", false),
+            ApiError::MapFull(_) => (S::CONFLICT, "map_full", false),
+            ApiError::PayloadTooLarge(_) => (S::PAYLOAD_TOO_LARGE, "payload_too_large", false),
+            ApiError::ImageTooLarge { .. } => (S::PAYLOAD_TOO_LARGE, "image_too_large", false),
+            ApiError::UnsupportedMediaType(_) => {
+                (S::UNSUPPORTED_MEDIA_TYPE, "unsupported_media_type", false)
+            }
+            ApiError::InvalidImage { .. } => (S::UNPROCESSABLE_ENTITY, "invalid_image", false),
+            ApiError::DescriptorLength(_) => (S::UNPROCESSABLE_ENTITY, "descriptor_length", false),
+            ApiError::NonFinite(_) => (S::UNPROCESSABLE_ENTITY, "non_finite", false),
+            ApiError::ShapeMismatch(_) => (S::UNPROCESSABLE_ENTITY, "shape_mismatch", false),
+            ApiError::QueueFull => (S::SERVICE_UNAVAILABLE, "queue_full", true),
+            ApiError::Overloaded => (S::SERVICE_UNAVAILABLE, "overloaded", true),
+            ApiError::Timeout => (S::SERVICE_UNAVAILABLE, "timeout", true),
+            ApiError::NotReady(_) => (S::SERVICE_UNAVAILABLE, "not_ready", true),
+            ApiError::Internal(_) => (S::INTERNAL_SERVER_ERROR, "internal", false),
+        }
+    }
+
+    /// Shorthand for [`ApiError::InvalidParameter`].
+    pub fn param(name: impl Into<String>, reason: impl Into<String>) -> Self {
+        ApiError::InvalidParameter {
+            name: name.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let (status, code, retry) = self.parts();
+        let message = match &self {
+            ApiError::Internal(cause) => {
+                tracing::error!(%code, %cause, "request failed");
+                "internal server error".to_string()
+            }
+            ApiError::NotReady(cause) => {
+                tracing::warn!(%code, %cause, "store not ready");
+                "the store is not ready".to_string()
+            }
+            other => other.to_string(),
+        };
+        let body = serde_json::json!({"error": {"code": code, "message": message}});
+        let mut response = (status, axum::Json(body)).into_response();
+        if retry {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECS));
+        }
+        response
+    }
+}
+
+impl From<crate::Error> for ApiError {
+    fn from(e: crate::Error) -> Self {
+        use crate::Error as E;
+        match e {
+            E::InvalidParameter { name, reason } => ApiError::param(name, reason),
+            E::NonFinite { .. } => ApiError::NonFinite(e.to_string()),
+            E::Shape(s) => ApiError::ShapeMismatch(s),
+            E::Empty(s) => ApiError::EmptyBatch(s),
+            E::Image { name, reason } => ApiError::InvalidImage { part: name, reason },
+            E::Io { .. } | E::Format { .. } => ApiError::Internal(e.to_string()),
+        }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            StoreError::MapNotFound(id) => ApiError::MapNotFound(super::dto::format_id(id)),
+            StoreError::LocalizationNotFound(id) => {
+                ApiError::LocalizationNotFound(super::dto::format_id(id))
+            }
+            StoreError::DimensionMismatch { .. } => ApiError::DescriptorLength(e.to_string()),
+            StoreError::MapFull(id) => ApiError::MapFull(super::dto::format_id(id)),
+            StoreError::Open { .. }
+            | StoreError::Sled(_)
+            | StoreError::Corrupt { .. }
+            | StoreError::UnsupportedSchema { .. } => ApiError::Internal(e.to_string()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    async fn body_of(e: ApiError) -> (StatusCode, serde_json::Value, Option<HeaderValue>) {
+        let r = e.into_response();
+        let status = r.status();
+        let retry = r.headers().get(header::RETRY_AFTER).cloned();
+        let bytes = axum::body::to_bytes(r.into_body(), 1 << 20).await.unwrap();
+        (status, serde_json::from_slice(&bytes).unwrap(), retry)
+    }
+
+    #[tokio::test]
+    async fn internal_errors_say_nothing_internal() {
+        let (status, body, _) = body_of(ApiError::Internal("sled: /secret/path".into())).await;
+        assert_eq!(status, StatusCode::INTERNAL_SERVER_ERROR);
+        assert_eq!(body["error"]["code"], "internal");
+        assert!(!body.to_string().contains("secret"));
+    }
+
+    #[tokio::test]
+    async fn queue_full_sets_retry_after() {
+        let (status, body, retry) = body_of(ApiError::QueueFull).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(body["error"]["code"], "queue_full");
+        assert_eq!(retry.unwrap(), "1");
+    }
+
+    #[tokio::test]
+    async fn core_errors_map_to_client_errors() {
+        let e: ApiError = crate::Error::param("fan_out", "must be at most 1024, got 5000").into();
+        let (status, body, _) = body_of(e).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+        assert!(body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("fan_out"));
+        let e: ApiError = crate::Error::Image {
+            name: "image #2".into(),
+            reason: "truncated".into(),
+        }
+        .into();
+        assert_eq!(e.parts().0, StatusCode::UNPROCESSABLE_ENTITY);
+        let e: ApiError = StoreError::MapNotFound(255).into();
+        assert_eq!(e.to_string(), "map `00000000000000ff` does not exist");
+    }
+}

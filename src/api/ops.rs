@@ -1,0 +1,70 @@
+//! Operations routes: `/healthz` (the process answers), `/readyz` (the store answers reads),
+//! `/metrics` (Prometheus text) and `/openapi.json` (the shipped `openapi/openapi.yaml` as JSON).
+
+use std::sync::Arc;
+
+use axum::extract::State;
+use axum::http::{header, HeaderValue};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::{Json, Router};
+
+use super::dto::StatusResponse;
+use super::error::ApiError;
+use super::state::{blocking, AppState};
+
+/// The OpenAPI document as shipped.
+pub const OPENAPI_YAML: &str = include_str!("../../openapi/openapi.yaml");
+
+/// The OpenAPI document converted to JSON.
+pub fn openapi_json() -> anyhow::Result<Vec<u8>> {
+    let doc: serde_json::Value = serde_yaml::from_str(OPENAPI_YAML)?;
+    Ok(serde_json::to_vec(&doc)?)
+}
+
+/// The routes of this resource.
+pub fn router() -> Router<AppState> {
+    Router::new()
+        .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
+        .route("/openapi.json", get(openapi))
+}
+
+async fn healthz() -> Json<StatusResponse> {
+    Json(StatusResponse { status: "ok" })
+}
+
+async fn readyz(State(state): State<AppState>) -> Result<Json<StatusResponse>, ApiError> {
+    let store = Arc::clone(&state.store);
+    blocking(move || store.check().map_err(|e| ApiError::NotReady(e.to_string()))).await?;
+    Ok(Json(StatusResponse { status: "ready" }))
+}
+
+async fn metrics(State(state): State<AppState>) -> Response {
+    let mut r = state.metrics.render().into_response();
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; version=0.0.4"),
+    );
+    r
+}
+
+async fn openapi(State(state): State<AppState>) -> Response {
+    let mut r = state.openapi_json.clone().into_response();
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/json"),
+    );
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_shipped_spec_parses() {
+        let json = super::openapi_json().unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
+        assert!(v["openapi"].as_str().unwrap().starts_with("3."));
+    }
+}

@@ -1,0 +1,125 @@
+//! The application: every resource's routes, the fallbacks, and the tower layers that enforce
+//! limits and record requests.
+//!
+//! Layers, outermost first: request id (`x-request-id`, generated when absent) -> trace span
+//! carrying it -> request id copied to the response -> JSON bodies for limit errors ->
+//! metrics -> load shedding (503 `overloaded`) over a global concurrency limit -> timeout
+//! (503 `timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so
+//! the configured limit is the only one.
+
+use std::time::Duration;
+
+use axum::error_handling::HandleErrorLayer;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
+use axum::http::{header, HeaderName, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::{middleware, BoxError, Router};
+use tower::ServiceBuilder;
+use tower_http::limit::RequestBodyLimitLayer;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::{DefaultOnResponse, TraceLayer};
+use tracing::Level;
+
+use super::error::ApiError;
+use super::state::AppState;
+use super::{localize, maps, metrics, ops};
+
+/// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
+/// describe exactly these (checked by the integration tests).
+pub const ROUTES: &[(&str, &str)] = &[
+    ("post", "/v1/maps"),
+    ("get", "/v1/maps"),
+    ("get", "/v1/maps/{id}"),
+    ("delete", "/v1/maps/{id}"),
+    ("post", "/v1/maps/{id}/images"),
+    ("post", "/v1/maps/{id}/descriptors"),
+    ("post", "/v1/maps/{id}/localize"),
+    ("get", "/v1/localizations"),
+    ("get", "/v1/localizations/{id}"),
+    ("get", "/healthz"),
+    ("get", "/readyz"),
+    ("get", "/metrics"),
+    ("get", "/openapi.json"),
+];
+
+const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
+/// The whole service as an axum router.
+pub fn app(state: AppState) -> Router {
+    let s = &state.settings;
+    let timeout: Duration = s.request_timeout;
+    let limits = ServiceBuilder::new()
+        .layer(HandleErrorLayer::new(limit_error))
+        .load_shed()
+        .layer(tower::limit::GlobalConcurrencyLimitLayer::new(
+            s.max_concurrent_requests,
+        ))
+        .timeout(timeout);
+    let edge = ServiceBuilder::new()
+        .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(|req: &Request| {
+                    let id = req
+                        .headers()
+                        .get(REQUEST_ID)
+                        .and_then(|v| v.to_str().ok())
+                        .unwrap_or("-");
+                    let route = req
+                        .extensions()
+                        .get::<MatchedPath>()
+                        .map_or(req.uri().path(), |p| p.as_str());
+                    tracing::info_span!("request", request_id = %id, method = %req.method(), route = %route)
+                })
+                .on_response(DefaultOnResponse::new().level(Level::INFO)),
+        )
+        .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+        .layer(middleware::map_response(json_limit_errors))
+        .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .layer(limits)
+        .layer(RequestBodyLimitLayer::new(s.max_body_bytes))
+        .layer(DefaultBodyLimit::disable());
+    let max_body = s.max_body_bytes;
+    Router::new()
+        .merge(maps::router())
+        .merge(localize::router())
+        .merge(ops::router())
+        .fallback(|req: Request| async move {
+            ApiError::RouteNotFound(format!("{} {}", req.method(), req.uri().path()))
+        })
+        .method_not_allowed_fallback(|| async { ApiError::MethodNotAllowed })
+        .layer(edge)
+        .layer(axum::Extension(BodyLimit(max_body)))
+        .with_state(state)
+}
+
+/// The configured body limit, for messages of responses built outside the handlers.
+#[derive(Clone, Copy)]
+struct BodyLimit(usize);
+
+async fn limit_error(err: BoxError) -> ApiError {
+    if err.is::<tower::timeout::error::Elapsed>() {
+        ApiError::Timeout
+    } else if err.is::<tower::load_shed::error::Overloaded>() {
+        ApiError::Overloaded
+    } else {
+        ApiError::Internal(format!("middleware: {err}"))
+    }
+}
+
+/// `RequestBodyLimitLayer` answers an over-long `Content-Length` itself with a plain-text 413;
+/// give it the API's error shape.
+async fn json_limit_errors(
+    limit: Option<axum::Extension<BodyLimit>>,
+    response: Response,
+) -> Response {
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if response.status() == StatusCode::PAYLOAD_TOO_LARGE && !is_json {
+        let limit = limit.map_or(0, |axum::Extension(BodyLimit(n))| n);
+        return ApiError::PayloadTooLarge(limit).into_response();
+    }
+    response
+}

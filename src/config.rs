@@ -1,0 +1,222 @@
+//! Configuration of `seasonloc serve`: a clap [`ServeArgs`] whose every field can also come
+//! from an environment variable (`SEASONLOC_*`; command-line flags win), validated once into
+//! [`Settings`].
+//!
+//! Invariant: every limit in [`Settings`] is non-zero, so the layers built from it never reject
+//! everything; `.env.sample` and `docs/service.md` list the same keys as this file.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Flags of `seasonloc serve` (each with an environment-variable equivalent).
+#[derive(Clone, Debug, clap::Args)]
+pub struct ServeArgs {
+    /// Address to listen on (`HOST:PORT`; port 0 picks a free port).
+    #[arg(long, env = "SEASONLOC_ADDR", default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Folder of the embedded store (created when missing).
+    #[arg(long, env = "SEASONLOC_DATA_DIR", default_value = "./seasonloc-data")]
+    pub data_dir: PathBuf,
+    /// Largest accepted request body in bytes (uploads included); larger bodies get 413.
+    #[arg(long, env = "SEASONLOC_MAX_BODY_BYTES", default_value_t = 64 * 1024 * 1024)]
+    pub max_body_bytes: usize,
+    /// Most images (or descriptors) accepted in one batch.
+    #[arg(long, env = "SEASONLOC_MAX_BATCH_IMAGES", default_value_t = 4096)]
+    pub max_batch_images: usize,
+    /// Largest accepted image in pixels (width x height), checked before decoding.
+    #[arg(long, env = "SEASONLOC_MAX_IMAGE_PIXELS", default_value_t = 16_000_000)]
+    pub max_image_pixels: u64,
+    /// Seconds after which a request is abandoned with 503 `timeout`.
+    #[arg(long, env = "SEASONLOC_REQUEST_TIMEOUT_SECS", default_value_t = 120)]
+    pub request_timeout_secs: u64,
+    /// Requests handled at once; further requests are shed with 503 `overloaded`.
+    #[arg(long, env = "SEASONLOC_MAX_CONCURRENT_REQUESTS", default_value_t = 256)]
+    pub max_concurrent_requests: usize,
+    /// Localize requests admitted at once (running or waiting for a CPU); beyond that the
+    /// service answers 503 `queue_full` with `Retry-After`.
+    #[arg(long, env = "SEASONLOC_LOCALIZE_QUEUE", default_value_t = 16)]
+    pub localize_queue: usize,
+    /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core).
+    #[arg(long, env = "SEASONLOC_WORKER_THREADS", default_value_t = 0)]
+    pub worker_threads: usize,
+    /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C before exiting anyway.
+    #[arg(long, env = "SEASONLOC_SHUTDOWN_TIMEOUT_SECS", default_value_t = 30)]
+    pub shutdown_timeout_secs: u64,
+}
+
+impl Default for ServeArgs {
+    fn default() -> Self {
+        ServeArgs {
+            addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("./seasonloc-data"),
+            max_body_bytes: 64 * 1024 * 1024,
+            max_batch_images: 4096,
+            max_image_pixels: 16_000_000,
+            request_timeout_secs: 120,
+            max_concurrent_requests: 256,
+            localize_queue: 16,
+            worker_threads: 0,
+            shutdown_timeout_secs: 30,
+        }
+    }
+}
+
+/// Validated service settings (see [`ServeArgs`] for the meaning of each field).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Settings {
+    /// Listen address.
+    pub addr: SocketAddr,
+    /// Store folder.
+    pub data_dir: PathBuf,
+    /// Body limit in bytes, > 0.
+    pub max_body_bytes: usize,
+    /// Batch limit, > 0.
+    pub max_batch_images: usize,
+    /// Pixel limit per image, > 0.
+    pub max_image_pixels: u64,
+    /// Per-request timeout, > 0.
+    pub request_timeout: Duration,
+    /// Concurrency limit, > 0.
+    pub max_concurrent_requests: usize,
+    /// Localize admission limit, > 0.
+    pub localize_queue: usize,
+    /// CPU pool threads, > 0 (resolved from 0 = one per core).
+    pub worker_threads: usize,
+    /// Drain time on shutdown.
+    pub shutdown_timeout: Duration,
+}
+
+/// A configuration value that cannot work.
+#[derive(Debug, thiserror::Error)]
+#[error("invalid setting `{name}`: {reason}")]
+pub struct ConfigError {
+    /// The flag name without dashes, e.g. `max_body_bytes`.
+    pub name: &'static str,
+    /// Why it was rejected.
+    pub reason: String,
+}
+
+impl ServeArgs {
+    /// Checks every limit and resolves defaults into [`Settings`].
+    pub fn validate(&self) -> Result<Settings, ConfigError> {
+        fn positive(name: &'static str, v: u64) -> Result<(), ConfigError> {
+            if v == 0 {
+                return Err(ConfigError {
+                    name,
+                    reason: "must be greater than 0".into(),
+                });
+            }
+            Ok(())
+        }
+        positive("max_body_bytes", self.max_body_bytes as u64)?;
+        positive("max_batch_images", self.max_batch_images as u64)?;
+        positive("max_image_pixels", self.max_image_pixels)?;
+        positive("request_timeout_secs", self.request_timeout_secs)?;
+        positive(
+            "max_concurrent_requests",
+            self.max_concurrent_requests as u64,
+        )?;
+        positive("localize_queue", self.localize_queue as u64)?;
+        if self.data_dir.as_os_str().is_empty() {
+            return Err(ConfigError {
+                name: "data_dir",
+                reason: "must not be empty".into(),
+            });
+        }
+        let worker_threads = if self.worker_threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            self.worker_threads
+        };
+        Ok(Settings {
+            addr: self.addr,
+            data_dir: self.data_dir.clone(),
+            max_body_bytes: self.max_body_bytes,
+            max_batch_images: self.max_batch_images,
+            max_image_pixels: self.max_image_pixels,
+            request_timeout: Duration::from_secs(self.request_timeout_secs),
+            max_concurrent_requests: self.max_concurrent_requests,
+            localize_queue: self.localize_queue,
+            worker_threads,
+            shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        serve: ServeArgs,
+    }
+
+    #[test]
+    fn defaults_match_the_spec() {
+        let cli = Cli::try_parse_from(["seasonloc"]).unwrap();
+        let s = cli.serve.validate().unwrap();
+        // The environment of the test runner could set these; the spec's defaults apply
+        // only when it does not.
+        if std::env::var_os("SEASONLOC_ADDR").is_none() {
+            assert_eq!(s.addr.to_string(), "127.0.0.1:8080");
+        }
+        if std::env::var_os("SEASONLOC_DATA_DIR").is_none() {
+            assert_eq!(s.data_dir, PathBuf::from("./seasonloc-data"));
+        }
+        assert!(s.worker_threads >= 1);
+        assert_eq!(ServeArgs::default().addr, cli.serve.addr);
+    }
+
+    #[test]
+    fn flags_are_parsed() {
+        let cli = Cli::try_parse_from([
+            "seasonloc",
+            "--addr",
+            "0.0.0.0:9000",
+            "--data-dir",
+            "/tmp/x",
+            "--max-batch-images",
+            "7",
+        ])
+        .unwrap();
+        let s = cli.serve.validate().unwrap();
+        assert_eq!(s.addr.port(), 9000);
+        assert_eq!(s.data_dir, PathBuf::from("/tmp/x"));
+        assert_eq!(s.max_batch_images, 7);
+    }
+
+    #[test]
+    fn env_sample_lists_every_setting() {
+        use clap::CommandFactory;
+        let mut from_flags: Vec<String> = Cli::command()
+            .get_arguments()
+            .filter_map(|a| a.get_env().map(|e| e.to_string_lossy().into_owned()))
+            .collect();
+        from_flags.push("RUST_LOG".into());
+        from_flags.sort();
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".env.sample");
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut from_file: Vec<String> = text
+            .lines()
+            .filter(|l| !l.starts_with('#') && l.contains('='))
+            .map(|l| l.split('=').next().unwrap().to_string())
+            .collect();
+        from_file.sort();
+        assert_eq!(from_file, from_flags);
+    }
+
+    #[test]
+    fn zero_limits_are_rejected_by_name() {
+        let args = ServeArgs {
+            localize_queue: 0,
+            ..ServeArgs::default()
+        };
+        let err = args.validate().unwrap_err();
+        assert_eq!(err.name, "localize_queue");
+        assert!(err.to_string().contains("localize_queue"));
+    }
+}

@@ -1,0 +1,484 @@
+//! Online localization for trips: the `F = 1` shortest path of the flow graph, extended one query
+//! row at a time as frames arrive.
+//!
+//! The offline solver ([`crate::solver`]) sweeps the DAG row by row; the cost of the best path
+//! ending at each node of row `i` depends only on row `i-1`. [`OnlineSolver`] keeps exactly that
+//! state — two cost vectors of length `D` — so each new row costs `O(D)` whatever the trip's
+//! length. Back-pointers are kept for the last `lag` rows only: the best path is re-traced over
+//! that window after every batch (smoothing recent estimates as evidence arrives), and a row
+//! that leaves the window is *committed* with the estimate it had then. Memory per trip is
+//! `O(lag · D)`.
+//!
+//! Without relocalization the graph is the offline one, so the estimate reported for the latest
+//! row equals what an offline solve of the rows so far gives for its last row.
+//!
+//! **Relocalization** (beyond the paper): the forward-only graph cannot return to an earlier
+//! part of the route. With `relocalization = Some(R)`, every node of row `i` also has an edge
+//! from the cheapest node of row `i-1` (anywhere on the map) that costs `R` plus the entered
+//! node's own cost. A path therefore jumps only when the new place is cheaper than the old one
+//! by more than `R` summed over the following frames — the vehicle has to look lost (its old
+//! matches poor) for a while before it is found elsewhere.
+
+use std::collections::VecDeque;
+
+use crate::confidence::GraphParams;
+use crate::window::trailing_min_by;
+use crate::{Error, Result};
+
+/// Parameters of an online solver.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OnlineParams {
+    /// Fan-out `K`, horizontal edges and hidden cost `W` of the graph.
+    pub graph: GraphParams,
+    /// Rows whose back-pointers are kept; older rows are committed. At least 1.
+    pub lag: usize,
+    /// Cost `R` of re-entering the map anywhere; `None` keeps the paper's forward-only graph.
+    pub relocalization: Option<f64>,
+}
+
+/// Largest accepted lag window.
+pub const MAX_LAG: usize = 10_000;
+
+impl OnlineParams {
+    /// Checks every parameter's range.
+    pub fn validate(&self) -> Result<()> {
+        let w = self.graph.hidden_cost;
+        if !(w.is_finite() && w > 0.0) {
+            return Err(Error::param(
+                "hidden_cost",
+                format!("must be a finite number > 0, got {w}"),
+            ));
+        }
+        if self.lag == 0 || self.lag > MAX_LAG {
+            return Err(Error::param(
+                "lag",
+                format!("must be between 1 and {MAX_LAG}, got {}", self.lag),
+            ));
+        }
+        if let Some(r) = self.relocalization {
+            if !(r.is_finite() && r >= 0.0) {
+                return Err(Error::param(
+                    "relocalization_cost",
+                    format!("must be a finite number >= 0, got {r}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where the best path into a node came from, packed into a `u32`:
+/// bits 0-1 kind (0 source, 1 previous row, 2 left neighbour), bit 2 previous node is hidden,
+/// bit 3 the step was a relocalization, bits 4.. the previous row's column.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Back(u32);
+
+impl Back {
+    const SOURCE: Back = Back(0);
+    const LEFT: Back = Back(2);
+    const MAX_COLUMN: usize = (u32::MAX >> 4) as usize;
+
+    fn prev(col: usize, hidden: bool, teleport: bool) -> Back {
+        Back(1 | (u32::from(hidden) << 2) | (u32::from(teleport) << 3) | ((col as u32) << 4))
+    }
+    fn kind(self) -> u32 {
+        self.0 & 3
+    }
+    fn hidden(self) -> bool {
+        self.0 & 4 != 0
+    }
+    fn teleport(self) -> bool {
+        self.0 & 8 != 0
+    }
+    fn col(self) -> usize {
+        (self.0 >> 4) as usize
+    }
+}
+
+/// Back-pointers of one row.
+struct RowBack {
+    x: Vec<Back>,
+    h: Vec<Back>,
+}
+
+/// The estimate for one row on the current best path.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RowEstimate {
+    /// Row (frame) index since the trip started.
+    pub row: usize,
+    /// The matched reference with the highest `ĉ` in that row, or `None` when hidden.
+    pub reference: Option<usize>,
+    /// The path entered this row by a relocalization jump.
+    pub relocalized: bool,
+}
+
+/// Incremental `F = 1` solver over a fixed map of `D` reference columns.
+pub struct OnlineSolver {
+    params: OnlineParams,
+    d: usize,
+    rows: usize,
+    x: Vec<f64>,
+    h: Vec<f64>,
+    window: VecDeque<RowBack>,
+    /// `ĉ` of the rows in the window (needed to pick a row's best match when several).
+    window_chat: VecDeque<Vec<f32>>,
+    // scratch
+    best_prev: Vec<(f64, u32)>,
+    pred: Vec<(f64, u32)>,
+}
+
+impl OnlineSolver {
+    /// A solver for a map of `references` columns.
+    pub fn new(references: usize, params: OnlineParams) -> Result<Self> {
+        params.validate()?;
+        if references == 0 {
+            return Err(Error::Empty("the map has no reference images".into()));
+        }
+        if references > Back::MAX_COLUMN {
+            return Err(Error::Shape(format!(
+                "maps are limited to {} references",
+                Back::MAX_COLUMN
+            )));
+        }
+        Ok(OnlineSolver {
+            params,
+            d: references,
+            rows: 0,
+            x: vec![0.0; references],
+            h: vec![0.0; references],
+            window: VecDeque::with_capacity(params.lag + 1),
+            window_chat: VecDeque::with_capacity(params.lag + 1),
+            best_prev: vec![(0.0, 0); references],
+            pred: vec![(0.0, 0); references],
+        })
+    }
+
+    /// Rows consumed so far.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &OnlineParams {
+        &self.params
+    }
+
+    /// Extends the path by one row of `ĉ` (length `D`, finite). Returns the row that left the
+    /// lag window with its committed estimate, if one did.
+    // The row update reads neighbouring columns; indices say that more plainly.
+    #[allow(clippy::needless_range_loop)]
+    pub fn push_row(&mut self, chat_row: &[f32]) -> Result<Option<RowEstimate>> {
+        if chat_row.len() != self.d {
+            return Err(Error::Shape(format!(
+                "a row has {} values, the map has {} references",
+                chat_row.len(),
+                self.d
+            )));
+        }
+        if let Some(j) = chat_row.iter().position(|v| !v.is_finite()) {
+            return Err(Error::NonFinite {
+                what: "similarity row",
+                row: self.rows,
+                col: j,
+                value: f64::from(chat_row[j]),
+            });
+        }
+        // Before this row's pointers overwrite anything, commit the row leaving the window.
+        let committed = if self.window.len() == self.params.lag {
+            let oldest = self.rows - self.window.len();
+            let estimate = self.trace().into_iter().find(|e| e.row == oldest);
+            self.window.pop_front();
+            self.window_chat.pop_front();
+            estimate
+        } else {
+            None
+        };
+
+        let d = self.d;
+        let k = self.params.graph.fan_out;
+        let w = self.params.graph.hidden_cost;
+        let mut back = RowBack {
+            x: vec![Back::SOURCE; d],
+            h: vec![Back::SOURCE; d],
+        };
+        if self.rows == 0 {
+            self.pred.iter_mut().for_each(|p| *p = (0.0, u32::MAX));
+        } else {
+            // Predecessor value of each column: the cheaper of x/h, argument encodes (col, hidden).
+            for j in 0..d {
+                self.best_prev[j] = if self.x[j] <= self.h[j] {
+                    (self.x[j], (j as u32) << 1)
+                } else {
+                    (self.h[j], ((j as u32) << 1) | 1)
+                };
+            }
+            trailing_min_by(&self.best_prev, k, &mut self.pred, |a, b| a.0 < b.0);
+            let teleport = self.params.relocalization.map(|r| {
+                let (v, arg) = self
+                    .best_prev
+                    .iter()
+                    .copied()
+                    .fold((f64::INFINITY, 0), |a, b| if b.0 < a.0 { b } else { a });
+                (v + r, arg)
+            });
+            for j in 0..d {
+                let (v, arg) = self.pred[j];
+                let mut ptr = Back::prev((arg >> 1) as usize, arg & 1 == 1, false);
+                let mut val = v;
+                if let Some((tv, targ)) = teleport {
+                    if tv < val {
+                        val = tv;
+                        ptr = Back::prev((targ >> 1) as usize, targ & 1 == 1, true);
+                    }
+                }
+                self.pred[j].0 = val;
+                back.x[j] = ptr;
+                back.h[j] = ptr;
+            }
+        }
+        for j in 0..d {
+            let p = self.pred[j].0;
+            self.x[j] = p + match_cost(chat_row[j]);
+            self.h[j] = p + w;
+        }
+        if self.params.graph.horizontal {
+            for j in 1..d {
+                let left = self.x[j - 1] + match_cost(chat_row[j]);
+                if left < self.x[j] {
+                    self.x[j] = left;
+                    back.x[j] = Back::LEFT;
+                }
+                if self.h[j - 1] < self.h[j] {
+                    self.h[j] = self.h[j - 1];
+                    back.h[j] = Back::LEFT;
+                }
+            }
+        }
+        self.window.push_back(back);
+        self.window_chat.push_back(chat_row.to_vec());
+        self.rows += 1;
+        Ok(committed)
+    }
+
+    /// The best path over the rows still in the lag window, oldest first: one estimate per row.
+    /// Empty before the first row.
+    pub fn trace(&self) -> Vec<RowEstimate> {
+        let Some(last) = self.window.len().checked_sub(1) else {
+            return Vec::new();
+        };
+        // The best end node: the cheapest of the last row (x before h on ties, then lowest j).
+        let (mut col, mut hidden) = (0usize, false);
+        let mut best = f64::INFINITY;
+        for j in 0..self.d {
+            if self.x[j] < best {
+                best = self.x[j];
+                (col, hidden) = (j, false);
+            }
+        }
+        for j in 0..self.d {
+            if self.h[j] < best {
+                best = self.h[j];
+                (col, hidden) = (j, true);
+            }
+        }
+        let first_row = self.rows - self.window.len();
+        let mut out = Vec::with_capacity(self.window.len());
+        let mut t = last;
+        loop {
+            let chat = &self.window_chat[t];
+            let back = &self.window[t];
+            let mut best_match: Option<(usize, f32)> = None;
+            // Walk left along the horizontal run of this row.
+            let entry = loop {
+                let ptr = if hidden { back.h[col] } else { back.x[col] };
+                if !hidden && best_match.is_none_or(|(_, s)| chat[col] > s) {
+                    best_match = Some((col, chat[col]));
+                }
+                if ptr.kind() == Back::LEFT.kind() {
+                    col -= 1;
+                } else {
+                    break ptr;
+                }
+            };
+            out.push(RowEstimate {
+                row: first_row + t,
+                reference: best_match.map(|(j, _)| j),
+                relocalized: entry.kind() == 1 && entry.teleport(),
+            });
+            if entry.kind() != 1 || t == 0 {
+                break;
+            }
+            col = entry.col();
+            hidden = entry.hidden();
+            t -= 1;
+        }
+        out.reverse();
+        out
+    }
+}
+
+#[inline]
+fn match_cost(c: f32) -> f64 {
+    if c > 0.0 {
+        1.0 / f64::from(c)
+    } else {
+        f64::INFINITY
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solver::{solve, HiddenCost, SolverParams};
+    use crate::Matrix;
+    use proptest::prelude::*;
+
+    fn params(k: usize, horizontal: bool, w: f64, lag: usize, reloc: Option<f64>) -> OnlineParams {
+        OnlineParams {
+            graph: GraphParams {
+                fan_out: k,
+                horizontal,
+                hidden_cost: w,
+            },
+            lag,
+            relocalization: reloc,
+        }
+    }
+
+    /// The offline solver's answer for the last row of `chat[..rows]`: its best-`ĉ` match.
+    fn offline_last(
+        chat: &Matrix,
+        rows: usize,
+        k: usize,
+        horizontal: bool,
+        w: f64,
+    ) -> Option<usize> {
+        let prefix = Matrix::from_vec(
+            rows,
+            chat.cols(),
+            chat.as_slice()[..rows * chat.cols()].to_vec(),
+        )
+        .unwrap();
+        let sp = SolverParams {
+            fan_out: k,
+            hidden_cost: HiddenCost::Fixed(w),
+            horizontal,
+            ..SolverParams::default()
+        };
+        let solution = solve(&prefix, &sp).unwrap();
+        let last = solution.hypotheses[0].rows.last().unwrap();
+        last.matches
+            .iter()
+            .max_by(|a, b| a.similarity.total_cmp(&b.similarity))
+            .map(|m| m.reference)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(128))]
+        /// For F = 1 without relocalization, the estimate for the latest row equals the offline
+        /// solve of the rows so far, after every row, whatever the lag window.
+        #[test]
+        fn latest_estimate_equals_offline_solve(
+            q in 1usize..12, d in 1usize..10, vals in prop::collection::vec(-0.2f32..3.0, 120),
+            k in 0usize..4, horizontal: bool, w in 0.3f64..2.5, lag in 1usize..6,
+        ) {
+            let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
+            let mut online = OnlineSolver::new(d, params(k, horizontal, w, lag, None)).unwrap();
+            for i in 0..q {
+                online.push_row(chat.row(i)).unwrap();
+                let trace = online.trace();
+                prop_assert_eq!(trace.len(), (i + 1).min(lag));
+                let latest = trace.last().unwrap();
+                prop_assert_eq!(latest.row, i);
+                prop_assert_eq!(latest.reference, offline_last(&chat, i + 1, k, horizontal, w), "row {}", i);
+            }
+        }
+
+        /// With a lag window as long as the trip, the traced path is the offline path.
+        #[test]
+        fn full_window_trace_equals_offline_path(
+            q in 1usize..10, d in 1usize..9, vals in prop::collection::vec(0.05f32..3.0, 90),
+            k in 0usize..4, horizontal: bool, w in 0.3f64..2.5,
+        ) {
+            let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
+            let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
+            for i in 0..q {
+                prop_assert_eq!(online.push_row(chat.row(i)).unwrap(), None);
+            }
+            let sp = SolverParams { fan_out: k, hidden_cost: HiddenCost::Fixed(w), horizontal, ..SolverParams::default() };
+            let offline = solve(&chat, &sp).unwrap();
+            let offline_refs: Vec<Option<usize>> = offline.hypotheses[0].rows.iter()
+                .map(|r| r.matches.iter().max_by(|a, b| a.similarity.total_cmp(&b.similarity)).map(|m| m.reference))
+                .collect();
+            let online_refs: Vec<Option<usize>> = online.trace().iter().map(|e| e.reference).collect();
+            prop_assert_eq!(online_refs, offline_refs);
+        }
+    }
+
+    #[test]
+    fn rows_leaving_the_window_are_committed_in_order() {
+        let d = 6;
+        let mut online = OnlineSolver::new(d, params(1, true, 2.0, 3, None)).unwrap();
+        let mut committed = Vec::new();
+        for i in 0..6 {
+            let row: Vec<f32> = (0..d).map(|j| if j == i { 3.0 } else { 0.5 }).collect();
+            if let Some(c) = online.push_row(&row).unwrap() {
+                committed.push(c);
+            }
+        }
+        assert_eq!(
+            committed
+                .iter()
+                .map(|c| (c.row, c.reference))
+                .collect::<Vec<_>>(),
+            vec![(0, Some(0)), (1, Some(1)), (2, Some(2))]
+        );
+        assert_eq!(
+            online
+                .trace()
+                .iter()
+                .map(|e| e.reference)
+                .collect::<Vec<_>>(),
+            vec![Some(3), Some(4), Some(5)]
+        );
+    }
+
+    #[test]
+    fn relocalization_finds_a_jump_back_that_the_forward_graph_cannot() {
+        // 20 columns; rows 0..10 follow the diagonal 10..20, rows 10..20 jump back to 0..10.
+        let d = 20;
+        let row_for = |i: usize| -> Vec<f32> {
+            let truth = if i < 10 { 10 + i } else { i - 10 };
+            (0..d).map(|j| if j == truth { 2.5 } else { 0.9 }).collect()
+        };
+        let mut forward_only = OnlineSolver::new(d, params(2, true, 1.5, 50, None)).unwrap();
+        let mut reloc = OnlineSolver::new(d, params(2, true, 1.5, 50, Some(3.0))).unwrap();
+        for i in 0..20 {
+            forward_only.push_row(&row_for(i)).unwrap();
+            reloc.push_row(&row_for(i)).unwrap();
+        }
+        let trace = reloc.trace();
+        assert_eq!(trace.last().unwrap().reference, Some(9));
+        assert!(
+            trace.iter().any(|e| e.relocalized && e.row >= 10),
+            "{trace:?}"
+        );
+        // The paper's graph cannot go back: its latest estimate is not the true place.
+        assert_ne!(forward_only.trace().last().unwrap().reference, Some(9));
+    }
+
+    #[test]
+    fn bad_rows_and_parameters_are_rejected() {
+        let mut online = OnlineSolver::new(3, params(1, true, 1.0, 4, None)).unwrap();
+        assert!(matches!(online.push_row(&[1.0, 2.0]), Err(Error::Shape(_))));
+        assert!(matches!(
+            online.push_row(&[1.0, f32::NAN, 2.0]),
+            Err(Error::NonFinite { col: 1, .. })
+        ));
+        assert_eq!(online.rows(), 0);
+        assert!(OnlineSolver::new(0, params(1, true, 1.0, 4, None)).is_err());
+        assert!(OnlineSolver::new(3, params(1, true, 1.0, 0, None)).is_err());
+        assert!(OnlineSolver::new(3, params(1, true, -1.0, 4, None)).is_err());
+        assert!(OnlineSolver::new(3, params(1, true, 1.0, 4, Some(f64::NAN))).is_err());
+    }
+}

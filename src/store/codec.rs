@@ -1,0 +1,425 @@
+//! Key layout and value encodings of the store.
+//!
+//! Everything lives in sled's default tree, under one-byte key prefixes, so one
+//! `sled::Batch` can change a map and its images atomically:
+//!
+//! | key | value |
+//! | --- | --- |
+//! | `meta/schema_version` | layout version, `u32` big-endian |
+//! | `M` + map id (`u64` BE) | [`MapRecord`] |
+//! | `I` + map id (`u64` BE) + index (`u32` BE) | [`ImageRecord`] (descriptor as raw LE `f32`) |
+//! | `L` + localization id (`u64` BE) | [`LocalizationRecord`] |
+//! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
+//!
+//! Big-endian integers make sled's lexicographic order the numeric order, so a map's images
+//! iterate in route order and localizations in creation order. Prefixes `T`/`F` are reserved
+//! for trips. Values are a small hand-written binary format starting with a format byte; the
+//! decoder rejects trailing or missing bytes, so corruption is reported rather than misread.
+
+use super::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, StoreError};
+
+/// Key of the layout version.
+pub const SCHEMA_VERSION_KEY: &[u8] = b"meta/schema_version";
+/// Prefix of map records.
+pub const MAP_PREFIX: u8 = b'M';
+/// Prefix of image records.
+pub const IMAGE_PREFIX: u8 = b'I';
+/// Prefix of localization records.
+pub const LOCALIZATION_PREFIX: u8 = b'L';
+/// Prefix of the by-map localization index.
+pub const LOCALIZATION_BY_MAP_PREFIX: u8 = b'l';
+
+/// `M` + id.
+pub fn map_key(id: u64) -> [u8; 9] {
+    let mut k = [MAP_PREFIX; 9];
+    k[1..].copy_from_slice(&id.to_be_bytes());
+    k
+}
+
+/// `I` + map id: the prefix of all of a map's images.
+pub fn images_prefix(map: u64) -> [u8; 9] {
+    let mut k = [IMAGE_PREFIX; 9];
+    k[1..].copy_from_slice(&map.to_be_bytes());
+    k
+}
+
+/// `I` + map id + index.
+pub fn image_key(map: u64, index: u32) -> [u8; 13] {
+    let mut k = [IMAGE_PREFIX; 13];
+    k[1..9].copy_from_slice(&map.to_be_bytes());
+    k[9..].copy_from_slice(&index.to_be_bytes());
+    k
+}
+
+/// `L` + id.
+pub fn localization_key(id: u64) -> [u8; 9] {
+    let mut k = [LOCALIZATION_PREFIX; 9];
+    k[1..].copy_from_slice(&id.to_be_bytes());
+    k
+}
+
+/// `l` + map id: the prefix of a map's localization index.
+pub fn by_map_prefix(map: u64) -> [u8; 9] {
+    let mut k = [LOCALIZATION_BY_MAP_PREFIX; 9];
+    k[1..].copy_from_slice(&map.to_be_bytes());
+    k
+}
+
+/// `l` + map id + localization id.
+pub fn by_map_key(map: u64, id: u64) -> [u8; 17] {
+    let mut k = [LOCALIZATION_BY_MAP_PREFIX; 17];
+    k[1..9].copy_from_slice(&map.to_be_bytes());
+    k[9..].copy_from_slice(&id.to_be_bytes());
+    k
+}
+
+/// Reads the `u64` at `key[at..at + 8]`.
+pub fn id_at(key: &[u8], at: usize) -> Result<u64, StoreError> {
+    let bytes: [u8; 8] = key
+        .get(at..at + 8)
+        .and_then(|b| b.try_into().ok())
+        .ok_or_else(|| StoreError::corrupt(key, "key too short for an id"))?;
+    Ok(u64::from_be_bytes(bytes))
+}
+
+const FORMAT_V1: u8 = 1;
+
+/// Appends values in the store's binary format.
+#[derive(Default)]
+struct Writer(Vec<u8>);
+
+impl Writer {
+    fn new() -> Self {
+        Writer(vec![FORMAT_V1])
+    }
+    fn u8(&mut self, v: u8) {
+        self.0.push(v);
+    }
+    fn u32(&mut self, v: u32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn u64(&mut self, v: u64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f64(&mut self, v: f64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn bytes(&mut self, v: &[u8]) {
+        self.u32(u32::try_from(v.len()).expect("store values are far below 4 GiB"));
+        self.0.extend_from_slice(v);
+    }
+    fn str(&mut self, v: &str) {
+        self.bytes(v.as_bytes());
+    }
+    fn opt_str(&mut self, v: Option<&str>) {
+        match v {
+            None => self.u8(0),
+            Some(s) => {
+                self.u8(1);
+                self.str(s);
+            }
+        }
+    }
+    fn opt_f64(&mut self, v: Option<f64>) {
+        match v {
+            None => self.u8(0),
+            Some(x) => {
+                self.u8(1);
+                self.f64(x);
+            }
+        }
+    }
+}
+
+/// Reads values written by [`Writer`]; every error names the key.
+struct Reader<'a> {
+    key: &'a [u8],
+    buf: &'a [u8],
+}
+
+impl<'a> Reader<'a> {
+    fn new(key: &'a [u8], buf: &'a [u8]) -> Result<Self, StoreError> {
+        let mut r = Reader { key, buf };
+        let format = r.u8()?;
+        if format != FORMAT_V1 {
+            return Err(StoreError::corrupt(
+                key,
+                format!("unknown value format {format}"),
+            ));
+        }
+        Ok(r)
+    }
+    fn take(&mut self, n: usize) -> Result<&'a [u8], StoreError> {
+        if self.buf.len() < n {
+            return Err(StoreError::corrupt(self.key, "value is truncated"));
+        }
+        let (head, tail) = self.buf.split_at(n);
+        self.buf = tail;
+        Ok(head)
+    }
+    fn u8(&mut self) -> Result<u8, StoreError> {
+        Ok(self.take(1)?[0])
+    }
+    fn u32(&mut self) -> Result<u32, StoreError> {
+        let b = self.take(4)?;
+        Ok(u32::from_le_bytes(b.try_into().expect("took 4 bytes")))
+    }
+    fn u64(&mut self) -> Result<u64, StoreError> {
+        let b = self.take(8)?;
+        Ok(u64::from_le_bytes(b.try_into().expect("took 8 bytes")))
+    }
+    fn f64(&mut self) -> Result<f64, StoreError> {
+        let b = self.take(8)?;
+        Ok(f64::from_le_bytes(b.try_into().expect("took 8 bytes")))
+    }
+    fn bytes(&mut self) -> Result<&'a [u8], StoreError> {
+        let n = self.u32()? as usize;
+        self.take(n)
+    }
+    fn str(&mut self) -> Result<String, StoreError> {
+        let b = self.bytes()?;
+        String::from_utf8(b.to_vec()).map_err(|_| StoreError::corrupt(self.key, "invalid UTF-8"))
+    }
+    fn opt_str(&mut self) -> Result<Option<String>, StoreError> {
+        match self.u8()? {
+            0 => Ok(None),
+            1 => self.str().map(Some),
+            t => Err(StoreError::corrupt(self.key, format!("bad option tag {t}"))),
+        }
+    }
+    fn opt_f64(&mut self) -> Result<Option<f64>, StoreError> {
+        match self.u8()? {
+            0 => Ok(None),
+            1 => self.f64().map(Some),
+            t => Err(StoreError::corrupt(self.key, format!("bad option tag {t}"))),
+        }
+    }
+    fn finish(self) -> Result<(), StoreError> {
+        if self.buf.is_empty() {
+            Ok(())
+        } else {
+            Err(StoreError::corrupt(self.key, "trailing bytes in value"))
+        }
+    }
+}
+
+const KIND_HOG: u8 = 1;
+const KIND_PRECOMPUTED: u8 = 2;
+
+/// Encodes a map record.
+pub fn encode_map(m: &MapRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.u64(m.id);
+    w.str(&m.name);
+    match m.descriptor {
+        DescriptorSettings::Hog { cell_size, resize } => {
+            w.u8(KIND_HOG);
+            w.u32(cell_size);
+            match resize {
+                None => w.u8(0),
+                Some((rw, rh)) => {
+                    w.u8(1);
+                    w.u32(rw);
+                    w.u32(rh);
+                }
+            }
+        }
+        DescriptorSettings::Precomputed { dim } => {
+            w.u8(KIND_PRECOMPUTED);
+            w.u32(dim);
+        }
+    }
+    match m.dim {
+        None => w.u8(0),
+        Some(d) => {
+            w.u8(1);
+            w.u32(d);
+        }
+    }
+    w.u32(m.image_count);
+    w.u64(m.created_ms);
+    w.0
+}
+
+/// Decodes a map record stored under `key`.
+pub fn decode_map(key: &[u8], value: &[u8]) -> Result<MapRecord, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let id = r.u64()?;
+    let name = r.str()?;
+    let descriptor = match r.u8()? {
+        KIND_HOG => {
+            let cell_size = r.u32()?;
+            let resize = match r.u8()? {
+                0 => None,
+                _ => Some((r.u32()?, r.u32()?)),
+            };
+            DescriptorSettings::Hog { cell_size, resize }
+        }
+        KIND_PRECOMPUTED => DescriptorSettings::Precomputed { dim: r.u32()? },
+        k => {
+            return Err(StoreError::corrupt(
+                key,
+                format!("unknown descriptor kind {k}"),
+            ))
+        }
+    };
+    let dim = match r.u8()? {
+        0 => None,
+        _ => Some(r.u32()?),
+    };
+    let image_count = r.u32()?;
+    let created_ms = r.u64()?;
+    r.finish()?;
+    Ok(MapRecord {
+        id,
+        name,
+        descriptor,
+        dim,
+        image_count,
+        created_ms,
+    })
+}
+
+/// Encodes an image record: metadata, then the descriptor as raw little-endian `f32`.
+pub fn encode_image(descriptor: &[f32], meta: &ImageMeta) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.opt_str(meta.timestamp.as_deref());
+    w.opt_f64(meta.latitude);
+    w.opt_f64(meta.longitude);
+    w.opt_str(meta.label.as_deref());
+    w.u32(u32::try_from(descriptor.len()).expect("descriptor lengths are validated"));
+    w.0.reserve(descriptor.len() * 4);
+    for v in descriptor {
+        w.0.extend_from_slice(&v.to_le_bytes());
+    }
+    w.0
+}
+
+/// Decodes an image record's metadata and appends its descriptor to `out`.
+pub fn decode_image_into(
+    key: &[u8],
+    value: &[u8],
+    out: &mut Vec<f32>,
+) -> Result<ImageMeta, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let meta = ImageMeta {
+        timestamp: r.opt_str()?,
+        latitude: r.opt_f64()?,
+        longitude: r.opt_f64()?,
+        label: r.opt_str()?,
+    };
+    let n = r.u32()? as usize;
+    let raw = r.take(n * 4)?;
+    out.extend(
+        raw.chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("chunks of 4"))),
+    );
+    r.finish()?;
+    Ok(meta)
+}
+
+/// Encodes a localization record.
+pub fn encode_localization(l: &LocalizationRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.u64(l.id);
+    w.u64(l.map_id);
+    w.u64(l.created_ms);
+    w.bytes(&l.document);
+    w.0
+}
+
+/// Decodes a localization record.
+pub fn decode_localization(key: &[u8], value: &[u8]) -> Result<LocalizationRecord, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let id = r.u64()?;
+    let map_id = r.u64()?;
+    let created_ms = r.u64()?;
+    let document = r.bytes()?.to_vec();
+    r.finish()?;
+    Ok(LocalizationRecord {
+        id,
+        map_id,
+        created_ms,
+        document,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn big_endian_keys_sort_numerically() {
+        assert!(image_key(1, 255) < image_key(1, 256));
+        assert!(image_key(1, u32::MAX) < image_key(2, 0));
+        assert!(image_key(7, 3).starts_with(&images_prefix(7)));
+        assert!(by_map_key(3, 10) < by_map_key(3, 11));
+        assert_eq!(id_at(&map_key(42), 1).unwrap(), 42);
+    }
+
+    #[test]
+    fn map_round_trip() {
+        for descriptor in [
+            DescriptorSettings::Hog {
+                cell_size: 8,
+                resize: Some((64, 32)),
+            },
+            DescriptorSettings::Hog {
+                cell_size: 32,
+                resize: None,
+            },
+            DescriptorSettings::Precomputed { dim: 5 },
+        ] {
+            let m = MapRecord {
+                id: 9,
+                name: "route 1 ✓".into(),
+                descriptor,
+                dim: Some(756),
+                image_count: 3,
+                created_ms: 1_700_000_000_000,
+            };
+            assert_eq!(decode_map(b"k", &encode_map(&m)).unwrap(), m);
+        }
+    }
+
+    #[test]
+    fn truncated_and_trailing_values_are_corrupt() {
+        let m = MapRecord {
+            id: 1,
+            name: "a".into(),
+            descriptor: DescriptorSettings::Precomputed { dim: 2 },
+            dim: None,
+            image_count: 0,
+            created_ms: 0,
+        };
+        let v = encode_map(&m);
+        let err = decode_map(b"Mkey", &v[..v.len() - 1]).unwrap_err();
+        assert!(err.to_string().contains("truncated"), "{err}");
+        let mut long = v.clone();
+        long.push(0);
+        assert!(decode_map(b"Mkey", &long).is_err());
+        assert!(decode_map(b"Mkey", &[]).is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn image_round_trip(
+            desc in proptest::collection::vec(-1e6f32..1e6, 0..64),
+            lat in proptest::option::of(-90.0f64..90.0),
+            label in proptest::option::of(".{0,12}"),
+        ) {
+            let meta = ImageMeta { timestamp: Some("2020-01-01T00:00:00Z".into()), latitude: lat, longitude: None, label };
+            let mut out = vec![1.0];
+            let back = decode_image_into(b"I", &encode_image(&desc, &meta), &mut out).unwrap();
+            prop_assert_eq!(back, meta);
+            prop_assert_eq!(&out[1..], &desc[..]);
+        }
+
+        #[test]
+        fn localization_round_trip(doc in proptest::collection::vec(any::<u8>(), 0..200), id in any::<u64>()) {
+            let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document: doc };
+            prop_assert_eq!(decode_localization(b"L", &encode_localization(&l)).unwrap(), l);
+        }
+    }
+}

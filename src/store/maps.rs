@@ -1,0 +1,329 @@
+//! Maps and their reference images: create, list, get, delete, append a batch, and load the
+//! reference descriptor matrix in route order.
+
+use std::ops::Range;
+use std::sync::Arc;
+
+use super::{
+    codec, now_ms, DescriptorSettings, ImageMeta, MapRecord, Store, StoreError, StoreResult,
+};
+use crate::Matrix;
+
+/// What a client gives to create a map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewMap {
+    /// User-given name.
+    pub name: String,
+    /// Validated descriptor settings.
+    pub descriptor: DescriptorSettings,
+}
+
+impl Store {
+    /// Creates an empty map and returns it.
+    pub fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
+        let _guard = self.lock();
+        let record = MapRecord {
+            id: self.next_id()?,
+            name: new.name,
+            dim: match new.descriptor {
+                DescriptorSettings::Precomputed { dim } => Some(dim),
+                DescriptorSettings::Hog { .. } => None,
+            },
+            descriptor: new.descriptor,
+            image_count: 0,
+            created_ms: now_ms(),
+        };
+        self.db
+            .insert(codec::map_key(record.id), codec::encode_map(&record))?;
+        self.db.flush()?;
+        Ok(record)
+    }
+
+    /// All maps, oldest first.
+    pub fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
+        self.db
+            .scan_prefix([codec::MAP_PREFIX])
+            .map(|kv| {
+                let (k, v) = kv?;
+                codec::decode_map(&k, &v)
+            })
+            .collect()
+    }
+
+    /// One map.
+    pub fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
+        let key = codec::map_key(id);
+        match self.db.get(key)? {
+            Some(v) => codec::decode_map(&key, &v),
+            None => Err(StoreError::MapNotFound(id)),
+        }
+    }
+
+    /// Deletes a map with its images and localizations, atomically.
+    pub fn delete_map(&self, id: u64) -> StoreResult<()> {
+        let _guard = self.lock();
+        self.get_map(id)?;
+        let mut batch = sled::Batch::default();
+        batch.remove(&codec::map_key(id));
+        for kv in self.db.scan_prefix(codec::images_prefix(id)) {
+            batch.remove(kv?.0);
+        }
+        for kv in self.db.scan_prefix(codec::by_map_prefix(id)) {
+            let (k, _) = kv?;
+            let loc = codec::id_at(&k, 9)?;
+            batch.remove(&codec::localization_key(loc));
+            batch.remove(k);
+        }
+        self.db.apply_batch(batch)?;
+        self.db.flush()?;
+        self.cache().remove(&id);
+        Ok(())
+    }
+
+    /// Appends one descriptor row per image (in route order) with its metadata, in one atomic,
+    /// flushed write. Returns the indices given to the rows.
+    ///
+    /// Fails without writing anything when the map is gone or the descriptor length differs
+    /// from the map's.
+    pub fn append_images(
+        &self,
+        map: u64,
+        descriptors: &Matrix,
+        metas: &[ImageMeta],
+    ) -> StoreResult<Range<u32>> {
+        assert_eq!(
+            descriptors.rows(),
+            metas.len(),
+            "one metadata entry per descriptor row"
+        );
+        let _guard = self.lock();
+        let mut record = self.get_map(map)?;
+        if let Some(expected) = record.dim {
+            if expected as usize != descriptors.cols() {
+                return Err(StoreError::DimensionMismatch {
+                    map,
+                    expected,
+                    got: descriptors.cols(),
+                });
+            }
+        }
+        let dim = u32::try_from(descriptors.cols()).map_err(|_| StoreError::DimensionMismatch {
+            map,
+            expected: record.dim.unwrap_or(0),
+            got: descriptors.cols(),
+        })?;
+        let start = record.image_count;
+        let end = u32::try_from(descriptors.rows())
+            .ok()
+            .and_then(|n| start.checked_add(n))
+            .ok_or(StoreError::MapFull(map))?;
+        let mut batch = sled::Batch::default();
+        for (k, (row, meta)) in descriptors.iter_rows().zip(metas).enumerate() {
+            let index = start + k as u32;
+            batch.insert(
+                &codec::image_key(map, index),
+                codec::encode_image(row, meta),
+            );
+        }
+        record.dim = Some(dim);
+        record.image_count = end;
+        batch.insert(&codec::map_key(map), codec::encode_map(&record));
+        self.db.apply_batch(batch)?;
+        self.db.flush()?;
+        self.cache().remove(&map);
+        Ok(start..end)
+    }
+
+    /// The map and its reference descriptors, one row per image in route order.
+    pub fn references(&self, map: u64) -> StoreResult<(MapRecord, Arc<Matrix>)> {
+        let _guard = self.lock();
+        let record = self.get_map(map)?;
+        if let Some(m) = self.cache().get(&map) {
+            if m.rows() == record.image_count as usize {
+                return Ok((record, Arc::clone(m)));
+            }
+        }
+        let dim = record.dim.unwrap_or(0) as usize;
+        let mut data = Vec::with_capacity(record.image_count as usize * dim);
+        let mut rows = 0usize;
+        for kv in self.db.scan_prefix(codec::images_prefix(map)) {
+            let (k, v) = kv?;
+            let before = data.len();
+            codec::decode_image_into(&k, &v, &mut data)?;
+            if data.len() - before != dim {
+                return Err(StoreError::corrupt(
+                    &k,
+                    "descriptor length differs from the map's",
+                ));
+            }
+            rows += 1;
+        }
+        if rows != record.image_count as usize {
+            return Err(StoreError::corrupt(
+                &codec::map_key(map),
+                format!(
+                    "image_count is {} but {rows} images are stored",
+                    record.image_count
+                ),
+            ));
+        }
+        let matrix =
+            Arc::new(Matrix::from_vec(rows, dim, data).expect("rows * dim values were collected"));
+        self.cache().insert(map, Arc::clone(&matrix));
+        Ok((record, matrix))
+    }
+
+    /// Metadata of the images `range` of a map, in order.
+    pub fn image_metadata(&self, map: u64, range: Range<u32>) -> StoreResult<Vec<ImageMeta>> {
+        self.get_map(map)?;
+        let from = codec::image_key(map, range.start);
+        let to = codec::image_key(map, range.end);
+        let mut scratch = Vec::new();
+        self.db
+            .range(from..to)
+            .map(|kv| {
+                let (k, v) = kv?;
+                scratch.clear();
+                codec::decode_image_into(&k, &v, &mut scratch)
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hog() -> NewMap {
+        NewMap {
+            name: "route".into(),
+            descriptor: DescriptorSettings::Hog {
+                cell_size: 8,
+                resize: None,
+            },
+        }
+    }
+
+    fn rows(n: usize, dim: usize, base: f32) -> Matrix {
+        Matrix::from_vec(n, dim, (0..n * dim).map(|k| base + k as f32).collect()).unwrap()
+    }
+
+    #[test]
+    fn appends_keep_route_order_across_batches() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let map = store.create_map(hog()).unwrap();
+        let a = store
+            .append_images(
+                map.id,
+                &rows(2, 3, 0.0),
+                &[ImageMeta::default(), ImageMeta::default()],
+            )
+            .unwrap();
+        let meta = ImageMeta {
+            label: Some("bridge".into()),
+            latitude: Some(63.4),
+            ..ImageMeta::default()
+        };
+        let b = store
+            .append_images(map.id, &rows(1, 3, 100.0), std::slice::from_ref(&meta))
+            .unwrap();
+        assert_eq!((a, b), (0..2, 2..3));
+        let (record, refs) = store.references(map.id).unwrap();
+        assert_eq!(record.image_count, 3);
+        assert_eq!(record.dim, Some(3));
+        assert_eq!(refs.row(2), &[100.0, 101.0, 102.0]);
+        assert_eq!(refs.row(1), &[3.0, 4.0, 5.0]);
+        assert_eq!(store.image_metadata(map.id, 2..3).unwrap(), vec![meta]);
+    }
+
+    #[test]
+    fn wrong_length_writes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let map = store.create_map(hog()).unwrap();
+        store
+            .append_images(map.id, &rows(1, 3, 0.0), &[ImageMeta::default()])
+            .unwrap();
+        let err = store
+            .append_images(
+                map.id,
+                &rows(2, 4, 0.0),
+                &[ImageMeta::default(), ImageMeta::default()],
+            )
+            .unwrap_err();
+        assert!(
+            matches!(
+                err,
+                StoreError::DimensionMismatch {
+                    expected: 3,
+                    got: 4,
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert_eq!(store.get_map(map.id).unwrap().image_count, 1);
+        assert_eq!(store.references(map.id).unwrap().1.rows(), 1);
+    }
+
+    #[test]
+    fn precomputed_maps_fix_their_length_at_creation() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let map = store
+            .create_map(NewMap {
+                name: "own".into(),
+                descriptor: DescriptorSettings::Precomputed { dim: 2 },
+            })
+            .unwrap();
+        assert_eq!(map.dim, Some(2));
+        assert!(store
+            .append_images(map.id, &rows(1, 3, 0.0), &[ImageMeta::default()])
+            .is_err());
+    }
+
+    #[test]
+    fn delete_removes_everything_and_survives_reopen() {
+        let dir = tempfile::tempdir().unwrap();
+        let (kept, gone) = {
+            let store = Store::open(dir.path()).unwrap();
+            let kept = store.create_map(hog()).unwrap();
+            let gone = store.create_map(hog()).unwrap();
+            for id in [kept.id, gone.id] {
+                store
+                    .append_images(
+                        id,
+                        &rows(2, 2, 0.0),
+                        &[ImageMeta::default(), ImageMeta::default()],
+                    )
+                    .unwrap();
+            }
+            store.delete_map(gone.id).unwrap();
+            assert!(matches!(
+                store.delete_map(gone.id),
+                Err(StoreError::MapNotFound(_))
+            ));
+            (kept.id, gone.id)
+        };
+        let store = Store::open(dir.path()).unwrap();
+        assert!(matches!(
+            store.get_map(gone),
+            Err(StoreError::MapNotFound(_))
+        ));
+        assert_eq!(store.db.scan_prefix(codec::images_prefix(gone)).count(), 0);
+        assert_eq!(store.references(kept).unwrap().1.rows(), 2);
+        assert_eq!(store.list_maps().unwrap().len(), 1);
+    }
+
+    #[test]
+    fn ids_increase() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let a = store.create_map(hog()).unwrap();
+        let b = store.create_map(hog()).unwrap();
+        assert!(b.id > a.id);
+        let listed: Vec<u64> = store.list_maps().unwrap().iter().map(|m| m.id).collect();
+        assert_eq!(listed, vec![a.id, b.id]);
+    }
+}

@@ -1,0 +1,205 @@
+//! Layout versions of the store and the steps between them (see `migrations/README.md`).
+//!
+//! Invariant: a step's changes and its new `schema_version` are applied in one atomic
+//! `sled::Batch` and flushed, so a crash between steps leaves a consistent older version that
+//! the next start upgrades.
+
+use super::{codec, StoreError, StoreResult};
+
+/// One layout upgrade.
+pub struct Migration {
+    /// The version this step produces.
+    pub version: u32,
+    /// File name in `migrations/`.
+    pub file: &'static str,
+    /// The file's text (the step's documentation).
+    pub doc: &'static str,
+    /// Adds this step's changes to the batch (the version key is added by the runner).
+    pub apply: fn(&sled::Db, &mut sled::Batch) -> StoreResult<()>,
+}
+
+/// Every step, in order.
+pub const MIGRATIONS: &[Migration] = &[
+    Migration {
+        version: 1,
+        file: "0001_initial.md",
+        doc: include_str!("../../migrations/0001_initial.md"),
+        apply: initial,
+    },
+    Migration {
+        version: 2,
+        file: "0002_localizations_by_map.md",
+        doc: include_str!("../../migrations/0002_localizations_by_map.md"),
+        apply: localizations_by_map,
+    },
+];
+
+/// The layout this build writes.
+pub const CURRENT_VERSION: u32 = 2;
+
+/// The stored layout version, if any.
+pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
+    match db.get(codec::SCHEMA_VERSION_KEY)? {
+        None => Ok(None),
+        Some(v) => {
+            let bytes: [u8; 4] = v
+                .as_ref()
+                .try_into()
+                .map_err(|_| StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "expected 4 bytes"))?;
+            Ok(Some(u32::from_be_bytes(bytes)))
+        }
+    }
+}
+
+/// Brings `db` to [`CURRENT_VERSION`]; returns the version found (0 for a new store).
+pub fn migrate(db: &sled::Db) -> StoreResult<u32> {
+    let found = match read_version(db)? {
+        Some(v) => v,
+        None => {
+            if let Some(kv) = db.iter().next() {
+                let (k, _) = kv?;
+                return Err(StoreError::corrupt(
+                    &k,
+                    "the store holds data but no schema_version; refusing to guess its layout",
+                ));
+            }
+            0
+        }
+    };
+    if found > CURRENT_VERSION {
+        return Err(StoreError::UnsupportedSchema {
+            found,
+            supported: CURRENT_VERSION,
+        });
+    }
+    for step in MIGRATIONS.iter().filter(|m| m.version > found) {
+        let mut batch = sled::Batch::default();
+        (step.apply)(db, &mut batch)?;
+        batch.insert(codec::SCHEMA_VERSION_KEY, &step.version.to_be_bytes());
+        db.apply_batch(batch)?;
+        db.flush()?;
+        tracing::info!(
+            version = step.version,
+            file = step.file,
+            "store layout upgraded"
+        );
+    }
+    Ok(found)
+}
+
+fn initial(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+    Ok(())
+}
+
+fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<()> {
+    for kv in db.scan_prefix([codec::LOCALIZATION_PREFIX]) {
+        let (k, v) = kv?;
+        let record = codec::decode_localization(&k, &v)?;
+        batch.insert(&codec::by_map_key(record.map_id, record.id), &[] as &[u8]);
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, Store};
+
+    #[test]
+    fn steps_are_consecutive_and_documented() {
+        for (k, m) in MIGRATIONS.iter().enumerate() {
+            assert_eq!(m.version as usize, k + 1);
+            assert!(m.file.starts_with(&format!("{:04}_", m.version)));
+            assert!(
+                m.doc.starts_with(&format!("# {:04}", m.version)),
+                "{}",
+                m.file
+            );
+        }
+        assert_eq!(MIGRATIONS.last().map(|m| m.version), Some(CURRENT_VERSION));
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("migrations");
+        let mut files: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .filter(|n| n != "README.md")
+            .collect();
+        files.sort();
+        let steps: Vec<&str> = MIGRATIONS.iter().map(|m| m.file).collect();
+        assert_eq!(files, steps);
+    }
+
+    /// Writes a store exactly as layout version 1 did (no by-map index) and opens it.
+    #[test]
+    fn opens_a_store_written_by_layout_1() {
+        let dir = tempfile::tempdir().unwrap();
+        let (map_id, locs) = {
+            let db = sled::open(dir.path()).unwrap();
+            db.insert(codec::SCHEMA_VERSION_KEY, &1u32.to_be_bytes())
+                .unwrap();
+            let map = MapRecord {
+                id: 5,
+                name: "old".into(),
+                descriptor: DescriptorSettings::Precomputed { dim: 2 },
+                dim: Some(2),
+                image_count: 2,
+                created_ms: 1,
+            };
+            db.insert(codec::map_key(5), codec::encode_map(&map))
+                .unwrap();
+            for i in 0..2u32 {
+                let v = codec::encode_image(&[i as f32, 1.0], &ImageMeta::default());
+                db.insert(codec::image_key(5, i), v).unwrap();
+            }
+            let mut locs = Vec::new();
+            for id in [10u64, 11, 12] {
+                let rec = LocalizationRecord {
+                    id,
+                    map_id: 5,
+                    created_ms: id,
+                    document: vec![id as u8],
+                };
+                db.insert(
+                    codec::localization_key(id),
+                    codec::encode_localization(&rec),
+                )
+                .unwrap();
+                locs.push(id);
+            }
+            db.flush().unwrap();
+            (map.id, locs)
+        };
+        let store = Store::open(dir.path()).unwrap();
+        assert_eq!(store.schema_version().unwrap(), CURRENT_VERSION);
+        let page = store.list_localizations(Some(map_id), None, 10).unwrap();
+        let ids: Vec<u64> = page.items.iter().map(|r| r.id).collect();
+        assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
+        assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
+        // Opening again is a no-op: the upgrade does not run twice.
+        drop(store);
+        let store = Store::open(dir.path()).unwrap();
+        assert_eq!(store.schema_version().unwrap(), CURRENT_VERSION);
+    }
+
+    #[test]
+    fn refuses_newer_layouts_and_unversioned_data() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let db = sled::open(dir.path()).unwrap();
+            db.insert(codec::SCHEMA_VERSION_KEY, &99u32.to_be_bytes())
+                .unwrap();
+            db.flush().unwrap();
+        }
+        assert!(matches!(
+            Store::open(dir.path()),
+            Err(StoreError::UnsupportedSchema { found: 99, .. })
+        ));
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let db = sled::open(dir.path()).unwrap();
+            db.insert(codec::map_key(1), b"x".to_vec()).unwrap();
+            db.flush().unwrap();
+        }
+        let err = Store::open(dir.path()).err().unwrap();
+        assert!(err.to_string().contains("no schema_version"), "{err}");
+    }
+}

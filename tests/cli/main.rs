@@ -1,0 +1,336 @@
+//! End-to-end tests of the `seasonloc` command line: `solve` on generated `.npy` matrices,
+//! `eval` on generated image routes, every bad input, and the acceptance numbers on the shared
+//! Nordland data (skipped with a message when `../shared/data` is absent).
+
+mod common;
+
+use common::{npy_f32, npy_f64, seasonloc, write_route, Dir};
+use serde_json::Value;
+
+#[test]
+fn solve_follows_a_diagonal_and_reports_the_spec_shape() {
+    let dir = Dir::new();
+    // 4 queries x 6 references, a clear diagonal with a one-frame offset.
+    let mut m = vec![0.5f32; 24];
+    for i in 0..4 {
+        m[i * 6 + i + 1] = 2.0;
+    }
+    let path = dir.path("s.npy");
+    npy_f32(&path, 4, 6, &m);
+    let out = seasonloc(&[
+        "solve",
+        "--similarity",
+        path.to_str().unwrap(),
+        "--hidden-cost",
+        "1.5",
+    ])
+    .success_json();
+    let hyps = out["hypotheses"].as_array().unwrap();
+    assert_eq!(hyps.len(), 1);
+    assert_eq!(hyps[0]["rank"], 1);
+    let refs: Vec<i64> = hyps[0]["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["matches"][0]["ref"].as_i64().unwrap())
+        .collect();
+    assert_eq!(refs, vec![1, 2, 3, 4]);
+    assert!(
+        (out["total_cost"].as_f64().unwrap() - 2.0).abs() < 1e-9,
+        "{out}"
+    );
+    assert_eq!(out["predictions"].as_array().unwrap().len(), 4);
+    assert_eq!(out["hidden_cost"], 1.5);
+}
+
+#[test]
+fn solve_hides_rows_without_a_usable_match_and_reads_float64() {
+    let dir = Dir::new();
+    // Row 1 has only non-positive entries: it must be hidden.
+    let m = [2.0, 0.5, 0.5, 0.0, -1.0, 0.0, 0.5, 0.5, 2.0];
+    let path = dir.path("s.npy");
+    npy_f64(&path, 3, 3, &m);
+    let out = seasonloc(&[
+        "solve",
+        "--similarity",
+        path.to_str().unwrap(),
+        "--fan-out",
+        "2",
+    ])
+    .success_json();
+    let rows = out["hypotheses"][0]["rows"].as_array().unwrap();
+    assert_eq!(rows[1]["matches"].as_array().unwrap().len(), 0, "{out}");
+    assert_eq!(rows[2]["matches"][0]["ref"], 2);
+}
+
+#[test]
+fn solve_with_two_flows_recovers_a_second_traversal() {
+    let dir = Dir::new();
+    // The query drives the reference route twice: rows 0..4 match 0..4 and rows 4..8 match 0..4
+    // again. One forward-only path cannot take both; F = 2 can.
+    let (q, d) = (8, 4);
+    let mut m = vec![0.4f32; q * d];
+    for i in 0..q {
+        m[i * d + (i % 4)] = 2.5;
+    }
+    let path = dir.path("loop.npy");
+    npy_f32(&path, q, d, &m);
+    for exact in [false, true] {
+        let mut args = vec![
+            "solve",
+            "--similarity",
+            path.to_str().unwrap(),
+            "--flows",
+            "2",
+            "--hidden-cost",
+            "1.2",
+        ];
+        if exact {
+            args.push("--exact");
+        }
+        let out = seasonloc(&args).success_json();
+        let hyps = out["hypotheses"].as_array().unwrap();
+        assert_eq!(hyps.len(), 2, "{out}");
+        let matched: std::collections::BTreeSet<(i64, i64)> = hyps
+            .iter()
+            .flat_map(|h| h["rows"].as_array().unwrap().iter())
+            .flat_map(|r| {
+                let q = r["query"].as_i64().unwrap();
+                r["matches"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(move |m| (q, m["ref"].as_i64().unwrap()))
+            })
+            .collect();
+        for i in 0..8 {
+            assert!(
+                matched.contains(&(i, i % 4)),
+                "exact={exact}: query {i} not matched to {}: {out}",
+                i % 4
+            );
+        }
+        let total: f64 = hyps.iter().map(|h| h["cost"].as_f64().unwrap()).sum();
+        assert!((out["total_cost"].as_f64().unwrap() - total).abs() < 1e-9);
+    }
+}
+
+#[test]
+fn solve_rejects_bad_input_with_one_line() {
+    let dir = Dir::new();
+    let nan = dir.path("nan.npy");
+    npy_f32(&nan, 2, 2, &[1.0, f32::NAN, 1.0, 1.0]);
+    let garbage = dir.path("garbage.npy");
+    std::fs::write(&garbage, b"hello").unwrap();
+    let ok = dir.path("ok.npy");
+    npy_f32(&ok, 1, 1, &[1.0]);
+    let missing = dir.path("missing.npy");
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            vec!["solve", "--similarity", nan.to_str().unwrap()],
+            "non-finite",
+        ),
+        (
+            vec!["solve", "--similarity", garbage.to_str().unwrap()],
+            "not a valid .npy",
+        ),
+        (
+            vec!["solve", "--similarity", missing.to_str().unwrap()],
+            "missing.npy",
+        ),
+        (
+            vec![
+                "solve",
+                "--similarity",
+                ok.to_str().unwrap(),
+                "--flows",
+                "0",
+            ],
+            "flows",
+        ),
+        (
+            vec![
+                "solve",
+                "--similarity",
+                ok.to_str().unwrap(),
+                "--hidden-cost=-2",
+            ],
+            "hidden-cost",
+        ),
+        (
+            vec![
+                "solve",
+                "--similarity",
+                ok.to_str().unwrap(),
+                "--stop-hidden-fraction",
+                "2",
+            ],
+            "stop_hidden_fraction",
+        ),
+    ];
+    for (args, needle) in cases {
+        seasonloc(&args).failure_mentions(needle);
+    }
+}
+
+#[test]
+fn eval_localizes_a_generated_route_and_writes_its_outputs() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 40, 30);
+    let preds = dir.path("out/p.csv");
+    let plot = dir.path("out/pr.png");
+    std::fs::create_dir_all(dir.path("out")).unwrap();
+    let out = seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        &route.ground_truth,
+        "--cell-size",
+        "8",
+        "--tolerance",
+        "1",
+        "--compare",
+        "best-match,seqslam",
+        "--predictions",
+        preds.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ])
+    .success_json();
+    assert_eq!(out["method"], "flow");
+    assert_eq!(out["queries"], 30);
+    assert_eq!(out["references"], 40);
+    for key in [
+        "ap",
+        "recall_at_100p",
+        "recall_at_99p",
+        "max_f1",
+        "precision_at_full",
+    ] {
+        let v = out[key].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=1.0).contains(&v), "{key} = {v}");
+    }
+    assert!(
+        out["ap"].as_f64().unwrap() > 0.9,
+        "the generated route is easy: {out}"
+    );
+    for stage in ["features", "similarity", "solve"] {
+        assert!(out["seconds"][stage].as_f64().is_some(), "{out}");
+    }
+    let compared: Vec<&str> = out["compared"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["method"].as_str().unwrap())
+        .collect();
+    assert_eq!(compared, vec!["best-match", "seqslam"]);
+    let csv = std::fs::read_to_string(&preds).unwrap();
+    assert!(
+        csv.starts_with("query_index,ref_index,confidence\n"),
+        "{csv}"
+    );
+    assert!(csv.lines().count() > 20);
+    let png = std::fs::read(&plot).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
+
+#[test]
+fn eval_rejects_bad_input_with_one_line() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 10, 10);
+    std::fs::create_dir_all(dir.path("empty")).unwrap();
+    let empty = dir.path("empty");
+    let odd = dir.path("odd");
+    std::fs::create_dir_all(&odd).unwrap();
+    image::RgbImage::new(64, 32)
+        .save(odd.join("a.png"))
+        .unwrap();
+    image::RgbImage::new(48, 32)
+        .save(odd.join("b.png"))
+        .unwrap();
+    let corrupt = dir.path("corrupt");
+    std::fs::create_dir_all(&corrupt).unwrap();
+    std::fs::write(corrupt.join("x.png"), b"\x89PNG but not really").unwrap();
+    let base2 = |r: &str, q: &str| -> Vec<String> {
+        [
+            "eval",
+            "--reference",
+            r,
+            "--query",
+            q,
+            "--ground-truth",
+            &route.ground_truth,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let base = |q: &str| base2(&route.reference, q);
+    let with = |mut v: Vec<String>, extra: &[&str]| {
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v
+    };
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (base(dir.path("nope").to_str().unwrap()), "nope"),
+        (base(empty.to_str().unwrap()), "empty"),
+        (base2(odd.to_str().unwrap(), &route.query), "b.png"),
+        (base2(corrupt.to_str().unwrap(), &route.query), "x.png"),
+        (with(base(&route.query), &["--flows", "abc"]), "--flows"),
+        (with(base(&route.query), &["--exclude", "5-2"]), "exclude"),
+        (with(base(&route.query), &["--cell-size", "1"]), "cell_size"),
+        (
+            with(base(&route.query), &["--plot", "/no/such/dir/p.png"]),
+            "/no/such/dir",
+        ),
+    ];
+    for (args, needle) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        seasonloc(&args).failure_mentions(needle);
+    }
+}
+
+/// The acceptance numbers of the localization core on the shared Nordland split (winter queries
+/// against the summer map, tolerance 1, queries 0-16 excluded, HOG with 8 px cells, every other
+/// setting at its default).
+#[test]
+fn nordland_flow_beats_the_baselines_with_a_trustworthy_confidence() {
+    let Some(data) = common::shared("data/nordland_64x32") else {
+        return;
+    };
+    let d = |p: &str| data.join(p).to_str().unwrap().to_string();
+    let out = seasonloc(&[
+        "eval",
+        "--reference",
+        &d("summer"),
+        "--query",
+        &d("winter"),
+        "--ground-truth",
+        &d("ground_truth.csv"),
+        "--tolerance",
+        "1",
+        "--exclude",
+        "0-16",
+        "--cell-size",
+        "8",
+        "--compare",
+        "best-match,seqslam",
+    ])
+    .success_json();
+    let ap = |v: &Value| v["ap"].as_f64().unwrap();
+    let compared = out["compared"].as_array().unwrap();
+    let (best_match, seqslam) = (&compared[0], &compared[1]);
+    eprintln!(
+        "flow AP {:.3} R@99 {:.3}; best match AP {:.3}; seqslam AP {:.3}",
+        ap(&out),
+        out["recall_at_99p"].as_f64().unwrap(),
+        ap(best_match),
+        ap(seqslam)
+    );
+    assert!(ap(&out) >= 0.60, "{out}");
+    assert!(ap(&out) > ap(best_match), "{out}");
+    assert!(ap(&out) > ap(seqslam), "{out}");
+    assert!(out["recall_at_99p"].as_f64().unwrap() >= 0.30, "{out}");
+}

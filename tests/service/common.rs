@@ -1,0 +1,310 @@
+//! Test harness: servers (in-process on an ephemeral port, or the real binary), synthetic route
+//! images, and the path of the shared Nordland data.
+
+use std::io::Cursor;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use seasonloc::config::ServeArgs;
+
+use crate::http::Client;
+
+/// The service running in this process (its own runtime thread) on `127.0.0.1:0`.
+pub struct Server {
+    pub client: Client,
+    _dir: tempfile::TempDir,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<anyhow::Result<()>>>,
+}
+
+impl Server {
+    pub fn start() -> Server {
+        Server::start_with(|_| {})
+    }
+
+    pub fn start_with(configure: impl FnOnce(&mut ServeArgs)) -> Server {
+        let dir = tempfile::tempdir().unwrap();
+        let mut args = ServeArgs {
+            data_dir: dir.path().to_path_buf(),
+            worker_threads: 2,
+            ..ServeArgs::default()
+        };
+        configure(&mut args);
+        let settings = args.validate().unwrap();
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        listener.set_nonblocking(true).unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            rt.block_on(async move {
+                let listener = tokio::net::TcpListener::from_std(listener)?;
+                seasonloc::service::serve(settings, listener, async move {
+                    let _ = stopped.await;
+                })
+                .await
+            })
+        });
+        let server = Server {
+            client: Client::new(addr),
+            _dir: dir,
+            stop: Some(stop),
+            thread: Some(thread),
+        };
+        server.wait_ready();
+        server
+    }
+
+    fn wait_ready(&self) {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Ok(r) = self.client.try_request("GET", "/readyz", None, &[]) {
+                if r.status == 200 {
+                    return;
+                }
+            }
+            assert!(Instant::now() < deadline, "server did not become ready");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The real `seasonloc serve` binary as a child process.
+pub struct Process {
+    pub child: Child,
+    pub client: Client,
+}
+
+impl Process {
+    /// Starts `seasonloc serve` with `args` and environment `env`, stderr to `log`, and waits
+    /// for its "listening on" line.
+    pub fn start(args: &[&str], env: &[(&str, &str)], log: &Path) -> Process {
+        let file = std::fs::File::create(log).unwrap();
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_seasonloc"));
+        cmd.arg("serve")
+            .args(args)
+            .env_remove("SEASONLOC_ADDR")
+            .env_remove("SEASONLOC_DATA_DIR")
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(file);
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.spawn().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            let text = std::fs::read_to_string(log).unwrap_or_default();
+            if let Some(addr) = listening_addr(&text) {
+                return Process {
+                    child,
+                    client: Client::new(addr),
+                };
+            }
+            if let Ok(Some(status)) = child.try_wait() {
+                panic!("seasonloc serve exited with {status} before listening:\n{text}");
+            }
+            assert!(
+                Instant::now() < deadline,
+                "no 'listening on' line in:\n{text}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Sends SIGTERM and waits; returns whether it exited successfully.
+    pub fn terminate(mut self) -> bool {
+        // The shell's builtin `kill` exists wherever `sh` does (no procps needed).
+        let status = Command::new("sh")
+            .args(["-c", &format!("kill -TERM {}", self.child.id())])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let exit = self.child.wait().unwrap();
+        exit.success()
+    }
+
+    /// SIGKILL: no chance to flush anything.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// The address in the "listening on http://ADDR" log line.
+pub fn listening_addr(log: &str) -> Option<SocketAddr> {
+    let rest = log.split("listening on http://").nth(1)?;
+    let addr: String = rest.chars().take_while(|c| !c.is_whitespace()).collect();
+    // Strip ANSI colour codes that a terminal-aware logger might add.
+    let addr = addr.split('\u{1b}').next()?;
+    addr.parse().ok()
+}
+
+/// A deterministic pseudo-random generator (no dependency needed).
+pub struct Lcg(u64);
+
+impl Lcg {
+    pub fn new(seed: u64) -> Self {
+        Lcg(seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407))
+    }
+    pub fn next(&mut self) -> u32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 33) as u32
+    }
+    pub fn below(&mut self, n: u32) -> u32 {
+        self.next() % n
+    }
+}
+
+/// Frame size of the generated route (Nordland's thumbnail size).
+pub const FRAME: (u32, u32) = (64, 32);
+/// Pixels the camera moves between frames.
+pub const STEP: u32 = 8;
+
+/// A synthetic route: a long skyline of random buildings. Reference frame `i` is the window at
+/// `i * STEP`; the query ("other season") is the same window darker, with less contrast and
+/// noise.
+pub struct Route {
+    width: u32,
+    strip: Vec<u8>,
+}
+
+impl Route {
+    pub fn new(frames: u32, seed: u64) -> Route {
+        let (fw, fh) = FRAME;
+        let width = fw + STEP * frames;
+        let mut rng = Lcg::new(seed);
+        let mut strip = vec![0u8; (width * fh) as usize];
+        let mut x = 0;
+        while x < width {
+            let w = 2 + rng.below(9);
+            let roof = 4 + rng.below(fh - 6);
+            let shade = 40 + rng.below(200) as u8;
+            let windows = rng.below(2) == 0;
+            for xx in x..(x + w).min(width) {
+                for y in 0..fh {
+                    let sky = (230 - y * 3) as u8;
+                    let v = if y < roof {
+                        sky
+                    } else if windows && (y % 4 == 1) && (xx % 3 == 1) {
+                        shade / 3
+                    } else {
+                        shade
+                    };
+                    strip[(y * width + xx) as usize] = v;
+                }
+            }
+            x += w;
+        }
+        Route { width, strip }
+    }
+
+    fn frame(&self, i: u32, query: bool, rng: &mut Lcg) -> image::GrayImage {
+        let (fw, fh) = FRAME;
+        image::GrayImage::from_fn(fw, fh, |x, y| {
+            let v = f32::from(self.strip[(y * self.width + i * STEP + x) as usize]);
+            let v = if query {
+                v * 0.6 + 30.0 + (rng.below(21) as f32 - 10.0)
+            } else {
+                v
+            };
+            image::Luma([v.clamp(0.0, 255.0) as u8])
+        })
+    }
+
+    /// PNG bytes of reference frame `i`.
+    pub fn reference_png(&self, i: u32) -> Vec<u8> {
+        png(&self.frame(i, false, &mut Lcg::new(0)))
+    }
+
+    /// PNG bytes of query frame `i` (seeded noise).
+    pub fn query_png(&self, i: u32) -> Vec<u8> {
+        png(&self.frame(i, true, &mut Lcg::new(u64::from(i) + 99)))
+    }
+}
+
+pub fn png(img: &image::GrayImage) -> Vec<u8> {
+    let mut out = Vec::new();
+    img.write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png)
+        .unwrap();
+    out
+}
+
+/// `../shared/data/nordland_64x32` beside the repository (as in CI), or `../../shared/...`
+/// (a git worktree one level further down), if present.
+pub fn nordland() -> Option<PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for shared in ["../shared", "../../shared"] {
+        let dir = root.join(shared).join("data/nordland_64x32");
+        if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
+            return Some(dir);
+        }
+    }
+    eprintln!(
+        "SKIPPED: Nordland data not found at {} (CI clones shared/ beside the repo)",
+        root.join("../shared/data/nordland_64x32").display()
+    );
+    None
+}
+
+/// File names of a Nordland season folder, sorted (= route order).
+pub fn nordland_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "png"))
+        .collect();
+    files.sort();
+    files
+}
+
+/// Creates a HOG map and returns its id.
+pub fn create_hog_map(client: &Client, name: &str, cell_size: u32) -> String {
+    let r = client.post_json(
+        "/v1/maps",
+        &serde_json::json!({"name": name, "descriptor": {"kind": "hog", "cell_size": cell_size}}),
+    );
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    r.json()["id"].as_str().unwrap().to_string()
+}
+
+/// Creates a precomputed-descriptor map and returns its id.
+pub fn create_vector_map(client: &Client, name: &str, dim: u32) -> String {
+    let r = client.post_json(
+        "/v1/maps",
+        &serde_json::json!({"name": name, "descriptor": {"kind": "precomputed", "dim": dim}}),
+    );
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    r.json()["id"].as_str().unwrap().to_string()
+}

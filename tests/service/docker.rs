@@ -1,0 +1,147 @@
+//! The Dockerfile's runtime stage, checked without a Docker engine: non-root user, the store on
+//! a volume, the exposed port equal to the listen address, and the HEALTHCHECK command run
+//! verbatim (port substituted) against the binary started with the image's environment.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use crate::common::Process;
+
+struct Runtime {
+    env: HashMap<String, String>,
+    user: String,
+    expose: Vec<String>,
+    volumes: Vec<String>,
+    healthcheck: Vec<String>,
+    entrypoint: Vec<String>,
+    cmd: Vec<String>,
+    stages: usize,
+}
+
+fn json_array(s: &str) -> Vec<String> {
+    serde_json::from_str(s.trim()).unwrap_or_else(|e| panic!("exec form expected ({e}): {s}"))
+}
+
+/// Parses the last stage of the Dockerfile (continuation lines joined).
+fn runtime_stage() -> Runtime {
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("Dockerfile")).unwrap();
+    let joined = text.replace("\\\n", " ");
+    let lines: Vec<&str> = joined
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .collect();
+    let stages = lines.iter().filter(|l| l.starts_with("FROM ")).count();
+    let last = lines.iter().rposition(|l| l.starts_with("FROM ")).unwrap();
+    let mut rt = Runtime {
+        env: HashMap::new(),
+        user: "root".into(),
+        expose: vec![],
+        volumes: vec![],
+        healthcheck: vec![],
+        entrypoint: vec![],
+        cmd: vec![],
+        stages,
+    };
+    for l in &lines[last + 1..] {
+        let (instr, rest) = l.split_once(' ').unwrap_or((l, ""));
+        match instr {
+            "ENV" => {
+                let (k, v) = rest.split_once('=').unwrap();
+                rt.env.insert(k.trim().into(), v.trim().into());
+            }
+            "USER" => rt.user = rest.trim().into(),
+            "EXPOSE" => rt.expose.push(rest.trim().into()),
+            "VOLUME" => rt.volumes.push(rest.trim().into()),
+            "HEALTHCHECK" => {
+                let cmd = rest.split_once("CMD").unwrap().1;
+                rt.healthcheck = json_array(cmd);
+            }
+            "ENTRYPOINT" => rt.entrypoint = json_array(rest),
+            "CMD" => rt.cmd = json_array(rest),
+            _ => {}
+        }
+    }
+    rt
+}
+
+#[test]
+fn runtime_stage_is_small_non_root_and_consistent() {
+    let rt = runtime_stage();
+    assert!(rt.stages >= 2, "multi-stage build expected");
+    assert!(rt.user != "root" && rt.user != "0", "runs as root");
+    let addr = &rt.env["SEASONLOC_ADDR"];
+    let port = addr.rsplit(':').next().unwrap();
+    assert!(
+        addr.starts_with("0.0.0.0:"),
+        "must listen on all interfaces in a container: {addr}"
+    );
+    assert_eq!(rt.expose, vec![port.to_string()]);
+    assert_eq!(rt.volumes, vec![rt.env["SEASONLOC_DATA_DIR"].clone()]);
+    assert_eq!(rt.entrypoint, vec!["seasonloc"]);
+    assert_eq!(rt.cmd, vec!["serve"]);
+    assert!(rt.healthcheck.join(" ").contains("/healthz"));
+    let ignore =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(".dockerignore"))
+            .unwrap();
+    assert!(
+        ignore.lines().any(|l| l.trim() == "target/"),
+        "target/ must not be sent to the build"
+    );
+}
+
+#[test]
+fn healthcheck_command_passes_against_the_image_environment() {
+    if std::process::Command::new("bash")
+        .arg("--version")
+        .output()
+        .is_err()
+    {
+        eprintln!("SKIPPED: bash not found (the runtime image has it)");
+        return;
+    }
+    let rt = runtime_stage();
+    let tmp = tempfile::tempdir().unwrap();
+    // Same environment as the image, except a free port and a temporary volume.
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let image_port = rt.env["SEASONLOC_ADDR"]
+        .rsplit(':')
+        .next()
+        .unwrap()
+        .to_string();
+    let addr = rt.env["SEASONLOC_ADDR"].replace(&format!(":{image_port}"), &format!(":{port}"));
+    let data = tmp.path().join("data");
+    let data_s = data.to_string_lossy().into_owned();
+    let mut env: Vec<(&str, &str)> = rt
+        .env
+        .iter()
+        .filter(|(k, _)| k.as_str() != "SEASONLOC_ADDR" && k.as_str() != "SEASONLOC_DATA_DIR")
+        .map(|(k, v)| (k.as_str(), v.as_str()))
+        .collect();
+    env.push(("SEASONLOC_ADDR", &addr));
+    env.push(("SEASONLOC_DATA_DIR", &data_s));
+    let args: Vec<&str> = rt.cmd[1..].iter().map(String::as_str).collect();
+    let p = Process::start(&args, &env, &tmp.path().join("log"));
+    let cmd: Vec<String> = rt
+        .healthcheck
+        .iter()
+        .map(|a| a.replace(&format!("/{image_port}"), &format!("/{port}")))
+        .collect();
+    let status = std::process::Command::new(&cmd[0])
+        .args(&cmd[1..])
+        .status()
+        .unwrap();
+    assert!(status.success(), "HEALTHCHECK failed: {cmd:?}");
+    assert!(p.terminate());
+    // And it fails when nothing listens.
+    let status = std::process::Command::new(&cmd[0])
+        .args(&cmd[1..])
+        .status()
+        .unwrap();
+    assert!(!status.success(), "HEALTHCHECK passes with the server down");
+    assert!(data.is_dir());
+}

@@ -1,0 +1,11 @@
+//! Integration tests of `seasonloc serve`: the real server on ephemeral ports, driven over HTTP
+//! (in-process for most tests; the built binary for restart, SIGKILL, configuration and the
+//! Dockerfile's runtime assumptions).
+
+mod common;
+mod docker;
+mod durability;
+mod errors;
+mod flow;
+mod http;
+mod spec;
