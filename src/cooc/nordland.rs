@@ -76,3 +76,91 @@ fn keypoint_repeatability_summer_vs_winter() {
         assert!(total > 0, "no keypoints at all");
     }
 }
+
+/// The Nordland dev evaluation of spec §4 (winter queries vs the summer map, tolerance 1,
+/// queries 0-16 excluded) for single images, sequences and the flow graph on co-occurrence
+/// scores.
+#[test]
+#[ignore = "reads the shared Nordland data (about a minute in release); prints metrics"]
+fn nordland_dev_evaluation() {
+    use std::time::Instant;
+
+    use super::sequence::match_sequences;
+    use super::{flow_similarity, CoocMap, CoocParams, Drive, Schedule, SequenceParams};
+    use crate::eval::{evaluate, Exclusions, GroundTruth, Prediction};
+    use crate::localize::{solve_with_confidence, LocalizeOptions};
+    use crate::similarity::normalize_columns;
+
+    let Some(dir) = data_dir() else { return };
+    let load =
+        |season: &str| -> Vec<GrayImage> { (0..2400).map(|i| frame(&dir, season, i)).collect() };
+    let (summer, winter) = (load("summer"), load("winter"));
+    let gt = GroundTruth::from_csv(&dir.join("ground_truth.csv")).expect("ground truth");
+    let exclusions = Exclusions::parse("0-16").expect("valid range");
+    let report = |name: &str, p: &[Prediction], seconds: f64| {
+        let m = evaluate(p, &gt, winter.len(), 1, &exclusions).expect("valid predictions");
+        println!(
+            "| cooc {name} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {seconds:.2} s |",
+            m.ap, m.recall_at_100p, m.recall_at_99p, m.max_f1, m.precision_at_full
+        );
+    };
+    let t = Instant::now();
+    let map = CoocMap::build(
+        &CoocParams::default(),
+        &[Drive::sequential(0.0, summer).expect("drive")],
+    )
+    .expect("map");
+    println!(
+        "map build (features, vocabulary, models): {:.1} s, {} bytes encoded",
+        t.elapsed().as_secs_f64(),
+        map.to_bytes().len()
+    );
+    let t = Instant::now();
+    let queries = map.quantize_all(&winter).expect("queries");
+    println!("query features: {:.1} s", t.elapsed().as_secs_f64());
+    println!("| method | AP | R@100P | R@99P | max F1 | P@full | time |");
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
+    let t = Instant::now();
+    let single: Vec<Prediction> = queries
+        .iter()
+        .enumerate()
+        .filter_map(|(i, q)| {
+            map.recognize_words(q, Schedule::BestFirst)
+                .map(|r| Prediction {
+                    query: i,
+                    reference: r.location,
+                    confidence: r.score as f64,
+                })
+        })
+        .collect();
+    report(
+        "single image (best-first)",
+        &single,
+        t.elapsed().as_secs_f64(),
+    );
+    let t = Instant::now();
+    let scores = map.score_matrix_words(&queries);
+    let score_seconds = t.elapsed().as_secs_f64();
+    println!("score matrix: {score_seconds:.2} s");
+    for length in [10, 20] {
+        let t = Instant::now();
+        let params = SequenceParams {
+            length,
+            ..SequenceParams::default()
+        };
+        let p = match_sequences(&scores, &params).expect("sequences");
+        report(
+            &format!("sequences ds={length}"),
+            &p,
+            score_seconds + t.elapsed().as_secs_f64(),
+        );
+    }
+    let t = Instant::now();
+    let chat = normalize_columns(&flow_similarity(&scores)).expect("positive columns");
+    let (_, p) = solve_with_confidence(&chat, &LocalizeOptions::default()).expect("flow");
+    report(
+        "scores -> flow graph (F=1)",
+        &p,
+        score_seconds + t.elapsed().as_secs_f64(),
+    );
+}
