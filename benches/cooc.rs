@@ -73,6 +73,16 @@ fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
     (map, queries)
 }
 
+/// The Nordland folder: `../shared` beside the repository (CI) or `../../shared` from a
+/// worktree under `wt/`.
+fn nordland_dir() -> Option<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join("data/nordland_64x32"))
+        .find(|d| d.join("summer").is_dir())
+}
+
 fn bench_recognition(c: &mut Criterion) {
     let (map, queries) = fixture();
     // Sanity and work counts, printed once so BENCHMARKS-cooc.md can quote them.

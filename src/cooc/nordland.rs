@@ -9,13 +9,14 @@ use image::GrayImage;
 use super::keypoints::{extract, KeypointParams};
 
 fn data_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
-    if dir.join("summer").is_dir() {
-        Some(dir)
-    } else {
-        eprintln!("skipping: {} not found", dir.display());
-        None
+    // `../shared` beside the repository (CI); `../../shared` from a worktree under `wt/`.
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let candidates = ["../shared", "../../shared"].map(|s| root.join(s).join("data/nordland_64x32"));
+    let found = candidates.iter().find(|d| d.join("summer").is_dir()).cloned();
+    if found.is_none() {
+        eprintln!("skipping: {} not found", candidates[0].display());
     }
+    found
 }
 
 fn frame(dir: &std::path::Path, season: &str, i: usize) -> GrayImage {
