@@ -127,15 +127,10 @@ fn bench_recognition(c: &mut Criterion) {
 /// The same comparison on the real Nordland map (2,400 summer frames, default parameters) with
 /// 21 winter queries; skipped when the shared data is absent. Building the map takes ~45 s.
 fn bench_recognition_nordland(c: &mut Criterion) {
-    let dir =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
-    if !dir.join("summer").is_dir() {
-        eprintln!(
-            "{} not found: skipping the Nordland recognition bench",
-            dir.display()
-        );
+    let Some(dir) = nordland_dir() else {
+        eprintln!("../shared/data/nordland_64x32 not found: skipping the Nordland bench");
         return;
-    }
+    };
     let load = |season: &str, i: usize| -> GrayImage {
         let path = dir
             .join(season)
@@ -196,15 +191,11 @@ fn bench_recognition_nordland(c: &mut Criterion) {
 }
 
 fn bench_keypoints(c: &mut Criterion) {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/nordland_64x32/winter/images-05000.png");
-    let image: GrayImage = match image::open(&path) {
-        Ok(img) => img.to_luma8(),
-        Err(_) => {
-            eprintln!(
-                "{} not found: using a generated 64x32 frame",
-                path.display()
-            );
+    let path = nordland_dir().map(|d| d.join("winter/images-05000.png"));
+    let image: GrayImage = match path.as_ref().map(image::open) {
+        Some(Ok(img)) => img.to_luma8(),
+        _ => {
+            eprintln!("Nordland frame not found: using a generated 64x32 frame");
             let mut rng = Rng(7);
             GrayImage::from_fn(64, 32, |x, y| {
                 Luma([((x * 7 + y * 13) as u64 % 200 + rng.below(40)) as u8])

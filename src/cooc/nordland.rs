@@ -11,8 +11,12 @@ use super::keypoints::{extract, KeypointParams};
 fn data_dir() -> Option<PathBuf> {
     // `../shared` beside the repository (CI); `../../shared` from a worktree under `wt/`.
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let candidates = ["../shared", "../../shared"].map(|s| root.join(s).join("data/nordland_64x32"));
-    let found = candidates.iter().find(|d| d.join("summer").is_dir()).cloned();
+    let candidates =
+        ["../shared", "../../shared"].map(|s| root.join(s).join("data/nordland_64x32"));
+    let found = candidates
+        .iter()
+        .find(|d| d.join("summer").is_dir())
+        .cloned();
     if found.is_none() {
         eprintln!("skipping: {} not found", candidates[0].display());
     }
