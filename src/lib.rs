@@ -19,6 +19,7 @@ pub mod baselines;
 pub mod cli;
 pub mod confidence;
 pub mod config;
+pub mod cooc;
 pub mod error;
 pub mod eval;
 pub mod features;

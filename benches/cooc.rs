@@ -1,0 +1,217 @@
+//! Co-occurrence map benches: simultaneous matching with the maximum-potential-score bound
+//! (lockstep as in the paper, and best-first) against matching every location separately, on a
+//! generated map of 2,400 locations; keypoint extraction on a 64x32 frame.
+//!
+//! Run: `cargo bench --bench cooc -- --warm-up-time 1 --measurement-time 3`.
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use image::{GrayImage, Luma};
+use seasonloc::cooc::keypoints::{extract, KeypointParams};
+use seasonloc::cooc::model::{DriveRecord, LocationMap, Word};
+use seasonloc::cooc::recognition::{recognize_query, Schedule};
+use seasonloc::cooc::spatial::SpatialGrid;
+use seasonloc::cooc::{CoocMap, CoocParams, Drive};
+
+/// SplitMix64, so the fixture is identical on every run.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n
+    }
+    fn unit(&mut self) -> f32 {
+        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+const LOCATIONS: usize = 2400;
+const FEATURES: usize = 60;
+const VOCABULARY: u64 = 1000;
+
+/// A map of random scenes, and queries that keep 2/3 of a scene's features plus 1/2 clutter.
+fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
+    let mut rng = Rng(42);
+    let mut scenes = Vec::new();
+    for _ in 0..LOCATIONS {
+        let s: Vec<Word> = (0..FEATURES)
+            .map(|_| Word::new(rng.below(VOCABULARY) as u32, rng.unit(), rng.unit()))
+            .collect();
+        scenes.push(s);
+    }
+    let mut map = LocationMap::new(SpatialGrid::new(12, 8).expect("valid grid"), 0, true);
+    let images = scenes
+        .iter()
+        .enumerate()
+        .map(|(l, s)| (l as u32, s.clone()))
+        .collect();
+    map.add_drive(DriveRecord { time: 0.0, images })
+        .expect("valid drive");
+    let queries = (0..20)
+        .map(|k| {
+            let loc = (k * 113) % LOCATIONS;
+            let mut q: Vec<Word> = scenes[loc]
+                .iter()
+                .filter(|_| rng.below(3) > 0)
+                .copied()
+                .collect();
+            for _ in 0..FEATURES / 2 {
+                q.push(Word::new(
+                    rng.below(VOCABULARY) as u32,
+                    rng.unit(),
+                    rng.unit(),
+                ));
+            }
+            (loc, q)
+        })
+        .collect();
+    (map, queries)
+}
+
+/// The Nordland folder: `../shared` beside the repository (CI) or `../../shared` from a
+/// worktree under `wt/`.
+fn nordland_dir() -> Option<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join("data/nordland_64x32"))
+        .find(|d| d.join("summer").is_dir())
+}
+
+fn bench_recognition(c: &mut Criterion) {
+    let (map, queries) = fixture();
+    // Sanity and work counts, printed once so BENCHMARKS-cooc.md can quote them.
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        let mut evaluated = 0;
+        for (loc, q) in &queries {
+            let r = recognize_query(&map, q, schedule).expect("queries share words with the map");
+            assert_eq!(r.location, *loc, "{schedule:?} found the wrong location");
+            evaluated += r.evaluated;
+        }
+        eprintln!(
+            "{schedule:?}: consistency matrices built per query = {:.1}",
+            evaluated as f64 / queries.len() as f64
+        );
+    }
+    let mut group = c.benchmark_group("cooc_recognize_2400_locations");
+    group.sample_size(10);
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for (_, q) in &queries {
+                        std::hint::black_box(recognize_query(&map, q, s));
+                    }
+                })
+            },
+        );
+    }
+    group.finish();
+}
+
+/// The same comparison on the real Nordland map (2,400 summer frames, default parameters) with
+/// 21 winter queries; skipped when the shared data is absent. Building the map takes ~45 s.
+fn bench_recognition_nordland(c: &mut Criterion) {
+    let Some(dir) = nordland_dir() else {
+        eprintln!("../shared/data/nordland_64x32 not found: skipping the Nordland bench");
+        return;
+    };
+    let load = |season: &str, i: usize| -> GrayImage {
+        let path = dir
+            .join(season)
+            .join(format!("images-{:05}.png", (i + 1) * 10));
+        image::open(&path)
+            .expect("readable Nordland frame")
+            .to_luma8()
+    };
+    let summer: Vec<GrayImage> = (0..2400).map(|i| load("summer", i)).collect();
+    let params = CoocParams::default();
+    let map = CoocMap::build(
+        &params,
+        &[Drive::sequential(0.0, summer).expect("valid drive")],
+    )
+    .expect("map builds");
+    let queries: Vec<Vec<Word>> = (17..2400)
+        .step_by(119)
+        .map(|i| {
+            map.quantize("winter", &load("winter", i))
+                .expect("valid frame")
+        })
+        .collect();
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        let built: usize = queries
+            .iter()
+            .filter_map(|q| map.recognize_words(q, schedule))
+            .map(|r| r.evaluated)
+            .sum();
+        eprintln!(
+            "Nordland {schedule:?}: consistency matrices built per query = {:.1}",
+            built as f64 / queries.len() as f64
+        );
+    }
+    let mut group = c.benchmark_group("cooc_recognize_nordland_2400");
+    group.sample_size(10);
+    for schedule in [
+        Schedule::Exhaustive,
+        Schedule::Lockstep,
+        Schedule::BestFirst,
+    ] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for q in &queries {
+                        std::hint::black_box(map.recognize_words(q, s));
+                    }
+                })
+            },
+        );
+    }
+    group.finish();
+}
+
+fn bench_keypoints(c: &mut Criterion) {
+    let path = nordland_dir().map(|d| d.join("winter/images-05000.png"));
+    let image: GrayImage = match path.as_ref().map(image::open) {
+        Some(Ok(img)) => img.to_luma8(),
+        _ => {
+            eprintln!("Nordland frame not found: using a generated 64x32 frame");
+            let mut rng = Rng(7);
+            GrayImage::from_fn(64, 32, |x, y| {
+                Luma([((x * 7 + y * 13) as u64 % 200 + rng.below(40)) as u8])
+            })
+        }
+    };
+    let params = KeypointParams::default();
+    c.bench_function("cooc_keypoints_64x32_default", |b| {
+        b.iter(|| extract("bench", std::hint::black_box(&image), &params).expect("valid image"))
+    });
+}
+
+criterion_group!(
+    benches,
+    bench_recognition,
+    bench_keypoints,
+    bench_recognition_nordland
+);
+criterion_main!(benches);

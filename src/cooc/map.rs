@@ -1,0 +1,441 @@
+//! [`CoocMap`]: the user-facing co-occurrence map — vocabulary, feature settings and location
+//! models of one route — built from one or more mapping [`Drive`]s, extended by further drives,
+//! and queried with single images ([`recognize`]), sequences ([`sequence_match`]) or as a score
+//! matrix for the network-flow graph ([`CoocMap::score_matrix`]).
+//!
+//! The vocabulary is learned from the drives given to [`CoocMap::build`] (the paper trains it on
+//! separate urban images; a route's own images are what a deployed map has). Drives added later
+//! are quantised with that vocabulary, so a map's words never change meaning.
+//!
+//! Invariants: every image goes through the same extraction and quantisation; all per-image work
+//! runs in parallel (rayon) and the results are deterministic and in input order.
+
+use image::GrayImage;
+use rayon::prelude::*;
+
+use super::keypoints::{self, DESCRIPTOR_DIM};
+use super::model::{DriveRecord, LocationMap, Word, MAX_LOCATIONS};
+use super::recognition::{self, Recognition, Schedule};
+use super::sequence::{match_sequences, SequenceParams};
+use super::vocabulary::{TreeSpec, Vocabulary};
+use super::CoocParams;
+use crate::eval::Prediction;
+use crate::{Error, Matrix, Result};
+
+/// One mapping drive of the route: images, the location index of each, and a time key that
+/// orders drives for the merging of adjacent drives (Section II-E), e.g. the hour of day.
+#[derive(Clone, Debug)]
+pub struct Drive {
+    time: f64,
+    images: Vec<GrayImage>,
+    locations: Vec<usize>,
+}
+
+impl Drive {
+    /// A drive whose image `k` shows location `locations[k]`.
+    pub fn new(time: f64, images: Vec<GrayImage>, locations: Vec<usize>) -> Result<Self> {
+        if !time.is_finite() {
+            return Err(Error::param("time", format!("must be finite, got {time}")));
+        }
+        if images.len() != locations.len() {
+            return Err(Error::Shape(format!(
+                "a drive has {} images but {} location indices",
+                images.len(),
+                locations.len()
+            )));
+        }
+        if let Some(&l) = locations.iter().find(|&&l| l >= MAX_LOCATIONS) {
+            return Err(Error::param(
+                "locations",
+                format!("location {l} is beyond the limit of {MAX_LOCATIONS} locations"),
+            ));
+        }
+        Ok(Drive {
+            time,
+            images,
+            locations,
+        })
+    }
+
+    /// A drive whose image `k` shows location `k` (the usual first mapping drive).
+    pub fn sequential(time: f64, images: Vec<GrayImage>) -> Result<Self> {
+        let locations = (0..images.len()).collect();
+        Drive::new(time, images, locations)
+    }
+
+    /// Number of images.
+    pub fn len(&self) -> usize {
+        self.images.len()
+    }
+
+    /// True when the drive has no image.
+    pub fn is_empty(&self) -> bool {
+        self.images.is_empty()
+    }
+}
+
+/// A feature co-occurrence map of one route.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CoocMap {
+    pub(crate) params: CoocParams,
+    pub(crate) vocabulary: Vocabulary,
+    pub(crate) locations: LocationMap,
+}
+
+impl CoocMap {
+    /// Learns the vocabulary from all images of `drives` and builds the location models.
+    pub fn build(params: &CoocParams, drives: &[Drive]) -> Result<Self> {
+        params.validate()?;
+        if drives.iter().all(Drive::is_empty) {
+            return Err(Error::Empty(
+                "a co-occurrence map needs at least one image".into(),
+            ));
+        }
+        let features: Vec<Vec<keypoints::Features>> = drives
+            .iter()
+            .enumerate()
+            .map(|(d, drive)| extract_all(params, d, &drive.images))
+            .collect::<Result<_>>()?;
+        let total: usize = features.iter().flatten().map(|f| f.keypoints.len()).sum();
+        if total < params.vocabulary_branching {
+            return Err(Error::Empty(format!(
+                "the drives yield only {total} keypoints, fewer than vocabulary_branching ({})",
+                params.vocabulary_branching
+            )));
+        }
+        // An even stride over all descriptors keeps every part of the route represented.
+        let stride = total.div_ceil(params.max_training_descriptors);
+        let mut training = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
+        let all = features
+            .iter()
+            .flatten()
+            .flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
+        for d in all.step_by(stride) {
+            training.extend_from_slice(d);
+        }
+        let spec = TreeSpec {
+            branching: params.vocabulary_branching,
+            depth: params.vocabulary_depth,
+            iterations: params.kmeans_iterations,
+            seed: params.seed,
+        };
+        let vocabulary = Vocabulary::train(&training, DESCRIPTOR_DIM, spec)?;
+        let mut map = CoocMap {
+            params: params.clone(),
+            locations: LocationMap::new(
+                params.grid()?,
+                params.spatial_tolerance,
+                params.merge_adjacent_drives,
+            ),
+            vocabulary,
+        };
+        for (drive, feats) in drives.iter().zip(&features) {
+            map.add_features(drive, feats)?;
+        }
+        Ok(map)
+    }
+
+    /// Adds a further drive of the same route (its location indices given); the models of the
+    /// locations it saw are rebuilt together with the drives adjacent to it in time.
+    pub fn add_drive(&mut self, drive: &Drive) -> Result<()> {
+        let d = self.locations.drives().len();
+        let feats = extract_all(&self.params, d, &drive.images)?;
+        self.add_features(drive, &feats)
+    }
+
+    fn add_features(&mut self, drive: &Drive, feats: &[keypoints::Features]) -> Result<()> {
+        let images = drive
+            .locations
+            .iter()
+            .zip(feats)
+            .map(|(&l, f)| (l as u32, self.words_of(f)))
+            .collect();
+        self.locations.add_drive(DriveRecord {
+            time: drive.time,
+            images,
+        })
+    }
+
+    fn words_of(&self, f: &keypoints::Features) -> Vec<Word> {
+        f.keypoints
+            .iter()
+            .enumerate()
+            .map(|(k, kp)| Word::new(self.vocabulary.quantize(f.descriptor(k)), kp.x, kp.y))
+            .collect()
+    }
+
+    /// The quantised features of one image (`name` appears in errors).
+    pub fn quantize(&self, name: &str, image: &GrayImage) -> Result<Vec<Word>> {
+        let f = keypoints::extract(name, image, &self.params.keypoints)?;
+        Ok(self.words_of(&f))
+    }
+
+    /// Quantises many images in parallel, in order.
+    pub fn quantize_all(&self, images: &[GrayImage]) -> Result<Vec<Vec<Word>>> {
+        images
+            .par_iter()
+            .enumerate()
+            .map(|(i, img)| self.quantize(&format!("query {i}"), img))
+            .collect()
+    }
+
+    /// `Q x L` co-occurrence scores (the consistent-group size of every query against every
+    /// location, 0 without candidates): the input of [`sequence_match`] and, as a similarity
+    /// matrix, of the network-flow graph.
+    pub fn score_matrix(&self, queries: &[GrayImage]) -> Result<Matrix> {
+        let words = self.quantize_all(queries)?;
+        Ok(self.score_matrix_words(&words))
+    }
+
+    /// [`CoocMap::score_matrix`] for already quantised queries.
+    pub fn score_matrix_words(&self, queries: &[Vec<Word>]) -> Matrix {
+        let l = self.locations.locations();
+        let rows: Vec<Vec<f32>> = queries
+            .par_iter()
+            .map(|q| {
+                recognition::scores(&self.locations, q)
+                    .into_iter()
+                    .map(|s| s as f32)
+                    .collect()
+            })
+            .collect();
+        let mut m = Matrix::zeros(queries.len(), l);
+        for (i, r) in rows.iter().enumerate() {
+            m.row_mut(i).copy_from_slice(r);
+        }
+        m
+    }
+
+    /// The best location of one quantised query.
+    pub fn recognize_words(&self, query: &[Word], schedule: Schedule) -> Option<Recognition> {
+        recognition::recognize_query(&self.locations, query, schedule)
+    }
+
+    /// The settings the map was built with.
+    pub fn params(&self) -> &CoocParams {
+        &self.params
+    }
+
+    /// The visual vocabulary.
+    pub fn vocabulary(&self) -> &Vocabulary {
+        &self.vocabulary
+    }
+
+    /// The location models, drives and inverted index.
+    pub fn locations(&self) -> &LocationMap {
+        &self.locations
+    }
+
+    /// Number of locations on the route.
+    pub fn location_count(&self) -> usize {
+        self.locations.locations()
+    }
+}
+
+fn extract_all(
+    params: &CoocParams,
+    drive: usize,
+    images: &[GrayImage],
+) -> Result<Vec<keypoints::Features>> {
+    images
+        .par_iter()
+        .enumerate()
+        .map(|(i, img)| {
+            keypoints::extract(&format!("drive {drive} image {i}"), img, &params.keypoints)
+        })
+        .collect()
+}
+
+/// The co-occurrence scores as the similarity matrix `C` of the network-flow graph: `s + 1`.
+///
+/// Most scores are 0 (no shared word, or no consistent pair), and a graph node with similarity 0
+/// is unusable, which would break paths at every frame without features (tunnels). Adding one
+/// keeps every node usable at a high cost while preserving the order of scores; apply the usual
+/// column normalisation (Eq. 2) afterwards, which then also discounts locations that score
+/// highly against every query (e.g. feature-rich scenes).
+pub fn flow_similarity(scores: &Matrix) -> Matrix {
+    let mut c = scores.clone();
+    c.as_mut_slice().iter_mut().for_each(|v| *v += 1.0);
+    c
+}
+
+/// Single-image recognition (Sections II-C, II-D): for each query the best location, with the
+/// size of its spatially consistent group as confidence; no prediction for a query that shares
+/// no visual word with the map.
+pub fn recognize(
+    map: &CoocMap,
+    queries: &[GrayImage],
+    schedule: Schedule,
+) -> Result<Vec<Prediction>> {
+    let words = map.quantize_all(queries)?;
+    Ok(words
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, q)| {
+            map.recognize_words(q, schedule).map(|r| Prediction {
+                query: i,
+                reference: r.location,
+                confidence: r.score as f64,
+            })
+        })
+        .collect())
+}
+
+/// Forward-only, variable-speed sequence matching (Section II-F) on the co-occurrence scores of
+/// `queries` (in driving order); one prediction per query.
+pub fn sequence_match(
+    map: &CoocMap,
+    queries: &[GrayImage],
+    params: &SequenceParams,
+) -> Result<Vec<Prediction>> {
+    let scores = map.score_matrix(queries)?;
+    match_sequences(&scores, params)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::super::keypoints::tests::squares;
+    use super::*;
+    use image::Luma;
+
+    /// A scene: bright squares and dark bars at seeded positions; `night` inverts the contrast
+    /// of every other element and drops a third of them (a different appearance of the place).
+    pub(crate) fn scene(seed: u64, night: bool) -> GrayImage {
+        let mut rng = crate::cooc::SplitMix64::new(seed);
+        let corners: Vec<(u32, u32)> = (0..6)
+            .map(|_| (rng.below(52) as u32, rng.below(22) as u32))
+            .collect();
+        let mut img = squares(64, 32, &corners, 7 + (seed % 3) as u32);
+        for k in 0..4 {
+            let (x, y) = (rng.below(56) as u32, rng.below(26) as u32);
+            let (v, w) = if night ^ (k % 2 == 0) {
+                (60u8, 3)
+            } else {
+                (160u8, 2)
+            };
+            for yy in y..y + 6 {
+                for xx in x..x + w {
+                    img.put_pixel(xx, yy, Luma([v]));
+                }
+            }
+        }
+        if night {
+            for p in img.pixels_mut() {
+                p.0[0] = 255 - p.0[0];
+            }
+        }
+        img
+    }
+
+    fn params() -> CoocParams {
+        CoocParams {
+            vocabulary_branching: 8,
+            vocabulary_depth: 2,
+            spatial_tolerance: 1,
+            ..CoocParams::default()
+        }
+    }
+
+    #[test]
+    fn recognizes_generated_scenes_end_to_end() {
+        let refs: Vec<GrayImage> = (0..12).map(|s| scene(s, false)).collect();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(12.0, refs.clone()).unwrap()]).unwrap();
+        assert_eq!(map.location_count(), 12);
+        let p = recognize(&map, &refs, Schedule::BestFirst).unwrap();
+        let correct = p.iter().filter(|x| x.reference == x.query).count();
+        assert_eq!(correct, 12, "{p:?}");
+        let s = map.score_matrix(&refs).unwrap();
+        assert_eq!((s.rows(), s.cols()), (12, 12));
+        for i in 0..12 {
+            let diag = s.get(i, i);
+            assert!((0..12).all(|j| s.get(i, j) <= diag), "row {i}");
+        }
+    }
+
+    #[test]
+    fn fused_drives_recognize_either_appearance() {
+        let day: Vec<GrayImage> = (0..10).map(|s| scene(s, false)).collect();
+        let night: Vec<GrayImage> = (0..10).map(|s| scene(s, true)).collect();
+        let p = params();
+        let day_only =
+            CoocMap::build(&p, &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        let mut fused = CoocMap::build(
+            &p,
+            &[
+                Drive::sequential(12.0, day.clone()).unwrap(),
+                Drive::sequential(22.0, night.clone()).unwrap(),
+            ],
+        )
+        .unwrap();
+        let hits = |m: &CoocMap, q: &[GrayImage]| {
+            recognize(m, q, Schedule::BestFirst)
+                .unwrap()
+                .iter()
+                .filter(|x| x.reference == x.query)
+                .count()
+        };
+        assert_eq!(hits(&fused, &day), 10);
+        assert_eq!(hits(&fused, &night), 10);
+        assert!(
+            hits(&day_only, &night) < 10,
+            "night should not match a day-only map"
+        );
+        // A further drive (reversed location order) updates the same models.
+        let before = fused.locations().entries();
+        let order: Vec<usize> = (0..10).rev().collect();
+        let again: Vec<GrayImage> = order
+            .iter()
+            .map(|&s| scene(s as u64 + 100, false))
+            .collect();
+        fused
+            .add_drive(&Drive::new(18.0, again, order).unwrap())
+            .unwrap();
+        assert_eq!(fused.location_count(), 10);
+        assert!(fused.locations().entries() > before);
+        assert_eq!(fused.locations().drives().len(), 3);
+    }
+
+    #[test]
+    fn sequence_match_follows_the_route_and_survives_encoding() {
+        let refs: Vec<GrayImage> = (0..16).map(|s| scene(s, false)).collect();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(0.0, refs.clone()).unwrap()]).unwrap();
+        // The query drive stops at location 5 for three frames, then skips ahead two at a time.
+        let path = [3usize, 4, 5, 5, 5, 6, 8, 10, 12, 14];
+        let queries: Vec<GrayImage> = path.iter().map(|&l| refs[l].clone()).collect();
+        let seq = SequenceParams {
+            length: 4,
+            max_step: 2,
+            exclusion: 2,
+        };
+        let p = sequence_match(&map, &queries, &seq).unwrap();
+        assert_eq!(p.len(), path.len());
+        for (pred, &truth) in p.iter().zip(&path) {
+            assert_eq!(pred.reference, truth, "query {}", pred.query);
+        }
+        let back = CoocMap::from_bytes(&map.to_bytes()).unwrap();
+        assert_eq!(sequence_match(&back, &queries, &seq).unwrap(), p);
+    }
+
+    #[test]
+    fn flow_similarity_is_positive_and_order_preserving() {
+        let s = Matrix::from_vec(1, 3, vec![0.0, 4.0, 2.0]).unwrap();
+        assert_eq!(flow_similarity(&s).as_slice(), &[1.0, 5.0, 3.0]);
+    }
+
+    #[test]
+    fn drive_and_build_errors_are_precise() {
+        let err = Drive::new(0.0, vec![GrayImage::new(8, 8)], vec![])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("1 images but 0 location"), "{err}");
+        assert!(Drive::new(f64::INFINITY, vec![], vec![]).is_err());
+        let flat = vec![GrayImage::from_pixel(64, 32, Luma([9])); 3];
+        let err = CoocMap::build(&params(), &[Drive::sequential(0.0, flat).unwrap()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("keypoints"), "{err}");
+        assert!(CoocMap::build(&params(), &[]).is_err());
+    }
+}
