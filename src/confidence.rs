@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use crate::solver::Hypothesis;
+use crate::solver::{match_cost, Hypothesis};
 use crate::window::{leading_min, trailing_min};
 use crate::{Error, Matrix, Result};
 
@@ -117,16 +117,6 @@ pub fn score_hypothesis(
             confidence: local_ratio(chat, graph, params, i, j),
         })
         .collect())
-}
-
-/// Node cost of `x_ij`: `1/ĉ`, or +inf when unusable.
-#[inline]
-fn match_cost(c: f32) -> f64 {
-    if c > 0.0 {
-        1.0 / f64::from(c)
-    } else {
-        f64::INFINITY
-    }
 }
 
 fn local_ratio(

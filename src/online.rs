@@ -22,6 +22,7 @@
 use std::collections::VecDeque;
 
 use crate::confidence::GraphParams;
+use crate::solver::match_cost;
 use crate::window::trailing_min_by;
 use crate::{Error, Result};
 
@@ -314,15 +315,6 @@ impl OnlineSolver {
         }
         out.reverse();
         out
-    }
-}
-
-#[inline]
-fn match_cost(c: f32) -> f64 {
-    if c > 0.0 {
-        1.0 / f64::from(c)
-    } else {
-        f64::INFINITY
     }
 }
 

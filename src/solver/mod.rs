@@ -31,6 +31,9 @@ mod marginals;
 mod reference;
 mod shortest_path;
 
+/// Node cost of a matching node: `1/ĉ`, or `+inf` when `ĉ <= 0` (unusable). Every solver,
+/// the confidence and the online solver use this one definition.
+pub(crate) use graph::match_cost;
 pub use graph::Blocked;
 pub use marginals::{row_alternatives, RowAlternatives};
 pub use shortest_path::shortest_path;
