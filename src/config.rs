@@ -43,6 +43,10 @@ pub struct ServeArgs {
     /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C before exiting anyway.
     #[arg(long, env = "SEASONLOC_SHUTDOWN_TIMEOUT_SECS", default_value_t = 30)]
     pub shutdown_timeout_secs: u64,
+    /// ONNX model used by CNN maps whose descriptor names no `model` (optional; checked when
+    /// such a map is created).
+    #[arg(long, env = "SEASONLOC_CNN_MODEL")]
+    pub cnn_model: Option<PathBuf>,
 }
 
 impl Default for ServeArgs {
@@ -58,6 +62,7 @@ impl Default for ServeArgs {
             localize_queue: 16,
             worker_threads: 0,
             shutdown_timeout_secs: 30,
+            cnn_model: None,
         }
     }
 }
@@ -85,6 +90,8 @@ pub struct Settings {
     pub worker_threads: usize,
     /// Drain time on shutdown.
     pub shutdown_timeout: Duration,
+    /// Model of CNN maps created without a `model`.
+    pub default_cnn_model: Option<PathBuf>,
 }
 
 /// A configuration value that cannot work.
@@ -140,6 +147,11 @@ impl ServeArgs {
             localize_queue: self.localize_queue,
             worker_threads,
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
+            // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".
+            default_cnn_model: self
+                .cnn_model
+                .clone()
+                .filter(|p| !p.as_os_str().is_empty()),
         })
     }
 }

@@ -7,6 +7,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::error::ApiError;
+use crate::features::cnn::CnnResize;
 use crate::localize::{LocalizeOptions, StageTimings};
 use crate::similarity::Normalization;
 use crate::solver::{HiddenCost, Hypothesis, Match, RowAssignment, SolverParams};
@@ -53,18 +54,61 @@ pub enum DescriptorDto {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         resize: Option<[u32; 2]>,
     },
-    /// CNN activations (accepted in the wire format; this build rejects it with 400).
+    /// One layer of an ONNX model on the server (`docs/cnn.md`). Unset preprocessing fields
+    /// take the shipped EfficientNet-Lite0 README's values (224x224, short side 256 + centre
+    /// crop, `(x - 127) / 128`); in answers every field is set and `identity` is added.
     Cnn {
-        /// Model path on the server.
-        model: String,
-        /// Layer name.
+        /// Model path on the server (default: the server's `--cnn-model`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        model: Option<String>,
+        /// Output (or node) name used as descriptor, e.g. `block10`.
         layer: String,
+        /// Network input `[width, height]` (default `[224, 224]`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        input_size: Option<[u32; 2]>,
+        /// `crop` (scale the short side to `short_side`, cut the centre; default) or `stretch`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        resize: Option<CnnResizeDto>,
+        /// Short side before the centre crop (default 256/224 of the larger input side).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        short_side: Option<u32>,
+        /// Per-channel R, G, B mean subtracted from 0..255 pixels (default 127 each).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mean: Option<[f32; 3]>,
+        /// Per-channel R, G, B divisor after the mean (default 128 each).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        scale: Option<[f32; 3]>,
+        /// What the model was at creation (set by the server; rejected in requests).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        identity: Option<ModelIdentityDto>,
     },
     /// Descriptors computed by the client, of length `dim`.
     Precomputed {
         /// Descriptor length.
         dim: u32,
     },
+}
+
+/// How a CNN map brings images to the network's input size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CnnResizeDto {
+    /// Scale the whole image to the input size.
+    Stretch,
+    /// Scale the short side, then cut the centred input-size window.
+    Crop,
+}
+
+/// The model a CNN map was created with.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelIdentityDto {
+    /// Lower-case hex sha256 of the ONNX file.
+    pub sha256: String,
+    /// The layer used as descriptor.
+    pub layer: String,
+    /// One-line summary of the preprocessing.
+    pub preprocessing: String,
 }
 
 impl Default for DescriptorDto {
@@ -84,6 +128,29 @@ impl From<DescriptorSettings> for DescriptorDto {
                 resize: resize.map(|(w, h)| [w, h]),
             },
             DescriptorSettings::Precomputed { dim } => DescriptorDto::Precomputed { dim },
+            DescriptorSettings::Cnn(c) => {
+                let o = c.options;
+                let (resize, short_side) = match o.resize {
+                    CnnResize::Stretch => (CnnResizeDto::Stretch, None),
+                    CnnResize::ShortSideCrop { short_side } => {
+                        (CnnResizeDto::Crop, Some(short_side))
+                    }
+                };
+                DescriptorDto::Cnn {
+                    model: Some(o.model.to_string_lossy().into_owned()),
+                    layer: o.layer,
+                    input_size: Some([o.input_size.0, o.input_size.1]),
+                    resize: Some(resize),
+                    short_side,
+                    mean: Some(o.mean),
+                    scale: Some(o.scale),
+                    identity: Some(ModelIdentityDto {
+                        sha256: c.identity.sha256,
+                        layer: c.identity.layer,
+                        preprocessing: c.identity.preprocessing,
+                    }),
+                }
+            }
         }
     }
 }

@@ -53,6 +53,10 @@ pub enum ApiError {
     /// 409 `map_empty`: localizing against a map without reference images.
     #[error("map `{0}` has no reference images yet")]
     MapEmpty(String),
+    /// 409 `model_mismatch`: a CNN map's model file is no longer the model the map was
+    /// created with (changed, truncated or removed).
+    #[error("{0}")]
+    ModelMismatch(String),
     /// 409 `map_full`.
     #[error("map `{0}` cannot hold more images")]
     MapFull(String),
@@ -127,6 +131,7 @@ impl ApiError {
             ApiError::BatchTooLarge { .. } => (S::BAD_REQUEST, "batch_too_large", false),
             ApiError::MapEmpty(_) => (S::CONFLICT, "map_empty", false),
             ApiError::MapFull(_) => (S::CONFLICT, "map_full", false),
+            ApiError::ModelMismatch(_) => (S::CONFLICT, "model_mismatch", false),
             ApiError::PayloadTooLarge(_) => (S::PAYLOAD_TOO_LARGE, "payload_too_large", false),
             ApiError::ImageTooLarge { .. } => (S::PAYLOAD_TOO_LARGE, "image_too_large", false),
             ApiError::UnsupportedMediaType(_) => {

@@ -23,7 +23,7 @@ use super::dto::{
     LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
 };
 use super::error::ApiError;
-use super::maps::{hog_spec, map_id};
+use super::maps::{extract_for_map, map_id};
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};
 use crate::localize::{localize, LocalizeOptions};
@@ -112,15 +112,7 @@ async fn run(
                     }
                     m
                 }
-                Queries::Images(parts) => {
-                    let Some(spec) = hog_spec(record.descriptor)? else {
-                        return Err(ApiError::BadRequest(format!(
-                            "map `{}` stores precomputed descriptors; send query descriptors as JSON",
-                            format_id(map)
-                        )));
-                    };
-                    upload::extract(&spec, &parts, max_pixels, record.dim)?
-                }
+                Queries::Images(parts) => extract_for_map(&record, &parts, max_pixels)?,
             };
             let features = started.elapsed().as_secs_f64();
             let result = localize(&queries, &references, &job_options)?;

@@ -4,6 +4,7 @@
 //! An append is all-or-nothing: every part is decoded and extracted first, then the batch is
 //! written in one atomic, flushed store write; any error before that writes nothing.
 
+use std::path::PathBuf;
 use std::sync::Arc;
 
 use axum::body::Bytes;
@@ -16,15 +17,17 @@ use axum::{Json, Router};
 use serde::Deserialize;
 
 use super::dto::{
-    format_id, parse_id, AppendDescriptorsRequest, AppendResponse, CreateMapRequest, DescriptorDto,
-    ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
+    format_id, parse_id, AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest,
+    DescriptorDto, ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
 };
 use super::error::ApiError;
 use super::extract::ApiJson;
 use super::state::{blocking, AppState};
-use super::upload;
+use super::upload::{self, ImagePart};
+use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 use crate::features::hog::{HogOptions, HogSpec};
-use crate::store::{DescriptorSettings, ImageMeta, MapRecord, NewMap};
+use crate::features::Extractor;
+use crate::store::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord, NewMap};
 use crate::Matrix;
 
 /// The routes of this resource.
@@ -41,17 +44,163 @@ pub fn map_id(s: &str) -> Result<u64, ApiError> {
     parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
 }
 
-/// The HOG extractor of a map with HOG settings.
-pub fn hog_spec(d: DescriptorSettings) -> Result<Option<HogSpec>, ApiError> {
-    match d {
-        DescriptorSettings::Hog { cell_size, resize } => {
-            Ok(Some(HogSpec::new(HogOptions { cell_size, resize })?))
-        }
+/// The extractor of a map's images (references and queries): `None` for precomputed maps.
+///
+/// For a CNN map the model at the recorded path is loaded (from the shared cache when its
+/// content is unchanged) and checked against the identity recorded at creation: a model file
+/// that changed, no longer loads or is gone is 409 `model_mismatch`, never silently used.
+/// This is the one place that turns a map's descriptor settings into an extractor; call it on
+/// the CPU pool (it hashes the model file).
+pub fn map_extractor(map: &MapRecord) -> Result<Option<Box<dyn Extractor>>, ApiError> {
+    match &map.descriptor {
+        DescriptorSettings::Hog { cell_size, resize } => Ok(Some(Box::new(HogSpec::new(
+            HogOptions {
+                cell_size: *cell_size,
+                resize: *resize,
+            },
+        )?))),
         DescriptorSettings::Precomputed { .. } => Ok(None),
+        DescriptorSettings::Cnn(c) => {
+            let path = c.options.model.display();
+            let id = format_id(map.id);
+            let spec = CnnSpec::new(c.options.clone()).map_err(|e| {
+                ApiError::ModelMismatch(format!(
+                    "map `{id}` was created with the model at {path} (sha256 {}), which no \
+                     longer loads: {e}",
+                    c.identity.sha256
+                ))
+            })?;
+            if let Some(diff) = c.identity.mismatch(&spec.identity()) {
+                return Err(ApiError::ModelMismatch(format!(
+                    "map `{id}`: the model at {path} is not the one the map was created with \
+                     ({diff}); restore that file or create a new map"
+                )));
+            }
+            Ok(Some(Box::new(spec)))
+        }
     }
 }
 
-fn validate(req: CreateMapRequest) -> Result<NewMap, ApiError> {
+/// The descriptors of uploaded images for `map` (one row per part, in order): the single
+/// dispatch from a map's descriptor settings to extraction, used by appends and localize.
+/// Precomputed maps are 400 (they take descriptors, not images). Blocking: run on the CPU pool.
+pub fn extract_for_map(
+    map: &MapRecord,
+    parts: &[ImagePart],
+    max_pixels: u64,
+) -> Result<Matrix, ApiError> {
+    let Some(extractor) = map_extractor(map)? else {
+        return Err(ApiError::BadRequest(format!(
+            "map `{}` stores precomputed descriptors; send descriptors, not images",
+            format_id(map.id)
+        )));
+    };
+    upload::extract(extractor.as_ref(), parts, max_pixels, map.dim)
+}
+
+/// Turns the CNN fields of a create request into validated options; the model is `model` or
+/// the server's default.
+fn cnn_options(
+    descriptor: CnnRequest,
+    default_model: Option<&std::path::Path>,
+) -> Result<CnnOptions, ApiError> {
+    if descriptor.identity.is_some() {
+        return Err(ApiError::param(
+            "descriptor.identity",
+            "is recorded by the server at creation; do not send it",
+        ));
+    }
+    let model = match (descriptor.model, default_model) {
+        (Some(m), _) if m.trim().is_empty() => {
+            return Err(ApiError::param("descriptor.model", "must not be empty"))
+        }
+        (Some(m), _) => PathBuf::from(m),
+        (None, Some(d)) => d.to_path_buf(),
+        (None, None) => {
+            return Err(ApiError::param(
+                "descriptor.model",
+                "is required: this server has no default CNN model (--cnn-model / \
+                 SEASONLOC_CNN_MODEL)",
+            ))
+        }
+    };
+    let mut o = CnnOptions::efficientnet_lite0(model);
+    o.layer = descriptor.layer;
+    if let Some([w, h]) = descriptor.input_size {
+        o.input_size = (w, h);
+    }
+    let (w, h) = o.input_size;
+    o.resize = match (descriptor.resize, descriptor.short_side) {
+        (Some(CnnResizeDto::Stretch), Some(_)) => {
+            return Err(ApiError::param(
+                "descriptor.short_side",
+                "applies to `resize: crop` only",
+            ))
+        }
+        (Some(CnnResizeDto::Stretch), None) => CnnResize::Stretch,
+        (_, side) => CnnResize::ShortSideCrop {
+            short_side: side.unwrap_or_else(|| (w.max(h) * 256).div_ceil(224)),
+        },
+    };
+    if let Some(m) = descriptor.mean {
+        o.mean = m;
+    }
+    if let Some(sc) = descriptor.scale {
+        o.scale = sc;
+    }
+    Ok(o)
+}
+
+/// The fields of a `cnn` descriptor in a create request.
+struct CnnRequest {
+    model: Option<String>,
+    layer: String,
+    input_size: Option<[u32; 2]>,
+    resize: Option<CnnResizeDto>,
+    short_side: Option<u32>,
+    mean: Option<[f32; 3]>,
+    scale: Option<[f32; 3]>,
+    identity: Option<super::dto::ModelIdentityDto>,
+}
+
+/// Loads and checks a CNN model for a new map (blocking): every failure is a 400 naming the
+/// descriptor field (missing file, not ONNX, unknown layer with the available ones, input size).
+fn check_cnn(options: CnnOptions) -> Result<CnnSettings, ApiError> {
+    let field = |name: &str| -> &'static str {
+        match name {
+            "cnn_layer" => "descriptor.layer",
+            "cnn_input_size" => "descriptor.input_size",
+            "cnn_short_side" => "descriptor.short_side",
+            "cnn_mean" => "descriptor.mean",
+            "cnn_scale" => "descriptor.scale",
+            _ => "descriptor.model",
+        }
+    };
+    let spec = CnnSpec::new(options.clone()).map_err(|e| match e {
+        crate::Error::InvalidParameter { name, reason } => ApiError::param(field(name), reason),
+        crate::Error::Io { path, source } => ApiError::param(
+            "descriptor.model",
+            format!("cannot read {}: {source}", path.display()),
+        ),
+        other => ApiError::param("descriptor.model", other.to_string()),
+    })?;
+    Ok(CnnSettings {
+        identity: spec.identity(),
+        options,
+    })
+}
+
+/// A create request checked for everything that needs no file: either a finished map, or
+/// CNN options still to be checked against the model (blocking, see [`check_cnn`]).
+enum Validated {
+    Ready(NewMap),
+    Cnn { name: String, options: CnnOptions },
+}
+
+fn validate(
+    req: CreateMapRequest,
+    default_model: Option<&std::path::Path>,
+) -> Result<Validated, ApiError> {
     let name = req.name.trim().to_string();
     if name.is_empty() || name.len() > MAX_NAME_BYTES {
         return Err(ApiError::param(
@@ -75,12 +224,9 @@ fn validate(req: CreateMapRequest) -> Result<NewMap, ApiError> {
                     ));
                 }
             }
-            let settings = DescriptorSettings::Hog {
-                cell_size,
-                resize: resize.map(|[w, h]| (w, h)),
-            };
-            hog_spec(settings)?;
-            settings
+            let resize = resize.map(|[w, h]| (w, h));
+            HogSpec::new(HogOptions { cell_size, resize })?;
+            DescriptorSettings::Hog { cell_size, resize }
         }
         DescriptorDto::Precomputed { dim } => {
             if dim == 0 || dim > MAX_DESCRIPTOR_DIM {
@@ -91,19 +237,49 @@ fn validate(req: CreateMapRequest) -> Result<NewMap, ApiError> {
             }
             DescriptorSettings::Precomputed { dim }
         }
-        DescriptorDto::Cnn { .. } => return Err(ApiError::param(
-            "descriptor.kind",
-            "`cnn` descriptors are not available in this server build; use `hog` or `precomputed`",
-        )),
+        DescriptorDto::Cnn {
+            model,
+            layer,
+            input_size,
+            resize,
+            short_side,
+            mean,
+            scale,
+            identity,
+        } => {
+            let request = CnnRequest {
+                model,
+                layer,
+                input_size,
+                resize,
+                short_side,
+                mean,
+                scale,
+                identity,
+            };
+            let options = cnn_options(request, default_model)?;
+            options.validate().map_err(ApiError::from)?;
+            return Ok(Validated::Cnn { name, options });
+        }
     };
-    Ok(NewMap { name, descriptor })
+    Ok(Validated::Ready(NewMap { name, descriptor }))
 }
 
 async fn create(
     State(state): State<AppState>,
     ApiJson(req): ApiJson<CreateMapRequest>,
 ) -> Result<(StatusCode, Json<MapResponse>), ApiError> {
-    let new = validate(req)?;
+    let validated = validate(req, state.settings.default_cnn_model.as_deref())?;
+    let new = match validated {
+        Validated::Ready(new) => new,
+        Validated::Cnn { name, options } => {
+            let settings = state.pool.run(move || check_cnn(options)).await?;
+            NewMap {
+                name,
+                descriptor: DescriptorSettings::Cnn(Box::new(settings)),
+            }
+        }
+    };
     let store = Arc::clone(&state.store);
     let map = blocking(move || Ok(store.create_map(new)?)).await?;
     tracing::info!(map = %format_id(map.id), name = %map.name, "map created");
@@ -189,13 +365,13 @@ async fn append_images(
 ) -> Result<Json<AppendResponse>, ApiError> {
     let id = map_id(&id)?;
     let map = get_map(&state, id).await?;
-    let Some(spec) = hog_spec(map.descriptor)? else {
+    if let DescriptorSettings::Precomputed { .. } = map.descriptor {
         return Err(ApiError::BadRequest(format!(
             "map `{}` stores precomputed descriptors; post them to /v1/maps/{}/descriptors",
             format_id(id),
             format_id(id)
         )));
-    };
+    }
     let s = &state.settings;
     let batch = upload::read(
         multipart.map_err(upload::rejection)?,
@@ -205,11 +381,11 @@ async fn append_images(
     )
     .await?;
     let metas = metadata(batch.json.as_deref(), batch.images.len())?;
-    let (max_pixels, dim) = (s.max_image_pixels, map.dim);
+    let max_pixels = s.max_image_pixels;
     let started = std::time::Instant::now();
     let descriptors = state
         .pool
-        .run(move || upload::extract(&spec, &batch.images, max_pixels, dim))
+        .run(move || extract_for_map(&map, &batch.images, max_pixels))
         .await?;
     state
         .metrics

@@ -6,7 +6,14 @@
 //! * `flow` — the flow paper's graph on the column-normalised matrix ĉ; confidence = the local
 //!   min-marginal ratio (`confidence` module);
 //! * `best-match` — per query the reference with the highest cosine similarity C; confidence = C;
-//! * `seqslam` — SeqSLAM on the difference matrix 1 - C; confidence = its uniqueness ratio.
+//! * `seqslam` — SeqSLAM on the difference matrix 1 - C; confidence = its uniqueness ratio;
+//! * `cooc` — co-occurrence map single-image recognition; confidence = consistent-group size;
+//! * `cooc-seq` — the co-occurrence paper's sequence matching; confidence = its margin;
+//! * `cooc-flow` — the co-occurrence scores (`s + 1`, then `--normalization`) as the flow
+//!   graph's similarity matrix; confidence as for `flow`.
+//!
+//! The co-occurrence methods use the images (see [`super::cooc`]), not `--descriptor`; the
+//! descriptor (and a CNN model) is only loaded when a descriptor method is scored.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -16,8 +23,11 @@ use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{json, Value};
 
+use super::cooc::{CoocArgs, CoocRun};
 use super::{DescriptorArgs, SolverArgs};
 use crate::baselines::{best_match, seqslam, SeqSlamParams};
+use crate::cooc::sequence::match_sequences;
+use crate::cooc::{flow_similarity, SequenceParams};
 use crate::eval::{
     evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
 };
@@ -35,6 +45,12 @@ pub enum Method {
     BestMatch,
     /// SeqSLAM (Milford & Wyeth 2012, as in OpenSeqSLAM).
     Seqslam,
+    /// Co-occurrence map, single-image recognition (Johns & Yang 2013).
+    Cooc,
+    /// Co-occurrence map with the paper's sequence matching.
+    CoocSeq,
+    /// Co-occurrence scores as the network-flow graph's similarity matrix.
+    CoocFlow,
 }
 
 impl Method {
@@ -43,7 +59,14 @@ impl Method {
             Method::Flow => "flow",
             Method::BestMatch => "best-match",
             Method::Seqslam => "seqslam",
+            Method::Cooc => "cooc",
+            Method::CoocSeq => "cooc-seq",
+            Method::CoocFlow => "cooc-flow",
         }
+    }
+
+    fn is_cooc(self) -> bool {
+        matches!(self, Method::Cooc | Method::CoocSeq | Method::CoocFlow)
     }
 }
 
@@ -113,13 +136,23 @@ pub struct EvalArgs {
     /// Graph and solver parameters (flow method).
     #[command(flatten)]
     pub solver: SolverArgs,
+    /// Co-occurrence parameters (`cooc`, `cooc-seq`, `cooc-flow`).
+    #[command(flatten)]
+    pub cooc: CoocArgs,
+}
+
+/// What the methods are computed from: descriptor similarity matrices and/or a co-occurrence map.
+struct Inputs {
+    /// Raw cosine matrix C and its normalised ĉ (descriptor methods).
+    descriptors: Option<(Matrix, Matrix)>,
+    /// The co-occurrence map and quantised queries (co-occurrence methods).
+    cooc: Option<CoocRun>,
 }
 
 /// Runs `eval` and returns the JSON report.
 pub fn run(args: &EvalArgs) -> Result<Value> {
     let started = Instant::now();
     let solver = args.solver.to_params()?;
-    let extractor = args.descriptor.to_extractor()?;
     let exclusions = Exclusions::parse(&args.exclude)?;
     for out in [&args.predictions, &args.plot, &args.save_similarity]
         .into_iter()
@@ -141,36 +174,73 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         }
     }
 
-    let t = Instant::now();
-    let references = extract("reference", extractor.as_ref(), &reference_files)?;
-    let queries = extract("query", extractor.as_ref(), &query_files)?;
-    let features_seconds = t.elapsed().as_secs_f64();
+    let mut methods = vec![args.method];
+    methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));
+    let needs_descriptors = methods.iter().any(|m| !m.is_cooc());
+    let cooc_params = methods
+        .iter()
+        .any(|m| m.is_cooc())
+        .then(|| args.cooc.to_params())
+        .transpose()?;
+    let sequence = args.cooc.to_sequence()?;
+    if args.save_similarity.is_some() && !needs_descriptors {
+        bail!(
+            "--save-similarity writes the descriptor similarity matrix C; score a descriptor \
+             method (flow, best-match, seqslam) too, e.g. --compare flow"
+        );
+    }
 
     let t = Instant::now();
-    let c = cosine_matrix(&queries, &references)?;
-    let normalization = args.normalization.into();
-    let chat = Normalization::apply(normalization, &c)?;
-    let similarity_seconds = t.elapsed().as_secs_f64();
-    if let Some(path) = &args.save_similarity {
-        super::npy::write_matrix(path, &c)?;
+    let mut shapes = json!({});
+    let mut inputs = Inputs {
+        descriptors: None,
+        cooc: None,
+    };
+    let mut similarity_seconds = 0.0;
+    if needs_descriptors {
+        let extractor = args.descriptor.to_extractor()?;
+        let references = extract("reference", extractor.as_ref(), &reference_files)?;
+        let queries = extract("query", extractor.as_ref(), &query_files)?;
+        shapes = json!({"descriptor": args.descriptor.label(), "descriptor_dim": queries.cols()});
+        let ts = Instant::now();
+        let c = cosine_matrix(&queries, &references)?;
+        let chat = Normalization::apply(args.normalization.into(), &c)?;
+        similarity_seconds = ts.elapsed().as_secs_f64();
+        if let Some(path) = &args.save_similarity {
+            super::npy::write_matrix(path, &c)?;
+        }
+        inputs.descriptors = Some((c, chat));
     }
+    if let Some(params) = &cooc_params {
+        let mut run = CoocRun::build(params, &reference_files, &query_files)?;
+        if methods
+            .iter()
+            .any(|m| matches!(m, Method::CoocSeq | Method::CoocFlow))
+        {
+            run.scores();
+            similarity_seconds += run.score_seconds;
+        }
+        if !needs_descriptors {
+            shapes = json!({"descriptor": "cooc", "vocabulary_words": run.map.vocabulary().len()});
+        }
+        inputs.cooc = Some(run);
+    }
+    let features_seconds = t.elapsed().as_secs_f64() - similarity_seconds;
 
     let options = LocalizeOptions {
         solver,
-        normalization,
+        normalization: args.normalization.into(),
         ..LocalizeOptions::default()
     };
-    let mut methods = vec![args.method];
-    methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));
     let mut scored = Vec::new();
     for method in methods {
         let t = Instant::now();
-        let (predictions, extra) = run_method(method, &c, &chat, &options)?;
+        let (predictions, extra) = run_method(method, &mut inputs, &options, &sequence)?;
         let solve_seconds = t.elapsed().as_secs_f64();
         let metrics = evaluate(
             &predictions,
             &ground_truth,
-            queries.rows(),
+            query_files.len(),
             args.tolerance,
             &exclusions,
         )?;
@@ -194,7 +264,7 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
             "{} vs {} ({})",
             dir_name(&args.query),
             dir_name(&args.reference),
-            args.descriptor.label()
+            shapes["descriptor"].as_str().unwrap_or("cooc")
         );
         plot_pr(path, &title, &curves)?;
     }
@@ -209,10 +279,11 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     let obj = report
         .as_object_mut()
         .context("method report is an object")?;
-    obj.insert("descriptor".into(), json!(args.descriptor.label()));
-    obj.insert("queries".into(), json!(queries.rows()));
-    obj.insert("references".into(), json!(references.rows()));
-    obj.insert("descriptor_dim".into(), json!(queries.cols()));
+    if let Some(shapes) = shapes.as_object() {
+        obj.extend(shapes.clone());
+    }
+    obj.insert("queries".into(), json!(query_files.len()));
+    obj.insert("references".into(), json!(reference_files.len()));
     obj.insert(
         "normalization".into(),
         json!(format!("{:?}", args.normalization).to_lowercase()),
@@ -239,29 +310,66 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
 
 fn run_method(
     method: Method,
-    c: &Matrix,
-    chat: &Matrix,
+    inputs: &mut Inputs,
     options: &LocalizeOptions,
+    sequence: &SequenceParams,
 ) -> Result<(Vec<Prediction>, Value)> {
+    let flow = |chat: &Matrix| -> Result<(Vec<Prediction>, Value)> {
+        let (solution, predictions) = solve_with_confidence(chat, options)?;
+        let extra = json!({
+            "hidden_cost": solution.hidden_cost,
+            "fan_out": options.solver.fan_out,
+            "flows": options.solver.flows,
+            "exact": options.solver.exact,
+            "horizontal": options.solver.horizontal,
+            "hypotheses": solution.hypotheses.len(),
+            "total_cost": solution.total_cost(),
+        });
+        Ok((predictions, extra))
+    };
+    if method.is_cooc() {
+        let run = inputs
+            .cooc
+            .as_mut()
+            .context("the co-occurrence map is built for every cooc method")?;
+        let words = run.map.vocabulary().len();
+        return Ok(match method {
+            Method::Cooc => (
+                run.single(),
+                json!({"words": words, "schedule": "best-first"}),
+            ),
+            Method::CoocSeq => {
+                let p = match_sequences(run.scores(), sequence)?;
+                let extra = json!({
+                    "words": words,
+                    "length": sequence.length,
+                    "max_step": sequence.max_step,
+                    "exclusion": sequence.exclusion,
+                });
+                (p, extra)
+            }
+            _ => {
+                let chat =
+                    Normalization::apply(options.normalization, &flow_similarity(run.scores()))?;
+                let (p, mut extra) = flow(&chat)?;
+                if let Some(obj) = extra.as_object_mut() {
+                    obj.insert("words".into(), json!(words));
+                }
+                (p, extra)
+            }
+        });
+    }
+    let (c, chat) = inputs
+        .descriptors
+        .as_ref()
+        .context("descriptors are extracted for every descriptor method")?;
     Ok(match method {
-        Method::Flow => {
-            let (solution, predictions) = solve_with_confidence(chat, options)?;
-            let extra = json!({
-                "hidden_cost": solution.hidden_cost,
-                "fan_out": options.solver.fan_out,
-                "flows": options.solver.flows,
-                "exact": options.solver.exact,
-                "horizontal": options.solver.horizontal,
-                "hypotheses": solution.hypotheses.len(),
-                "total_cost": solution.total_cost(),
-            });
-            (predictions, extra)
-        }
         Method::BestMatch => (best_match(c), json!({})),
         Method::Seqslam => {
             let params = SeqSlamParams::default();
             (seqslam(c, &params)?, json!({}))
         }
+        _ => flow(chat)?,
     })
 }
 

@@ -4,6 +4,7 @@
 //! [`DescriptorArgs::to_spec`]) before any work starts, so a bad value fails in milliseconds with
 //! a one-line reason. JSON goes to stdout, progress and logs to stderr.
 
+pub mod cooc;
 pub mod eval;
 pub mod npy;
 pub mod solve;
@@ -229,7 +230,7 @@ fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
     }
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
+pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let err = || format!("expected WIDTHxHEIGHT such as 640x480, got `{s}`");
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(err)?;
     let w: u32 = w.trim().parse().map_err(|_| err())?;

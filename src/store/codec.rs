@@ -16,7 +16,10 @@
 //! for trips. Values are a small hand-written binary format starting with a format byte; the
 //! decoder rejects trailing or missing bytes, so corruption is reported rather than misread.
 
-use super::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, StoreError};
+use super::{
+    CnnSettings, DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, StoreError,
+};
+use crate::features::cnn::{CnnOptions, CnnResize, ModelIdentity};
 
 /// Key of the layout version.
 pub const SCHEMA_VERSION_KEY: &[u8] = b"meta/schema_version";
@@ -205,6 +208,69 @@ impl<'a> Reader<'a> {
 
 const KIND_HOG: u8 = 1;
 const KIND_PRECOMPUTED: u8 = 2;
+const KIND_CNN: u8 = 3;
+
+const RESIZE_STRETCH: u8 = 0;
+const RESIZE_CROP: u8 = 1;
+
+fn encode_cnn(w: &mut Writer, c: &CnnSettings) {
+    let o = &c.options;
+    w.str(&o.model.to_string_lossy());
+    w.str(&o.layer);
+    w.u32(o.input_size.0);
+    w.u32(o.input_size.1);
+    match o.resize {
+        CnnResize::Stretch => w.u8(RESIZE_STRETCH),
+        CnnResize::ShortSideCrop { short_side } => {
+            w.u8(RESIZE_CROP);
+            w.u32(short_side);
+        }
+    }
+    for v in o.mean.iter().chain(&o.scale) {
+        w.u32(v.to_bits());
+    }
+    w.str(&c.identity.sha256);
+    w.str(&c.identity.layer);
+    w.str(&c.identity.preprocessing);
+}
+
+fn decode_cnn(r: &mut Reader<'_>) -> Result<CnnSettings, StoreError> {
+    let model = std::path::PathBuf::from(r.str()?);
+    let layer = r.str()?;
+    let input_size = (r.u32()?, r.u32()?);
+    let resize = match r.u8()? {
+        RESIZE_STRETCH => CnnResize::Stretch,
+        RESIZE_CROP => CnnResize::ShortSideCrop {
+            short_side: r.u32()?,
+        },
+        t => return Err(StoreError::corrupt(r.key, format!("bad CNN resize tag {t}"))),
+    };
+    let mut rgb = || -> Result<[f32; 3], StoreError> {
+        Ok([
+            f32::from_bits(r.u32()?),
+            f32::from_bits(r.u32()?),
+            f32::from_bits(r.u32()?),
+        ])
+    };
+    let mean = rgb()?;
+    let scale = rgb()?;
+    let identity = ModelIdentity {
+        sha256: r.str()?,
+        layer: r.str()?,
+        preprocessing: r.str()?,
+    };
+    Ok(CnnSettings {
+        options: CnnOptions {
+            model,
+            layer,
+            input_size,
+            resize,
+            mean,
+            scale,
+        },
+        identity,
+    })
+}
 
 /// Encodes a map record.
 pub fn encode_map(m: &MapRecord) -> Vec<u8> {
@@ -227,6 +293,10 @@ pub fn encode_map(m: &MapRecord) -> Vec<u8> {
         DescriptorSettings::Precomputed { dim } => {
             w.u8(KIND_PRECOMPUTED);
             w.u32(dim);
+        }
+        DescriptorSettings::Cnn(ref c) => {
+            w.u8(KIND_CNN);
+            encode_cnn(&mut w, c);
         }
     }
     match m.dim {
@@ -256,6 +326,7 @@ pub fn decode_map(key: &[u8], value: &[u8]) -> Result<MapRecord, StoreError> {
             DescriptorSettings::Hog { cell_size, resize }
         }
         KIND_PRECOMPUTED => DescriptorSettings::Precomputed { dim: r.u32()? },
+        KIND_CNN => DescriptorSettings::Cnn(Box::new(decode_cnn(&mut r)?)),
         k => {
             return Err(StoreError::corrupt(
                 key,
@@ -370,11 +441,31 @@ mod tests {
                 resize: None,
             },
             DescriptorSettings::Precomputed { dim: 5 },
+            DescriptorSettings::Cnn(Box::new(CnnSettings {
+                options: CnnOptions::efficientnet_lite0("/models/e ✓.onnx"),
+                identity: ModelIdentity {
+                    sha256: "ab".repeat(32),
+                    layer: "block10".into(),
+                    preprocessing: "224x224 RGB".into(),
+                },
+            })),
+            DescriptorSettings::Cnn(Box::new(CnnSettings {
+                options: CnnOptions {
+                    resize: CnnResize::Stretch,
+                    mean: [1.5, -2.0, 0.25],
+                    ..CnnOptions::efficientnet_lite0("m.onnx")
+                },
+                identity: ModelIdentity {
+                    sha256: String::new(),
+                    layer: "pooled".into(),
+                    preprocessing: String::new(),
+                },
+            })),
         ] {
             let m = MapRecord {
                 id: 9,
                 name: "route 1 ✓".into(),
-                descriptor,
+                descriptor: descriptor.clone(),
                 dim: Some(756),
                 image_count: 3,
                 created_ms: 1_700_000_000_000,

@@ -27,7 +27,7 @@ impl Store {
             name: new.name,
             dim: match new.descriptor {
                 DescriptorSettings::Precomputed { dim } => Some(dim),
-                DescriptorSettings::Hog { .. } => None,
+                DescriptorSettings::Hog { .. } | DescriptorSettings::Cnn(_) => None,
             },
             descriptor: new.descriptor,
             image_count: 0,

@@ -32,10 +32,16 @@ pub const MIGRATIONS: &[Migration] = &[
         doc: include_str!("../../migrations/0002_localizations_by_map.md"),
         apply: localizations_by_map,
     },
+    Migration {
+        version: 3,
+        file: "0003_cnn_maps.md",
+        doc: include_str!("../../migrations/0003_cnn_maps.md"),
+        apply: cnn_maps,
+    },
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 2;
+pub const CURRENT_VERSION: u32 = 3;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -97,6 +103,11 @@ fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<(
         let record = codec::decode_localization(&k, &v)?;
         batch.insert(&codec::by_map_key(record.map_id, record.id), &[] as &[u8]);
     }
+    Ok(())
+}
+
+/// Version 3 adds a descriptor kind to map records; every version-2 record is already valid.
+fn cnn_maps(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -174,6 +185,23 @@ mod tests {
         let ids: Vec<u64> = page.items.iter().map(|r| r.id).collect();
         assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
         assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
+        // The upgraded store holds the newer descriptor kinds next to the old maps (layout 3).
+        let cnn = DescriptorSettings::Cnn(Box::new(crate::store::CnnSettings {
+            options: crate::features::cnn::CnnOptions::efficientnet_lite0("m.onnx"),
+            identity: crate::features::cnn::ModelIdentity {
+                sha256: "00".repeat(32),
+                layer: "block10".into(),
+                preprocessing: "224x224".into(),
+            },
+        }));
+        let created = store
+            .create_map(crate::store::NewMap {
+                name: "cnn".into(),
+                descriptor: cnn.clone(),
+            })
+            .unwrap();
+        assert_eq!(store.get_map(created.id).unwrap().descriptor, cnn);
+        assert_eq!(store.get_map(map_id).unwrap().name, "old");
         // Opening again is a no-op: the upgrade does not run twice.
         drop(store);
         let store = Store::open(dir.path()).unwrap();

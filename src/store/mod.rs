@@ -94,7 +94,7 @@ impl StoreError {
 pub type StoreResult<T> = Result<T, StoreError>;
 
 /// How a map's descriptors are computed.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum DescriptorSettings {
     /// HOG of `features::hog` with these options.
     Hog {
@@ -108,6 +108,19 @@ pub enum DescriptorSettings {
         /// Descriptor length.
         dim: u32,
     },
+    /// One layer of an ONNX model (`features::cnn`), with the identity of the model the map
+    /// was created with (layout >= 3).
+    Cnn(Box<CnnSettings>),
+}
+
+/// The CNN descriptor of a map: the settings to rebuild the extractor, and what the model was
+/// when the map was created, so that a changed model file is detected, never silently used.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CnnSettings {
+    /// Model path, layer and preprocessing.
+    pub options: crate::features::cnn::CnnOptions,
+    /// File hash, layer and preprocessing summary at creation.
+    pub identity: crate::features::cnn::ModelIdentity,
 }
 
 /// A stored map.

@@ -334,3 +334,78 @@ fn nordland_flow_beats_the_baselines_with_a_trustworthy_confidence() {
     assert!(ap(&out) > ap(seqslam), "{out}");
     assert!(out["recall_at_99p"].as_f64().unwrap() >= 0.30, "{out}");
 }
+
+#[test]
+fn eval_scores_the_cooccurrence_methods_from_the_images() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 40, 30);
+    let preds = dir.path("p.csv");
+    let out = seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        &route.ground_truth,
+        "--tolerance",
+        "1",
+        "--method",
+        "cooc",
+        "--compare",
+        "cooc-seq,cooc-flow",
+        "--seq-length",
+        "5",
+        "--predictions",
+        preds.to_str().unwrap(),
+    ])
+    .success_json();
+    eprintln!("{out:#}");
+    assert_eq!(out["method"], "cooc");
+    assert_eq!(out["descriptor"], "cooc");
+    assert_eq!(out["queries"], 30);
+    assert_eq!(out["references"], 40);
+    assert_eq!(out["vocabulary_words"], 256);
+    let compared = out["compared"].as_array().unwrap();
+    let names: Vec<&str> = compared.iter().map(|c| c["method"].as_str().unwrap()).collect();
+    assert_eq!(names, vec!["cooc-seq", "cooc-flow"]);
+    assert_eq!(compared[0]["params"]["length"], 5);
+    assert!(compared[1]["params"]["hidden_cost"].as_f64().is_some(), "{out}");
+    for m in std::iter::once(&out).chain(compared) {
+        let ap = m["ap"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&ap), "{m}");
+    }
+    // The generated places are distinctive: the flow graph on co-occurrence scores finds the
+    // route, and single images are mostly right.
+    assert!(compared[1]["ap"].as_f64().unwrap() > 0.8, "{out}");
+    assert!(out["correct"].as_u64().unwrap() >= 15, "{out}");
+    assert!(out["seconds"]["similarity"].as_f64().unwrap() > 0.0, "{out}");
+    let csv = std::fs::read_to_string(&preds).unwrap();
+    assert!(csv.lines().count() > 15, "{csv}");
+}
+
+#[test]
+fn eval_cooc_flags_are_validated_before_any_work() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 4, 3);
+    let base = [
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        &route.ground_truth,
+        "--method",
+        "cooc-seq",
+    ];
+    let with = |extra: &[&str]| {
+        let mut args = base.to_vec();
+        args.extend_from_slice(extra);
+        seasonloc(&args)
+    };
+    with(&["--cooc-branching", "1"]).failure_mentions("vocabulary_branching");
+    with(&["--seq-max-step", "0"]).failure_mentions("max_step");
+    with(&["--save-similarity", dir.path("c.npy").to_str().unwrap()])
+        .failure_mentions("--save-similarity");
+}

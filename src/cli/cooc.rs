@@ -1,0 +1,167 @@
+//! The co-occurrence methods of `seasonloc eval` (`cooc`, `cooc-seq`, `cooc-flow`): their flags,
+//! and the map and scores they are computed from.
+//!
+//! These methods work on the images themselves, not on a global descriptor: the reference
+//! folder is the single mapping drive (image `k` = location `k`), from which the vocabulary and
+//! the location models are learned ([`CoocMap::build`]); the queries are quantised with that
+//! vocabulary. Every flag left unset keeps the library default ([`CoocParams::default`],
+//! [`SequenceParams::default`]), so the CLI never carries a second copy of the defaults.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use clap::Args;
+use image::GrayImage;
+use rayon::prelude::*;
+
+use crate::cooc::{CoocMap, CoocParams, Drive, Schedule, SequenceParams, Word};
+use crate::eval::Prediction;
+use crate::features::load_image_file;
+use crate::{Matrix, Result};
+
+/// Flags of the co-occurrence methods (all optional; unset = the library default).
+#[derive(Debug, Clone, Default, Args)]
+pub struct CoocArgs {
+    /// Co-occurrence: bilinear upsampling before corner detection [default: 2].
+    #[arg(long)]
+    pub cooc_upsample: Option<u32>,
+    /// Co-occurrence: at most this many keypoints per image [default: 80].
+    #[arg(long)]
+    pub cooc_max_keypoints: Option<usize>,
+    /// Co-occurrence: branching factor of the vocabulary tree [default: 16].
+    #[arg(long)]
+    pub cooc_branching: Option<usize>,
+    /// Co-occurrence: depth of the vocabulary tree (words = branching^depth) [default: 2].
+    #[arg(long)]
+    pub cooc_depth: Option<usize>,
+    /// Co-occurrence: spatial grid COLSxROWS [default: 12x8].
+    #[arg(long, value_parser = super::parse_size)]
+    pub cooc_grid: Option<(u32, u32)>,
+    /// Co-occurrence: tolerated grid-offset difference, in cells per axis [default: 1].
+    #[arg(long)]
+    pub cooc_spatial_tolerance: Option<u16>,
+    /// Co-occurrence: seed of the vocabulary's k-means [default: fixed].
+    #[arg(long)]
+    pub cooc_seed: Option<u64>,
+    /// `cooc-seq`: queries per sequence window (ds) [default: 10].
+    #[arg(long)]
+    pub seq_length: Option<usize>,
+    /// `cooc-seq`: largest forward step per query, in locations [default: 3].
+    #[arg(long)]
+    pub seq_max_step: Option<usize>,
+    /// `cooc-seq`: paths ending within this many locations of the best are not runners-up
+    /// [default: 10].
+    #[arg(long)]
+    pub seq_exclusion: Option<usize>,
+}
+
+impl CoocArgs {
+    /// Validated co-occurrence parameters: the library defaults with the given flags applied.
+    pub fn to_params(&self) -> Result<CoocParams> {
+        let mut p = CoocParams::default();
+        if let Some(u) = self.cooc_upsample {
+            p.keypoints.upsample = u;
+        }
+        if let Some(k) = self.cooc_max_keypoints {
+            p.keypoints.max_keypoints = k;
+        }
+        if let Some(b) = self.cooc_branching {
+            p.vocabulary_branching = b;
+        }
+        if let Some(d) = self.cooc_depth {
+            p.vocabulary_depth = d;
+        }
+        if let Some((c, r)) = self.cooc_grid {
+            let cell = |v: u32, name: &str| {
+                u16::try_from(v).map_err(|_| {
+                    crate::Error::param("cooc_grid", format!("{name} {v} is too large"))
+                })
+            };
+            p.grid_cols = cell(c, "columns")?;
+            p.grid_rows = cell(r, "rows")?;
+        }
+        if let Some(t) = self.cooc_spatial_tolerance {
+            p.spatial_tolerance = t;
+        }
+        if let Some(s) = self.cooc_seed {
+            p.seed = s;
+        }
+        p.validate()?;
+        Ok(p)
+    }
+
+    /// Validated sequence-matching parameters (`cooc-seq`).
+    pub fn to_sequence(&self) -> Result<SequenceParams> {
+        let d = SequenceParams::default();
+        let p = SequenceParams {
+            length: self.seq_length.unwrap_or(d.length),
+            max_step: self.seq_max_step.unwrap_or(d.max_step),
+            exclusion: self.seq_exclusion.unwrap_or(d.exclusion),
+        };
+        p.validate()?;
+        Ok(p)
+    }
+}
+
+/// A co-occurrence map of the reference folder and the quantised queries, with the score matrix
+/// computed on first use.
+pub struct CoocRun {
+    /// The map built from the reference images.
+    pub map: CoocMap,
+    /// The visual words of every query, in query order.
+    pub queries: Vec<Vec<Word>>,
+    scores: Option<Matrix>,
+    /// Seconds spent on the score matrix (0 until it is computed).
+    pub score_seconds: f64,
+}
+
+impl CoocRun {
+    /// Loads both folders (in parallel), builds the map from the references and quantises the
+    /// queries.
+    pub fn build(params: &CoocParams, references: &[PathBuf], queries: &[PathBuf]) -> Result<Self> {
+        let references = load_gray(references)?;
+        let map = CoocMap::build(params, &[Drive::sequential(0.0, references)?])?;
+        let queries = map.quantize_all(&load_gray(queries)?)?;
+        Ok(CoocRun {
+            map,
+            queries,
+            scores: None,
+            score_seconds: 0.0,
+        })
+    }
+
+    /// The `Q x L` co-occurrence score matrix (computed once).
+    pub fn scores(&mut self) -> &Matrix {
+        self.scores.get_or_insert_with(|| {
+            let t = Instant::now();
+            let scores = self.map.score_matrix_words(&self.queries);
+            self.score_seconds = t.elapsed().as_secs_f64();
+            scores
+        })
+    }
+
+    /// Single-image recognition (best-first simultaneous matching): the best location per
+    /// query with its consistent-group size as confidence; none for a query sharing no word.
+    pub fn single(&self) -> Vec<Prediction> {
+        self.queries
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, q)| {
+                self.map
+                    .recognize_words(q, Schedule::BestFirst)
+                    .map(|r| Prediction {
+                        query: i,
+                        reference: r.location,
+                        confidence: r.score as f64,
+                    })
+            })
+            .collect()
+    }
+}
+
+fn load_gray(files: &[PathBuf]) -> Result<Vec<GrayImage>> {
+    files
+        .par_iter()
+        .map(|f| Ok(load_image_file(f)?.to_luma8()))
+        .collect()
+}
