@@ -82,6 +82,35 @@ pub enum DescriptorDto {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         identity: Option<ModelIdentityDto>,
     },
+    /// A feature co-occurrence map (`docs/cooc.md`): built from the first batch of reference
+    /// images, further drives added with `POST /v1/maps/{id}/drives`. Unset fields keep the
+    /// library defaults; answers set every field.
+    Cooc {
+        /// Branching factor of the vocabulary tree (default 16).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        vocabulary_branching: Option<usize>,
+        /// Depth of the vocabulary tree (default 2: 256 words).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        vocabulary_depth: Option<usize>,
+        /// Upsampling before corner detection (default 2).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        upsample: Option<u32>,
+        /// Keypoints kept per image (default 80).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        max_keypoints: Option<usize>,
+        /// Spatial grid `[columns, rows]` (default `[12, 8]`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        grid: Option<[u16; 2]>,
+        /// Tolerated grid-offset difference in cells (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        spatial_tolerance: Option<u16>,
+        /// Merge drives adjacent in time (default true).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        merge_adjacent_drives: Option<bool>,
+        /// Seed of the vocabulary's k-means.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        seed: Option<u64>,
+    },
     /// Descriptors computed by the client, of length `dim`.
     Precomputed {
         /// Descriptor length.
@@ -128,6 +157,16 @@ impl From<DescriptorSettings> for DescriptorDto {
                 resize: resize.map(|(w, h)| [w, h]),
             },
             DescriptorSettings::Precomputed { dim } => DescriptorDto::Precomputed { dim },
+            DescriptorSettings::Cooc(p) => DescriptorDto::Cooc {
+                vocabulary_branching: Some(p.vocabulary_branching),
+                vocabulary_depth: Some(p.vocabulary_depth),
+                upsample: Some(p.keypoints.upsample),
+                max_keypoints: Some(p.keypoints.max_keypoints),
+                grid: Some([p.grid_cols, p.grid_rows]),
+                spatial_tolerance: Some(p.spatial_tolerance),
+                merge_adjacent_drives: Some(p.merge_adjacent_drives),
+                seed: Some(p.seed),
+            },
             DescriptorSettings::Cnn(c) => {
                 let o = c.options;
                 let (resize, short_side) = match o.resize {
@@ -292,6 +331,8 @@ pub struct LocalizeParams {
     pub normalize: Option<bool>,
     /// Stop adding flows once a path's hidden fraction exceeds this (default none).
     pub stop_hidden_fraction: Option<f64>,
+    /// `cooc` maps only: `flow` (default), `cooc` or `cooc-seq`.
+    pub method: Option<super::cooc::CoocMethod>,
 }
 
 impl LocalizeParams {
@@ -376,6 +417,9 @@ pub struct ParamsUsed {
     pub normalize: bool,
     /// Stopping rule.
     pub stop_hidden_fraction: Option<f64>,
+    /// The method of a `cooc` map (absent for other maps).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<super::cooc::CoocMethod>,
 }
 
 impl ParamsUsed {
@@ -393,6 +437,7 @@ impl ParamsUsed {
             horizontal: o.solver.horizontal,
             normalize: o.normalization != Normalization::None,
             stop_hidden_fraction: o.solver.stop_hidden_fraction,
+            method: None,
         }
     }
 }

@@ -57,6 +57,13 @@ pub enum ApiError {
     /// created with (changed, truncated or removed).
     #[error("{0}")]
     ModelMismatch(String),
+    /// 409 `map_kind`: the request does not apply to this kind of map (e.g. a second batch of
+    /// reference images or a trip on a `cooc` map, drives on a non-`cooc` map).
+    #[error("{0}")]
+    MapKind(String),
+    /// 409 `map_changed`: a concurrent request changed the map first; retrying is safe.
+    #[error("{0}")]
+    MapChanged(String),
     /// 409 `map_full`.
     #[error("map `{0}` cannot hold more images")]
     MapFull(String),
@@ -132,6 +139,8 @@ impl ApiError {
             ApiError::MapEmpty(_) => (S::CONFLICT, "map_empty", false),
             ApiError::MapFull(_) => (S::CONFLICT, "map_full", false),
             ApiError::ModelMismatch(_) => (S::CONFLICT, "model_mismatch", false),
+            ApiError::MapKind(_) => (S::CONFLICT, "map_kind", false),
+            ApiError::MapChanged(_) => (S::CONFLICT, "map_changed", false),
             ApiError::PayloadTooLarge(_) => (S::PAYLOAD_TOO_LARGE, "payload_too_large", false),
             ApiError::ImageTooLarge { .. } => (S::PAYLOAD_TOO_LARGE, "image_too_large", false),
             ApiError::UnsupportedMediaType(_) => {
@@ -206,6 +215,7 @@ impl From<StoreError> for ApiError {
             }
             StoreError::DimensionMismatch { .. } => ApiError::DescriptorLength(e.to_string()),
             StoreError::MapFull(id) => ApiError::MapFull(super::dto::format_id(id)),
+            StoreError::Conflict(_) => ApiError::MapChanged(e.to_string()),
             StoreError::Open { .. }
             | StoreError::Sled(_)
             | StoreError::Corrupt { .. }

@@ -23,10 +23,12 @@ use super::dto::{
     LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
 };
 use super::error::ApiError;
+use super::cooc::CoocMethod;
 use super::maps::{extract_for_map, map_id};
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};
 use crate::localize::{localize, LocalizeOptions};
+use crate::store::DescriptorSettings;
 use crate::Matrix;
 
 /// The routes of this resource.
@@ -47,7 +49,9 @@ enum Queries {
     Descriptors(Matrix),
 }
 
-async fn parse(state: &AppState, req: Request) -> Result<(Queries, LocalizeOptions), ApiError> {
+type Parsed = (Queries, LocalizeOptions, Option<CoocMethod>);
+
+async fn parse(state: &AppState, req: Request) -> Result<Parsed, ApiError> {
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -60,9 +64,10 @@ async fn parse(state: &AppState, req: Request) -> Result<(Queries, LocalizeOptio
             .await
             .map_err(|r| super::extract::bytes_rejection(r, s.max_body_bytes))?;
         let body: LocalizeDescriptorsRequest = super::extract::parse_json(&bytes, None)?;
+        let method = body.params.method;
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;
-        Ok((Queries::Descriptors(m), options))
+        Ok((Queries::Descriptors(m), options, method))
     } else {
         let multipart = Multipart::from_request(req, state)
             .await
@@ -72,7 +77,8 @@ async fn parse(state: &AppState, req: Request) -> Result<(Queries, LocalizeOptio
             Some(json) => LocalizeParams::from_json(json)?,
             None => LocalizeParams::default(),
         };
-        Ok((Queries::Images(batch.images), params.into_options()?))
+        let method = params.method;
+        Ok((Queries::Images(batch.images), params.into_options()?, method))
     }
 }
 
@@ -82,7 +88,7 @@ async fn run(
     req: Request,
 ) -> Result<Response, ApiError> {
     let map = map_id(&id)?;
-    let (queries, options) = parse(&state, req).await?;
+    let (queries, options, method) = parse(&state, req).await?;
     let Ok(_permit) = Arc::clone(&state.localize_slots).try_acquire_owned() else {
         state.metrics.add_queue_rejection();
         return Err(ApiError::QueueFull);
@@ -90,9 +96,44 @@ async fn run(
     let store = Arc::clone(&state.store);
     let max_pixels = state.settings.max_image_pixels;
     let job_options = options.clone();
-    let (result, timings, query_count, reference_count) = state
+    let (result, timings, query_count, reference_count, used_method) = state
         .pool
         .run(move || {
+            let record = store.get_map(map)?;
+            if let DescriptorSettings::Cooc(_) = record.descriptor {
+                let Queries::Images(parts) = queries else {
+                    return Err(ApiError::BadRequest(format!(
+                        "co-occurrence map `{}` localizes images (multipart), not descriptors",
+                        format_id(map)
+                    )));
+                };
+                let method = method.unwrap_or_default();
+                let (result, load, features) = super::cooc::localize(
+                    &store,
+                    &record,
+                    &parts,
+                    max_pixels,
+                    method,
+                    &job_options,
+                )?;
+                let timings = TimingsDto::new(load, features, result.timings);
+                return Ok((
+                    result,
+                    timings,
+                    parts.len(),
+                    record.image_count as usize,
+                    Some(method),
+                ));
+            }
+            if let Some(m) = method {
+                return Err(ApiError::param(
+                    "method",
+                    format!(
+                        "{m:?} applies to co-occurrence maps only; map `{}` uses the flow graph",
+                        format_id(map)
+                    ),
+                ));
+            }
             let started = Instant::now();
             let (record, references) = store.references(map)?;
             if record.image_count == 0 {
@@ -117,7 +158,7 @@ async fn run(
             let features = started.elapsed().as_secs_f64();
             let result = localize(&queries, &references, &job_options)?;
             let timings = TimingsDto::new(load, features, result.timings);
-            Ok((result, timings, queries.rows(), references.rows()))
+            Ok((result, timings, queries.rows(), references.rows(), None))
         })
         .await?;
     let m = &state.metrics;
@@ -136,7 +177,10 @@ async fn run(
             created_at_ms: crate::store::now_ms(),
             query_count,
             reference_count,
-            params: ParamsUsed::new(&options, result.solution.hidden_cost),
+            params: ParamsUsed {
+                method: used_method,
+                ..ParamsUsed::new(&options, result.solution.hidden_cost)
+            },
             total_cost: result.solution.total_cost(),
             hypotheses: result
                 .solution

@@ -24,6 +24,7 @@ use super::error::ApiError;
 use super::extract::ApiJson;
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};
+use crate::cooc::CoocParams;
 use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 use crate::features::hog::{HogOptions, HogSpec};
 use crate::features::Extractor;
@@ -78,6 +79,12 @@ pub fn map_extractor(map: &MapRecord) -> Result<Option<Box<dyn Extractor>>, ApiE
             }
             Ok(Some(Box::new(spec)))
         }
+        DescriptorSettings::Cooc(_) => Err(ApiError::MapKind(format!(
+            "map `{}` is a co-occurrence map: it has no global descriptors (localize it with \
+             POST /v1/maps/{}/localize, add drives with /drives)",
+            format_id(map.id),
+            format_id(map.id)
+        ))),
     }
 }
 
@@ -227,6 +234,36 @@ fn validate(
             let resize = resize.map(|[w, h]| (w, h));
             HogSpec::new(HogOptions { cell_size, resize })?;
             DescriptorSettings::Hog { cell_size, resize }
+        }
+        DescriptorDto::Cooc {
+            vocabulary_branching,
+            vocabulary_depth,
+            upsample,
+            max_keypoints,
+            grid,
+            spatial_tolerance,
+            merge_adjacent_drives,
+            seed,
+        } => {
+            let mut p = CoocParams::default();
+            p.vocabulary_branching = vocabulary_branching.unwrap_or(p.vocabulary_branching);
+            p.vocabulary_depth = vocabulary_depth.unwrap_or(p.vocabulary_depth);
+            p.keypoints.upsample = upsample.unwrap_or(p.keypoints.upsample);
+            p.keypoints.max_keypoints = max_keypoints.unwrap_or(p.keypoints.max_keypoints);
+            if let Some([c, r]) = grid {
+                p.grid_cols = c;
+                p.grid_rows = r;
+            }
+            p.spatial_tolerance = spatial_tolerance.unwrap_or(p.spatial_tolerance);
+            p.merge_adjacent_drives = merge_adjacent_drives.unwrap_or(p.merge_adjacent_drives);
+            p.seed = seed.unwrap_or(p.seed);
+            p.validate().map_err(|e| match e {
+                crate::Error::InvalidParameter { name, reason } => {
+                    ApiError::param(format!("descriptor.{name}"), reason)
+                }
+                other => other.into(),
+            })?;
+            DescriptorSettings::Cooc(Box::new(p))
         }
         DescriptorDto::Precomputed { dim } => {
             if dim == 0 || dim > MAX_DESCRIPTOR_DIM {
@@ -382,6 +419,25 @@ async fn append_images(
     .await?;
     let metas = metadata(batch.json.as_deref(), batch.images.len())?;
     let max_pixels = s.max_image_pixels;
+    if let DescriptorSettings::Cooc(_) = map.descriptor {
+        let store = Arc::clone(&state.store);
+        let started = std::time::Instant::now();
+        let range = state
+            .pool
+            .run(move || {
+                super::cooc::build_from_images(&store, &map, &batch.images, &metas, max_pixels)
+            })
+            .await?;
+        state
+            .metrics
+            .observe_stage("features", started.elapsed().as_secs_f64());
+        state.metrics.add_images_ingested(range.len() as u64);
+        tracing::info!(map = %format_id(id), images = range.len(), "co-occurrence map built");
+        return Ok(Json(AppendResponse {
+            indices: range.clone().collect(),
+            image_count: range.end,
+        }));
+    }
     let started = std::time::Instant::now();
     let descriptors = state
         .pool
@@ -411,6 +467,13 @@ async fn append_descriptors(
     let body =
         body.map_err(|r| super::extract::bytes_rejection(r, state.settings.max_body_bytes))?;
     let map = get_map(&state, id).await?;
+    if let DescriptorSettings::Cooc(_) = map.descriptor {
+        return Err(ApiError::MapKind(format!(
+            "co-occurrence map `{}` is built from images; post them to /v1/maps/{}/images",
+            format_id(id),
+            format_id(id)
+        )));
+    }
     let max = state.settings.max_batch_images;
     let content_type = headers
         .get(header::CONTENT_TYPE)

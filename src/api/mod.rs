@@ -6,6 +6,7 @@
 //! to wire types ([`dto`]) at the edge. One file per resource: [`maps`](self) (maps and their
 //! reference images), `localize` (localizations), `ops` (health, metrics, OpenAPI).
 
+mod cooc;
 pub mod dto;
 pub mod error;
 pub mod extract;

@@ -22,7 +22,7 @@ use tracing::Level;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{localize, maps, metrics, ops};
+use super::{cooc, localize, maps, metrics, ops};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -33,6 +33,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("delete", "/v1/maps/{id}"),
     ("post", "/v1/maps/{id}/images"),
     ("post", "/v1/maps/{id}/descriptors"),
+    ("post", "/v1/maps/{id}/drives"),
     ("post", "/v1/maps/{id}/localize"),
     ("get", "/v1/localizations"),
     ("get", "/v1/localizations/{id}"),
@@ -82,6 +83,7 @@ pub fn app(state: AppState) -> Router {
     let max_body = s.max_body_bytes;
     Router::new()
         .merge(maps::router())
+        .merge(cooc::router())
         .merge(localize::router())
         .merge(ops::router())
         .fallback(|req: Request| async move {

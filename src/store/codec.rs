@@ -10,6 +10,7 @@
 //! | `I` + map id (`u64` BE) + index (`u32` BE) | [`ImageRecord`] (descriptor as raw LE `f32`) |
 //! | `L` + localization id (`u64` BE) | [`LocalizationRecord`] |
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
+//! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
 //!
 //! Big-endian integers make sled's lexicographic order the numeric order, so a map's images
 //! iterate in route order and localizations in creation order. Prefixes `T`/`F` are reserved
@@ -19,6 +20,8 @@
 use super::{
     CnnSettings, DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, StoreError,
 };
+use crate::cooc::keypoints::KeypointParams;
+use crate::cooc::CoocParams;
 use crate::features::cnn::{CnnOptions, CnnResize, ModelIdentity};
 
 /// Key of the layout version.
@@ -31,6 +34,15 @@ pub const IMAGE_PREFIX: u8 = b'I';
 pub const LOCALIZATION_PREFIX: u8 = b'L';
 /// Prefix of the by-map localization index.
 pub const LOCALIZATION_BY_MAP_PREFIX: u8 = b'l';
+/// Prefix of encoded co-occurrence maps (layout >= 3).
+pub const COOC_PREFIX: u8 = b'C';
+
+/// `C` + map id: the encoded `CoocMap` of a `cooc` map.
+pub fn cooc_key(id: u64) -> [u8; 9] {
+    let mut k = [COOC_PREFIX; 9];
+    k[1..].copy_from_slice(&id.to_be_bytes());
+    k
+}
 
 /// `M` + id.
 pub fn map_key(id: u64) -> [u8; 9] {
@@ -209,6 +221,57 @@ impl<'a> Reader<'a> {
 const KIND_HOG: u8 = 1;
 const KIND_PRECOMPUTED: u8 = 2;
 const KIND_CNN: u8 = 3;
+const KIND_COOC: u8 = 4;
+
+fn encode_cooc(w: &mut Writer, p: &CoocParams) {
+    let k = &p.keypoints;
+    w.u32(k.upsample);
+    w.u64(k.max_keypoints as u64);
+    w.u32(k.harris_k.to_bits());
+    w.u32(k.relative_threshold.to_bits());
+    w.u32(k.min_response.to_bits());
+    w.u32(k.nms_radius);
+    w.u32(k.cell_size);
+    w.u64(p.vocabulary_branching as u64);
+    w.u64(p.vocabulary_depth as u64);
+    w.u64(p.kmeans_iterations as u64);
+    w.u64(p.max_training_descriptors as u64);
+    w.u32(u32::from(p.grid_cols));
+    w.u32(u32::from(p.grid_rows));
+    w.u32(u32::from(p.spatial_tolerance));
+    w.u8(u8::from(p.merge_adjacent_drives));
+    w.u64(p.seed);
+}
+
+fn decode_cooc(r: &mut Reader<'_>) -> Result<CoocParams, StoreError> {
+    let key = r.key;
+    let usize_of = |v: u64| {
+        usize::try_from(v).map_err(|_| StoreError::corrupt(key, "count too large"))
+    };
+    let u16_of =
+        |v: u32| u16::try_from(v).map_err(|_| StoreError::corrupt(key, "grid value too large"));
+    let keypoints = KeypointParams {
+        upsample: r.u32()?,
+        max_keypoints: usize_of(r.u64()?)?,
+        harris_k: f32::from_bits(r.u32()?),
+        relative_threshold: f32::from_bits(r.u32()?),
+        min_response: f32::from_bits(r.u32()?),
+        nms_radius: r.u32()?,
+        cell_size: r.u32()?,
+    };
+    Ok(CoocParams {
+        keypoints,
+        vocabulary_branching: usize_of(r.u64()?)?,
+        vocabulary_depth: usize_of(r.u64()?)?,
+        kmeans_iterations: usize_of(r.u64()?)?,
+        max_training_descriptors: usize_of(r.u64()?)?,
+        grid_cols: u16_of(r.u32()?)?,
+        grid_rows: u16_of(r.u32()?)?,
+        spatial_tolerance: u16_of(r.u32()?)?,
+        merge_adjacent_drives: r.u8()? != 0,
+        seed: r.u64()?,
+    })
+}
 
 const RESIZE_STRETCH: u8 = 0;
 const RESIZE_CROP: u8 = 1;
@@ -298,6 +361,10 @@ pub fn encode_map(m: &MapRecord) -> Vec<u8> {
             w.u8(KIND_CNN);
             encode_cnn(&mut w, c);
         }
+        DescriptorSettings::Cooc(ref p) => {
+            w.u8(KIND_COOC);
+            encode_cooc(&mut w, p);
+        }
     }
     match m.dim {
         None => w.u8(0),
@@ -327,6 +394,7 @@ pub fn decode_map(key: &[u8], value: &[u8]) -> Result<MapRecord, StoreError> {
         }
         KIND_PRECOMPUTED => DescriptorSettings::Precomputed { dim: r.u32()? },
         KIND_CNN => DescriptorSettings::Cnn(Box::new(decode_cnn(&mut r)?)),
+        KIND_COOC => DescriptorSettings::Cooc(Box::new(decode_cooc(&mut r)?)),
         k => {
             return Err(StoreError::corrupt(
                 key,
@@ -460,6 +528,14 @@ mod tests {
                     layer: "pooled".into(),
                     preprocessing: String::new(),
                 },
+            })),
+            DescriptorSettings::Cooc(Box::default()),
+            DescriptorSettings::Cooc(Box::new(CoocParams {
+                vocabulary_branching: 7,
+                grid_cols: 6,
+                merge_adjacent_drives: false,
+                seed: u64::MAX,
+                ..CoocParams::default()
             })),
         ] {
             let m = MapRecord {

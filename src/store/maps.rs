@@ -27,7 +27,9 @@ impl Store {
             name: new.name,
             dim: match new.descriptor {
                 DescriptorSettings::Precomputed { dim } => Some(dim),
-                DescriptorSettings::Hog { .. } | DescriptorSettings::Cnn(_) => None,
+                DescriptorSettings::Hog { .. }
+                | DescriptorSettings::Cnn(_)
+                | DescriptorSettings::Cooc(_) => None,
             },
             descriptor: new.descriptor,
             image_count: 0,
@@ -65,6 +67,7 @@ impl Store {
         self.get_map(id)?;
         let mut batch = sled::Batch::default();
         batch.remove(&codec::map_key(id));
+        batch.remove(&codec::cooc_key(id));
         for kv in self.db.scan_prefix(codec::images_prefix(id)) {
             batch.remove(kv?.0);
         }

@@ -16,6 +16,7 @@
 
 pub mod codec;
 mod localizations;
+mod cooc;
 mod maps;
 pub mod migrate;
 
@@ -76,6 +77,9 @@ pub enum StoreError {
         /// The batch's descriptor length.
         got: usize,
     },
+    /// A co-occurrence map changed between reading and writing it (a concurrent write).
+    #[error("map {0:016x} was changed by another request; retry")]
+    Conflict(u64),
     /// A map cannot grow further (more than `u32::MAX` images).
     #[error("map {0:016x} is full")]
     MapFull(u64),
@@ -111,6 +115,9 @@ pub enum DescriptorSettings {
     /// One layer of an ONNX model (`features::cnn`), with the identity of the model the map
     /// was created with (layout >= 3).
     Cnn(Box<CnnSettings>),
+    /// A feature co-occurrence map (`cooc`) with these parameters (layout >= 3). Its images
+    /// have no descriptor rows; the encoded `CoocMap` is stored under its own key.
+    Cooc(Box<crate::cooc::CoocParams>),
 }
 
 /// The CNN descriptor of a map: the settings to rebuild the extractor, and what the model was

@@ -3,6 +3,8 @@
 //! Dockerfile's runtime assumptions).
 
 mod common;
+mod cnn;
+mod cooc;
 mod docker;
 mod durability;
 mod errors;

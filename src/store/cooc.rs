@@ -1,0 +1,86 @@
+//! Storage of `cooc` maps: the encoded `CoocMap` (vocabulary, drives, quantised features) under
+//! `C` + map id, written together with the map record (and the metadata records of new
+//! reference images) in one atomic, flushed batch.
+//!
+//! The store treats the encoding as opaque bytes. Writers read the current bytes, compute the
+//! new map outside the write lock (seconds of CPU), and write back only if the stored bytes are
+//! still the ones they started from ([`StoreError::Conflict`] otherwise), so two concurrent
+//! drives never silently lose one another.
+
+use std::ops::Range;
+
+use super::{codec, ImageMeta, Store, StoreError, StoreResult};
+
+impl Store {
+    /// The encoded co-occurrence map of `map`, `None` before its first images.
+    pub fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.get_map(map)?;
+        Ok(self.db.get(codec::cooc_key(map))?.map(|v| v.to_vec()))
+    }
+
+    /// Replaces the encoded co-occurrence map of `map` by `encoded` if the stored one still
+    /// equals `previous` (`None` = none yet), and appends one (descriptor-less) image record per
+    /// entry of `new_images`; one atomic, flushed batch. Returns the indices of the new images.
+    pub fn put_cooc_map(
+        &self,
+        map: u64,
+        previous: Option<&[u8]>,
+        encoded: &[u8],
+        new_images: &[ImageMeta],
+    ) -> StoreResult<Range<u32>> {
+        let _guard = self.lock();
+        let mut record = self.get_map(map)?;
+        let current = self.db.get(codec::cooc_key(map))?;
+        if current.as_deref() != previous {
+            return Err(StoreError::Conflict(map));
+        }
+        let start = record.image_count;
+        let end = u32::try_from(new_images.len())
+            .ok()
+            .and_then(|n| start.checked_add(n))
+            .ok_or(StoreError::MapFull(map))?;
+        let mut batch = sled::Batch::default();
+        for (k, meta) in new_images.iter().enumerate() {
+            let index = start + k as u32;
+            batch.insert(&codec::image_key(map, index), codec::encode_image(&[], meta));
+        }
+        record.image_count = end;
+        batch.insert(&codec::map_key(map), codec::encode_map(&record));
+        batch.insert(&codec::cooc_key(map), encoded);
+        self.db.apply_batch(batch)?;
+        self.db.flush()?;
+        Ok(start..end)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::store::{DescriptorSettings, ImageMeta, NewMap, Store, StoreError};
+
+    #[test]
+    fn cooc_maps_are_replaced_only_from_the_version_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let m = store
+            .create_map(NewMap {
+                name: "c".into(),
+                descriptor: DescriptorSettings::Cooc(Box::default()),
+            })
+            .unwrap();
+        assert_eq!(store.cooc_map(m.id).unwrap(), None);
+        let metas = vec![ImageMeta::default(); 3];
+        assert_eq!(store.put_cooc_map(m.id, None, b"v1", &metas).unwrap(), 0..3);
+        // A writer that started from "no map" lost the race: nothing is written.
+        assert!(matches!(
+            store.put_cooc_map(m.id, None, b"v1'", &[]),
+            Err(StoreError::Conflict(_))
+        ));
+        assert_eq!(store.put_cooc_map(m.id, Some(b"v1"), b"v2", &[]).unwrap(), 3..3);
+        drop(store);
+        let store = Store::open(dir.path()).unwrap();
+        assert_eq!(store.cooc_map(m.id).unwrap().as_deref(), Some(&b"v2"[..]));
+        assert_eq!(store.get_map(m.id).unwrap().image_count, 3);
+        store.delete_map(m.id).unwrap();
+        assert!(store.cooc_map(m.id).is_err());
+    }
+}

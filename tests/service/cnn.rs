@@ -1,0 +1,271 @@
+//! CNN maps over HTTP: creation records the model's identity, append and localize equal the
+//! library on the same images, every creation error is a precise 400, and a model file changed
+//! after creation is 409 `model_mismatch` that stores nothing. Needs the shipped model
+//! (`../shared/models`); each test prints a message and passes when it is absent.
+
+use std::path::{Path, PathBuf};
+
+use serde_json::{json, Value};
+
+use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use seasonloc::features::{decode_image, extract_batch};
+use seasonloc::localize::{localize, LocalizeOptions};
+
+use crate::common::{Route, Server};
+use crate::http::{Client, Part};
+use crate::spec::check;
+
+const MODEL: &str = "models/efficientnet-lite0-224.onnx";
+
+/// The shipped model beside the repository (or a worktree), if present.
+fn shipped_model() -> Option<PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let found = ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join(MODEL))
+        .find(|p| p.is_file());
+    if found.is_none() {
+        eprintln!(
+            "SKIPPED: {} not found (CNN service tests need the shipped model)",
+            root.join("../shared").join(MODEL).display()
+        );
+    }
+    found
+}
+
+/// A private copy of the model in a temporary folder (the tests overwrite it).
+fn model_copy() -> Option<(tempfile::TempDir, PathBuf)> {
+    let model = shipped_model()?;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("model.onnx");
+    std::fs::copy(&model, &path).unwrap();
+    Some((dir, path))
+}
+
+fn create(c: &Client, descriptor: Value) -> crate::http::Response {
+    let r = c.post_json("/v1/maps", &json!({"name": "cnn", "descriptor": descriptor}));
+    check("post", "/v1/maps", &r);
+    r
+}
+
+fn images(c: &Client, path: &str, pngs: &[Vec<u8>], params: Option<Value>) -> crate::http::Response {
+    let mut parts: Vec<Part> = pngs
+        .iter()
+        .enumerate()
+        .map(|(i, b)| Part::image(&format!("f{i}.png"), b.clone()))
+        .collect();
+    if let Some(p) = params {
+        parts.push(Part::json("params", &p));
+    }
+    c.post_multipart(path, &parts)
+}
+
+#[test]
+fn cnn_map_equals_the_library_and_records_the_model_identity() {
+    let Some((_dir, model)) = model_copy() else { return };
+    let server = Server::start();
+    let c = &server.client;
+    let r = create(
+        c,
+        json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch"}),
+    );
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let map = r.json();
+    let id = map["id"].as_str().unwrap().to_string();
+    let d = &map["descriptor"];
+    assert_eq!(d["kind"], "cnn");
+    assert_eq!(d["layer"], "block10");
+    assert_eq!(d["input_size"], json!([224, 224]));
+    assert_eq!(d["resize"], "stretch");
+    assert_eq!(d["mean"], json!([127.0, 127.0, 127.0]));
+    let options = CnnOptions {
+        resize: CnnResize::Stretch,
+        ..CnnOptions::efficientnet_lite0(&model)
+    };
+    let spec = CnnSpec::new(options).unwrap();
+    let identity = spec.identity();
+    assert_eq!(d["identity"]["sha256"], identity.sha256.as_str());
+    assert_eq!(d["identity"]["layer"], "block10");
+    assert_eq!(d["identity"]["preprocessing"], identity.preprocessing.as_str());
+
+    let route = Route::new(16, 3);
+    let refs: Vec<Vec<u8>> = (0..16).map(|i| route.reference_png(i)).collect();
+    let queries: Vec<Vec<u8>> = (4..12).map(|i| route.query_png(i)).collect();
+    for (a, b) in [(0, 10), (10, 16)] {
+        let r = images(c, &format!("/v1/maps/{id}/images"), &refs[a..b], None);
+        check("post", "/v1/maps/{id}/images", &r);
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    }
+    let got = c.get(&format!("/v1/maps/{id}")).json();
+    assert_eq!(got["image_count"], 16);
+    assert_eq!(got["descriptor_dim"], 21952);
+    assert_eq!(got["descriptor"], map["descriptor"]);
+
+    let params =
+        json!({"fan_out": 4, "hidden_cost": 1.5, "flows": 1, "exact": false, "horizontal": true});
+    let r = images(c, &format!("/v1/maps/{id}/localize"), &queries, Some(params));
+    check("post", "/v1/maps/{id}/localize", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let http = r.json();
+
+    let decode = |set: &[Vec<u8>]| {
+        let imgs: Vec<_> = set
+            .iter()
+            .enumerate()
+            .map(|(i, b)| decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
+            .collect();
+        extract_batch(&spec, &imgs).unwrap()
+    };
+    let options = LocalizeOptions {
+        solver: seasonloc::solver::SolverParams {
+            fan_out: 4,
+            hidden_cost: seasonloc::solver::HiddenCost::Fixed(1.5),
+            flows: 1,
+            exact: false,
+            horizontal: true,
+            stop_hidden_fraction: None,
+        },
+        normalization: seasonloc::similarity::Normalization::default(),
+        ..Default::default()
+    };
+    let lib = localize(&decode(&queries), &decode(&refs), &options).unwrap();
+    let preds = http["predictions"].as_array().unwrap();
+    assert_eq!(preds.len(), lib.predictions.len());
+    for (h, l) in preds.iter().zip(&lib.predictions) {
+        assert_eq!(h["query"].as_u64().unwrap() as usize, l.query);
+        assert_eq!(h["ref"].as_u64().unwrap() as usize, l.reference);
+        assert_eq!(h["confidence"].as_f64().unwrap(), l.confidence);
+    }
+    assert_eq!(http["total_cost"].as_f64().unwrap(), lib.solution.total_cost());
+}
+
+#[test]
+fn cnn_map_creation_errors_are_precise_400s() {
+    let Some((dir, model)) = model_copy() else { return };
+    let server = Server::start();
+    let c = &server.client;
+    let expect = |descriptor: Value, field: &str, needle: &str| {
+        let r = create(c, descriptor.clone());
+        assert_eq!(r.status, 400, "{descriptor}: {}", String::from_utf8_lossy(&r.body));
+        assert_eq!(r.code(), "invalid_parameter", "{descriptor}");
+        let m = r.message();
+        assert!(m.contains(field), "{descriptor}: `{field}` not in {m}");
+        assert!(m.contains(needle), "{descriptor}: `{needle}` not in {m}");
+    };
+    let missing = dir.path().join("absent.onnx");
+    expect(
+        json!({"kind": "cnn", "model": missing, "layer": "block10"}),
+        "descriptor.model",
+        "absent.onnx",
+    );
+    let garbage = dir.path().join("garbage.onnx");
+    std::fs::write(&garbage, b"this is not a protobuf").unwrap();
+    expect(
+        json!({"kind": "cnn", "model": garbage, "layer": "block10"}),
+        "descriptor.model",
+        "garbage.onnx",
+    );
+    // The unknown layer's message lists the model's outputs.
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block99"}),
+        "descriptor.layer",
+        "pooled",
+    );
+    // The graph's padding is fixed for 224x224.
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block10", "input_size": [320, 240]}),
+        "descriptor.input_size",
+        "320x240",
+    );
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block10", "input_size": [0, 224]}),
+        "descriptor.input_size",
+        "0x224",
+    );
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block10", "scale": [1, 0, 1]}),
+        "descriptor.scale",
+        "non-zero",
+    );
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch", "short_side": 300}),
+        "descriptor.short_side",
+        "crop",
+    );
+    // No model and no server default.
+    expect(json!({"kind": "cnn", "layer": "block10"}), "descriptor.model", "--cnn-model");
+    // The identity is the server's to record.
+    expect(
+        json!({"kind": "cnn", "model": model, "layer": "block10",
+               "identity": {"sha256": "00", "layer": "block10", "preprocessing": "x"}}),
+        "descriptor.identity",
+        "server",
+    );
+    let maps = c.get("/v1/maps").json();
+    assert_eq!(maps["maps"], json!([]), "no failed creation left a map");
+}
+
+#[test]
+fn the_servers_default_model_is_used_when_the_body_names_none() {
+    let Some((_dir, model)) = model_copy() else { return };
+    let m = model.clone();
+    let server = Server::start_with(move |a| a.cnn_model = Some(m));
+    let r = create(&server.client, json!({"kind": "cnn", "layer": "pooled"}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let d = &r.json()["descriptor"];
+    assert_eq!(d["model"], model.to_str().unwrap());
+    assert_eq!(d["resize"], "crop");
+    assert_eq!(d["short_side"], 256);
+}
+
+#[test]
+fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
+    let Some((_dir, model)) = model_copy() else { return };
+    let server = Server::start();
+    let c = &server.client;
+    let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json()["id"].as_str().unwrap().to_string();
+    let route = Route::new(6, 5);
+    let refs: Vec<Vec<u8>> = (0..6).map(|i| route.reference_png(i)).collect();
+    let r = images(c, &format!("/v1/maps/{id}/images"), &refs[..3], None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+
+    let original = std::fs::read(&model).unwrap();
+    // Truncated: no longer loads.
+    std::fs::write(&model, &original[..original.len() / 2]).unwrap();
+    let r = images(c, &format!("/v1/maps/{id}/images"), &refs[3..], None);
+    check("post", "/v1/maps/{id}/images", &r);
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.code(), "model_mismatch");
+    assert!(r.message().contains("no longer loads"), "{}", r.message());
+    let r = images(c, &format!("/v1/maps/{id}/localize"), &refs[..2], None);
+    check("post", "/v1/maps/{id}/localize", &r);
+    assert_eq!(r.status, 409);
+    assert_eq!(r.code(), "model_mismatch");
+    // Gone.
+    std::fs::remove_file(&model).unwrap();
+    let r = images(c, &format!("/v1/maps/{id}/localize"), &refs[..2], None);
+    assert_eq!(r.status, 409);
+    assert_eq!(r.code(), "model_mismatch");
+    assert_eq!(c.get(&format!("/v1/maps/{id}")).json()["image_count"], 3);
+
+    // Restored byte for byte: the map works again (identity is the content, not the path).
+    std::fs::write(&model, &original).unwrap();
+    let r = images(c, &format!("/v1/maps/{id}/images"), &refs[3..], None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let r = images(c, &format!("/v1/maps/{id}/localize"), &refs[..4], None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(c.get(&format!("/v1/maps/{id}")).json()["image_count"], 6);
+
+    // Another valid ONNX file at the path (here: same graph, one weight byte changed) is a
+    // different model: 409 naming the hash.
+    let mut other = original.clone();
+    let k = other.len() / 2;
+    other[k] ^= 0x01;
+    std::fs::write(&model, &other).unwrap();
+    let r = images(c, &format!("/v1/maps/{id}/localize"), &refs[..2], None);
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.code(), "model_mismatch");
+    assert!(r.message().contains("sha256"), "{}", r.message());
+}

@@ -1,0 +1,191 @@
+//! Co-occurrence maps over HTTP on generated images: create, build from the first batch, add a
+//! further drive, localize with each method; every error stores nothing; a restart keeps the
+//! map (and its drives).
+
+use serde_json::{json, Value};
+
+use crate::common::{create_hog_map, Process, Route, Server};
+use crate::http::{Client, Part};
+use crate::spec::check;
+
+fn create_cooc(c: &Client) -> String {
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "cooc", "descriptor": {"kind": "cooc", "vocabulary_branching": 8}}),
+    );
+    check("post", "/v1/maps", &r);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let m = r.json();
+    let d = &m["descriptor"];
+    assert_eq!(d["kind"], "cooc");
+    assert_eq!(d["vocabulary_branching"], 8);
+    assert_eq!(d["vocabulary_depth"], 2);
+    assert_eq!(d["grid"], json!([12, 8]));
+    m["id"].as_str().unwrap().to_string()
+}
+
+fn parts(pngs: &[Vec<u8>], json_part: Option<(&str, Value)>) -> Vec<Part> {
+    let mut p: Vec<Part> = pngs
+        .iter()
+        .enumerate()
+        .map(|(i, b)| Part::image(&format!("f{i}.png"), b.clone()))
+        .collect();
+    if let Some((name, v)) = json_part {
+        p.push(Part::json(name, &v));
+    }
+    p
+}
+
+fn drive(c: &Client, map: &str, pngs: &[Vec<u8>], d: Value) -> crate::http::Response {
+    let r = c.post_multipart(
+        &format!("/v1/maps/{map}/drives"),
+        &parts(pngs, Some(("drive", d))),
+    );
+    check("post", "/v1/maps/{id}/drives", &r);
+    r
+}
+
+fn localize(c: &Client, map: &str, pngs: &[Vec<u8>], params: Value) -> Value {
+    let r = c.post_multipart(
+        &format!("/v1/maps/{map}/localize"),
+        &parts(pngs, Some(("params", params))),
+    );
+    check("post", "/v1/maps/{id}/localize", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    r.json()
+}
+
+/// Predictions within one frame of the truth (query k shows location `first + k`).
+fn correct(result: &Value, first: i64) -> usize {
+    result["predictions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| (p["ref"].as_i64().unwrap() - p["query"].as_i64().unwrap() - first).abs() <= 1)
+        .count()
+}
+
+#[test]
+fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(30, 21);
+    let refs: Vec<Vec<u8>> = (0..30).map(|i| route.reference_png(i)).collect();
+    let night: Vec<Vec<u8>> = (0..30).map(|i| route.query_png(i)).collect();
+    let map = create_cooc(c);
+
+    // Nothing to localize against or add to yet.
+    let r = drive(c, &map, &night[..2], json!({"locations": [0, 1]}));
+    assert_eq!((r.status, r.code()), (409, "map_empty".into()));
+    let r = c.post_multipart(&format!("/v1/maps/{map}/localize"), &parts(&night[..3], None));
+    assert_eq!((r.status, r.code()), (409, "map_empty".into()));
+
+    // The first batch is the first drive: the map is built from it.
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs, None));
+    check("post", "/v1/maps/{id}/images", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["image_count"], 30);
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs[..2], None));
+    assert_eq!((r.status, r.code()), (409, "map_kind".into()));
+    assert!(r.message().contains("/drives"), "{}", r.message());
+
+    // Bad drives store nothing.
+    let r = drive(c, &map, &night[..2], json!({"locations": [0, 30]}));
+    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    assert!(r.message().contains("drive.locations[1]"), "{}", r.message());
+    let r = drive(c, &map, &night[..2], json!({"locations": [0]}));
+    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    let r = c.post_multipart(&format!("/v1/maps/{map}/drives"), &parts(&night[..2], None));
+    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    let mut broken = night[..2].to_vec();
+    broken[1] = b"not an image".to_vec();
+    let r = drive(c, &map, &broken, json!({"locations": [0, 1]}));
+    assert_eq!((r.status, r.code()), (422, "invalid_image".into()));
+    let r = drive(c, &map, &[], json!({"locations": []}));
+    assert_eq!(r.status, 400, "{}", String::from_utf8_lossy(&r.body));
+
+    // Before the night drive: the flow graph on co-occurrence scores.
+    let queries: Vec<Vec<u8>> = (5..25).map(|i| route.query_png(i)).collect();
+    let flow = localize(c, &map, &queries, json!({}));
+    assert_eq!(flow["params"]["method"], "flow");
+    assert!(!flow["hypotheses"].as_array().unwrap().is_empty());
+    assert_eq!(flow["reference_count"], 30);
+
+    // A night drive of every location (odd frames in reverse order, to exercise the indices).
+    let order: Vec<u32> = (0..30).rev().collect();
+    let pngs: Vec<Vec<u8>> = order.iter().map(|&i| night[i as usize].clone()).collect();
+    let r = drive(c, &map, &pngs, json!({"locations": order, "time": 22.0}));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json(), json!({"drives": 2, "images": 30}));
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 30);
+
+    for method in ["flow", "cooc", "cooc-seq"] {
+        let result = localize(c, &map, &queries, json!({"method": method}));
+        assert_eq!(result["params"]["method"], method);
+        assert_eq!(result["query_count"], 20);
+        let hyps = result["hypotheses"].as_array().unwrap();
+        assert_eq!(hyps.is_empty(), method != "flow", "{method}");
+        // The night appearance is now in the map: most queries are found.
+        let ok = correct(&result, 5);
+        assert!(ok >= 14, "{method}: {ok} of 20 correct: {result}");
+        let id = result["id"].as_str().unwrap();
+        assert_eq!(c.get(&format!("/v1/localizations/{id}")).json(), result);
+    }
+
+    // Wrong kinds of requests.
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({"descriptors": [[1.0]]}),
+    );
+    assert_eq!((r.status, r.code()), (409, "map_kind".into()));
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/localize"),
+        &json!({"descriptors": [[1.0]]}),
+    );
+    assert_eq!(r.status, 400);
+    let hog = create_hog_map(c, "hog", 8);
+    let r = drive(c, &hog, &night[..1], json!({"locations": [0]}));
+    assert_eq!((r.status, r.code()), (409, "map_kind".into()));
+    let r = c.post_multipart(&format!("/v1/maps/{hog}/images"), &parts(&refs[..4], None));
+    assert_eq!(r.status, 200);
+    let r = c.post_multipart(
+        &format!("/v1/maps/{hog}/localize"),
+        &parts(&queries[..2], Some(("params", json!({"method": "cooc"})))),
+    );
+    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "x", "descriptor": {"kind": "cooc", "vocabulary_branching": 1}}),
+    );
+    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    assert!(r.message().contains("descriptor.vocabulary_branching"), "{}", r.message());
+}
+
+#[test]
+fn a_restart_keeps_the_cooc_map_and_its_drives() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let log = tmp.path().join("serve.log");
+    let args = ["--addr", "127.0.0.1:0", "--data-dir", data.to_str().unwrap()];
+    let route = Route::new(20, 4);
+    let refs: Vec<Vec<u8>> = (0..20).map(|i| route.reference_png(i)).collect();
+    let queries: Vec<Vec<u8>> = (3..15).map(|i| route.query_png(i)).collect();
+
+    let p = Process::start(&args, &[], &log);
+    let map = create_cooc(&p.client);
+    let r = p
+        .client
+        .post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs, None));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let r = drive(&p.client, &map, &queries[..4], json!({"locations": [3, 4, 5, 6]}));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let before = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
+    assert!(p.terminate());
+
+    let p = Process::start(&args, &[], &log);
+    let after = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
+    assert_eq!(after["predictions"], before["predictions"]);
+    let r = drive(&p.client, &map, &queries[4..6], json!({"locations": [7, 8]}));
+    assert_eq!(r.json()["drives"], 3, "the drive before the restart is still there");
+    assert!(p.terminate());
+}
