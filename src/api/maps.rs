@@ -170,9 +170,8 @@ struct CnnRequest {
     identity: Option<super::dto::ModelIdentityDto>,
 }
 
-/// Loads and checks a CNN model for a new map (blocking): every failure is a 400 naming the
-/// descriptor field (missing file, not ONNX, unknown layer with the available ones, input size).
-fn check_cnn(options: CnnOptions) -> Result<CnnSettings, ApiError> {
+/// A CNN settings error at creation as a 400 naming the request's field.
+fn cnn_error(e: crate::Error) -> ApiError {
     let field = |name: &str| -> &'static str {
         match name {
             "cnn_layer" => "descriptor.layer",
@@ -183,14 +182,20 @@ fn check_cnn(options: CnnOptions) -> Result<CnnSettings, ApiError> {
             _ => "descriptor.model",
         }
     };
-    let spec = CnnSpec::new(options.clone()).map_err(|e| match e {
+    match e {
         crate::Error::InvalidParameter { name, reason } => ApiError::param(field(name), reason),
         crate::Error::Io { path, source } => ApiError::param(
             "descriptor.model",
             format!("cannot read {}: {source}", path.display()),
         ),
         other => ApiError::param("descriptor.model", other.to_string()),
-    })?;
+    }
+}
+
+/// Loads and checks a CNN model for a new map (blocking): every failure is a 400 naming the
+/// descriptor field (missing file, not ONNX, unknown layer with the available ones, input size).
+fn check_cnn(options: CnnOptions) -> Result<CnnSettings, ApiError> {
+    let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
     Ok(CnnSettings {
         identity: spec.identity(),
         options,
@@ -295,7 +300,7 @@ fn validate(
                 identity,
             };
             let options = cnn_options(request, default_model)?;
-            options.validate().map_err(ApiError::from)?;
+            options.validate().map_err(cnn_error)?;
             return Ok(Validated::Cnn { name, options });
         }
     };

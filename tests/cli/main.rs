@@ -365,7 +365,9 @@ fn eval_scores_the_cooccurrence_methods_from_the_images() {
     assert_eq!(out["descriptor"], "cooc");
     assert_eq!(out["queries"], 30);
     assert_eq!(out["references"], 40);
-    assert_eq!(out["vocabulary_words"], 256);
+    // At most 16^2 words; fewer when the generated route has few distinct corners.
+    let words = out["vocabulary_words"].as_u64().unwrap();
+    assert!((16..=256).contains(&words), "{out}");
     let compared = out["compared"].as_array().unwrap();
     let names: Vec<&str> = compared.iter().map(|c| c["method"].as_str().unwrap()).collect();
     assert_eq!(names, vec!["cooc-seq", "cooc-flow"]);
