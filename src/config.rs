@@ -148,10 +148,7 @@ impl ServeArgs {
             worker_threads,
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
             // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".
-            default_cnn_model: self
-                .cnn_model
-                .clone()
-                .filter(|p| !p.as_os_str().is_empty()),
+            default_cnn_model: self.cnn_model.clone().filter(|p| !p.as_os_str().is_empty()),
         })
     }
 }

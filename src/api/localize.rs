@@ -18,12 +18,12 @@ use axum::routing::{get, post};
 use axum::Router;
 use serde::Deserialize;
 
+use super::cooc::CoocMethod;
 use super::dto::{
     format_id, parse_id, HypothesisDto, LocalizationListResponse, LocalizationResponse,
     LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
 };
 use super::error::ApiError;
-use super::cooc::CoocMethod;
 use super::maps::{extract_for_map, map_id};
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};
@@ -78,7 +78,11 @@ async fn parse(state: &AppState, req: Request) -> Result<Parsed, ApiError> {
             None => LocalizeParams::default(),
         };
         let method = params.method;
-        Ok((Queries::Images(batch.images), params.into_options()?, method))
+        Ok((
+            Queries::Images(batch.images),
+            params.into_options()?,
+            method,
+        ))
     }
 }
 

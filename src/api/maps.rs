@@ -54,12 +54,12 @@ pub fn map_id(s: &str) -> Result<u64, ApiError> {
 /// the CPU pool (it hashes the model file).
 pub fn map_extractor(map: &MapRecord) -> Result<Option<Box<dyn Extractor>>, ApiError> {
     match &map.descriptor {
-        DescriptorSettings::Hog { cell_size, resize } => Ok(Some(Box::new(HogSpec::new(
-            HogOptions {
+        DescriptorSettings::Hog { cell_size, resize } => {
+            Ok(Some(Box::new(HogSpec::new(HogOptions {
                 cell_size: *cell_size,
                 resize: *resize,
-            },
-        )?))),
+            })?)))
+        }
         DescriptorSettings::Precomputed { .. } => Ok(None),
         DescriptorSettings::Cnn(c) => {
             let path = c.options.model.display();

@@ -245,9 +245,8 @@ fn encode_cooc(w: &mut Writer, p: &CoocParams) {
 
 fn decode_cooc(r: &mut Reader<'_>) -> Result<CoocParams, StoreError> {
     let key = r.key;
-    let usize_of = |v: u64| {
-        usize::try_from(v).map_err(|_| StoreError::corrupt(key, "count too large"))
-    };
+    let usize_of =
+        |v: u64| usize::try_from(v).map_err(|_| StoreError::corrupt(key, "count too large"));
     let u16_of =
         |v: u32| u16::try_from(v).map_err(|_| StoreError::corrupt(key, "grid value too large"));
     let keypoints = KeypointParams {
@@ -306,7 +305,12 @@ fn decode_cnn(r: &mut Reader<'_>) -> Result<CnnSettings, StoreError> {
         RESIZE_CROP => CnnResize::ShortSideCrop {
             short_side: r.u32()?,
         },
-        t => return Err(StoreError::corrupt(r.key, format!("bad CNN resize tag {t}"))),
+        t => {
+            return Err(StoreError::corrupt(
+                r.key,
+                format!("bad CNN resize tag {t}"),
+            ))
+        }
     };
     let mut rgb = || -> Result<[f32; 3], StoreError> {
         Ok([

@@ -42,7 +42,10 @@ impl Store {
         let mut batch = sled::Batch::default();
         for (k, meta) in new_images.iter().enumerate() {
             let index = start + k as u32;
-            batch.insert(&codec::image_key(map, index), codec::encode_image(&[], meta));
+            batch.insert(
+                &codec::image_key(map, index),
+                codec::encode_image(&[], meta),
+            );
         }
         record.image_count = end;
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
@@ -75,7 +78,10 @@ mod tests {
             store.put_cooc_map(m.id, None, b"v1'", &[]),
             Err(StoreError::Conflict(_))
         ));
-        assert_eq!(store.put_cooc_map(m.id, Some(b"v1"), b"v2", &[]).unwrap(), 3..3);
+        assert_eq!(
+            store.put_cooc_map(m.id, Some(b"v1"), b"v2", &[]).unwrap(),
+            3..3
+        );
         drop(store);
         let store = Store::open(dir.path()).unwrap();
         assert_eq!(store.cooc_map(m.id).unwrap().as_deref(), Some(&b"v2"[..]));

@@ -15,8 +15,8 @@
 //! does not know the wire format.
 
 pub mod codec;
-mod localizations;
 mod cooc;
+mod localizations;
 mod maps;
 pub mod migrate;
 

@@ -369,10 +369,16 @@ fn eval_scores_the_cooccurrence_methods_from_the_images() {
     let words = out["vocabulary_words"].as_u64().unwrap();
     assert!((16..=256).contains(&words), "{out}");
     let compared = out["compared"].as_array().unwrap();
-    let names: Vec<&str> = compared.iter().map(|c| c["method"].as_str().unwrap()).collect();
+    let names: Vec<&str> = compared
+        .iter()
+        .map(|c| c["method"].as_str().unwrap())
+        .collect();
     assert_eq!(names, vec!["cooc-seq", "cooc-flow"]);
     assert_eq!(compared[0]["params"]["length"], 5);
-    assert!(compared[1]["params"]["hidden_cost"].as_f64().is_some(), "{out}");
+    assert!(
+        compared[1]["params"]["hidden_cost"].as_f64().is_some(),
+        "{out}"
+    );
     for m in std::iter::once(&out).chain(compared) {
         let ap = m["ap"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&ap), "{m}");
@@ -381,7 +387,10 @@ fn eval_scores_the_cooccurrence_methods_from_the_images() {
     // route, and single images are mostly right.
     assert!(compared[1]["ap"].as_f64().unwrap() > 0.8, "{out}");
     assert!(out["correct"].as_u64().unwrap() >= 15, "{out}");
-    assert!(out["seconds"]["similarity"].as_f64().unwrap() > 0.0, "{out}");
+    assert!(
+        out["seconds"]["similarity"].as_f64().unwrap() > 0.0,
+        "{out}"
+    );
     let csv = std::fs::read_to_string(&preds).unwrap();
     assert!(csv.lines().count() > 15, "{csv}");
 }

@@ -43,12 +43,20 @@ fn model_copy() -> Option<(tempfile::TempDir, PathBuf)> {
 }
 
 fn create(c: &Client, descriptor: Value) -> crate::http::Response {
-    let r = c.post_json("/v1/maps", &json!({"name": "cnn", "descriptor": descriptor}));
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "cnn", "descriptor": descriptor}),
+    );
     check("post", "/v1/maps", &r);
     r
 }
 
-fn images(c: &Client, path: &str, pngs: &[Vec<u8>], params: Option<Value>) -> crate::http::Response {
+fn images(
+    c: &Client,
+    path: &str,
+    pngs: &[Vec<u8>],
+    params: Option<Value>,
+) -> crate::http::Response {
     let mut parts: Vec<Part> = pngs
         .iter()
         .enumerate()
@@ -62,7 +70,9 @@ fn images(c: &Client, path: &str, pngs: &[Vec<u8>], params: Option<Value>) -> cr
 
 #[test]
 fn cnn_map_equals_the_library_and_records_the_model_identity() {
-    let Some((_dir, model)) = model_copy() else { return };
+    let Some((_dir, model)) = model_copy() else {
+        return;
+    };
     let server = Server::start();
     let c = &server.client;
     let r = create(
@@ -86,7 +96,10 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
     let identity = spec.identity();
     assert_eq!(d["identity"]["sha256"], identity.sha256.as_str());
     assert_eq!(d["identity"]["layer"], "block10");
-    assert_eq!(d["identity"]["preprocessing"], identity.preprocessing.as_str());
+    assert_eq!(
+        d["identity"]["preprocessing"],
+        identity.preprocessing.as_str()
+    );
 
     let route = Route::new(16, 3);
     let refs: Vec<Vec<u8>> = (0..16).map(|i| route.reference_png(i)).collect();
@@ -103,7 +116,12 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
 
     let params =
         json!({"fan_out": 4, "hidden_cost": 1.5, "flows": 1, "exact": false, "horizontal": true});
-    let r = images(c, &format!("/v1/maps/{id}/localize"), &queries, Some(params));
+    let r = images(
+        c,
+        &format!("/v1/maps/{id}/localize"),
+        &queries,
+        Some(params),
+    );
     check("post", "/v1/maps/{id}/localize", &r);
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let http = r.json();
@@ -136,17 +154,27 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
         assert_eq!(h["ref"].as_u64().unwrap() as usize, l.reference);
         assert_eq!(h["confidence"].as_f64().unwrap(), l.confidence);
     }
-    assert_eq!(http["total_cost"].as_f64().unwrap(), lib.solution.total_cost());
+    assert_eq!(
+        http["total_cost"].as_f64().unwrap(),
+        lib.solution.total_cost()
+    );
 }
 
 #[test]
 fn cnn_map_creation_errors_are_precise_400s() {
-    let Some((dir, model)) = model_copy() else { return };
+    let Some((dir, model)) = model_copy() else {
+        return;
+    };
     let server = Server::start();
     let c = &server.client;
     let expect = |descriptor: Value, field: &str, needle: &str| {
         let r = create(c, descriptor.clone());
-        assert_eq!(r.status, 400, "{descriptor}: {}", String::from_utf8_lossy(&r.body));
+        assert_eq!(
+            r.status,
+            400,
+            "{descriptor}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
         assert_eq!(r.code(), "invalid_parameter", "{descriptor}");
         let m = r.message();
         assert!(m.contains(field), "{descriptor}: `{field}` not in {m}");
@@ -194,7 +222,11 @@ fn cnn_map_creation_errors_are_precise_400s() {
         "crop",
     );
     // No model and no server default.
-    expect(json!({"kind": "cnn", "layer": "block10"}), "descriptor.model", "--cnn-model");
+    expect(
+        json!({"kind": "cnn", "layer": "block10"}),
+        "descriptor.model",
+        "--cnn-model",
+    );
     // The identity is the server's to record.
     expect(
         json!({"kind": "cnn", "model": model, "layer": "block10",
@@ -208,7 +240,9 @@ fn cnn_map_creation_errors_are_precise_400s() {
 
 #[test]
 fn the_servers_default_model_is_used_when_the_body_names_none() {
-    let Some((_dir, model)) = model_copy() else { return };
+    let Some((_dir, model)) = model_copy() else {
+        return;
+    };
     let m = model.clone();
     let server = Server::start_with(move |a| a.cnn_model = Some(m));
     let r = create(&server.client, json!({"kind": "cnn", "layer": "pooled"}));
@@ -221,7 +255,9 @@ fn the_servers_default_model_is_used_when_the_body_names_none() {
 
 #[test]
 fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
-    let Some((_dir, model)) = model_copy() else { return };
+    let Some((_dir, model)) = model_copy() else {
+        return;
+    };
     let server = Server::start();
     let c = &server.client;
     let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));

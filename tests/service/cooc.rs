@@ -77,7 +77,10 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
     // Nothing to localize against or add to yet.
     let r = drive(c, &map, &night[..2], json!({"locations": [0, 1]}));
     assert_eq!((r.status, r.code()), (409, "map_empty".into()));
-    let r = c.post_multipart(&format!("/v1/maps/{map}/localize"), &parts(&night[..3], None));
+    let r = c.post_multipart(
+        &format!("/v1/maps/{map}/localize"),
+        &parts(&night[..3], None),
+    );
     assert_eq!((r.status, r.code()), (409, "map_empty".into()));
 
     // The first batch is the first drive: the map is built from it.
@@ -92,7 +95,11 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
     // Bad drives store nothing.
     let r = drive(c, &map, &night[..2], json!({"locations": [0, 30]}));
     assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
-    assert!(r.message().contains("drive.locations[1]"), "{}", r.message());
+    assert!(
+        r.message().contains("drive.locations[1]"),
+        "{}",
+        r.message()
+    );
     let r = drive(c, &map, &night[..2], json!({"locations": [0]}));
     assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
     let r = c.post_multipart(&format!("/v1/maps/{map}/drives"), &parts(&night[..2], None));
@@ -158,7 +165,11 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
         &json!({"name": "x", "descriptor": {"kind": "cooc", "vocabulary_branching": 1}}),
     );
     assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
-    assert!(r.message().contains("descriptor.vocabulary_branching"), "{}", r.message());
+    assert!(
+        r.message().contains("descriptor.vocabulary_branching"),
+        "{}",
+        r.message()
+    );
 }
 
 #[test]
@@ -166,7 +177,12 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let args = ["--addr", "127.0.0.1:0", "--data-dir", data.to_str().unwrap()];
+    let args = [
+        "--addr",
+        "127.0.0.1:0",
+        "--data-dir",
+        data.to_str().unwrap(),
+    ];
     let route = Route::new(20, 4);
     let refs: Vec<Vec<u8>> = (0..20).map(|i| route.reference_png(i)).collect();
     let queries: Vec<Vec<u8>> = (3..15).map(|i| route.query_png(i)).collect();
@@ -177,7 +193,12 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
         .client
         .post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs, None));
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    let r = drive(&p.client, &map, &queries[..4], json!({"locations": [3, 4, 5, 6]}));
+    let r = drive(
+        &p.client,
+        &map,
+        &queries[..4],
+        json!({"locations": [3, 4, 5, 6]}),
+    );
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let before = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
     assert!(p.terminate());
@@ -185,7 +206,16 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     let p = Process::start(&args, &[], &log);
     let after = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
     assert_eq!(after["predictions"], before["predictions"]);
-    let r = drive(&p.client, &map, &queries[4..6], json!({"locations": [7, 8]}));
-    assert_eq!(r.json()["drives"], 3, "the drive before the restart is still there");
+    let r = drive(
+        &p.client,
+        &map,
+        &queries[4..6],
+        json!({"locations": [7, 8]}),
+    );
+    assert_eq!(
+        r.json()["drives"],
+        3,
+        "the drive before the restart is still there"
+    );
     assert!(p.terminate());
 }

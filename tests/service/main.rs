@@ -2,8 +2,8 @@
 //! (in-process for most tests; the built binary for restart, SIGKILL, configuration and the
 //! Dockerfile's runtime assumptions).
 
-mod common;
 mod cnn;
+mod common;
 mod cooc;
 mod docker;
 mod durability;
