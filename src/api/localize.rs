@@ -175,7 +175,7 @@ async fn run(
     let store = Arc::clone(&state.store);
     let (id, doc) = blocking(move || {
         let id = store.new_localization_id()?;
-        let mut doc = LocalizationResponse {
+        let doc = LocalizationResponse {
             id: format_id(id),
             map_id: format_id(map),
             created_at_ms: crate::store::now_ms(),
@@ -197,10 +197,9 @@ async fn run(
         };
         let bytes = serde_json::to_vec(&doc)
             .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
-        doc.created_at_ms = store.put_localization(id, map, bytes.clone())?;
-        // The stored creation time is the store's; keep the answer identical to a read-back.
-        let bytes = serde_json::to_vec(&doc)
-            .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
+        // The answer is the stored document byte for byte, so a read-back equals it (the
+        // store's own record time may differ from `created_at_ms` by a millisecond).
+        store.put_localization(id, map, bytes.clone())?;
         Ok((id, bytes))
     })
     .await?;
