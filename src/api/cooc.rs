@@ -55,6 +55,17 @@ pub enum CoocMethod {
     CoocSeq,
 }
 
+impl CoocMethod {
+    /// The wire name (`flow`, `cooc`, `cooc-seq`).
+    pub fn name(self) -> &'static str {
+        match self {
+            CoocMethod::Flow => "flow",
+            CoocMethod::Cooc => "cooc",
+            CoocMethod::CoocSeq => "cooc-seq",
+        }
+    }
+}
+
 /// `drive` part of `POST /v1/maps/{id}/drives`.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]

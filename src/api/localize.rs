@@ -133,7 +133,8 @@ async fn run(
                 return Err(ApiError::param(
                     "method",
                     format!(
-                        "{m:?} applies to co-occurrence maps only; map `{}` uses the flow graph",
+                        "`{}` applies to co-occurrence maps only; map `{}` uses the flow graph",
+                        m.name(),
                         format_id(map)
                     ),
                 ));
