@@ -23,7 +23,8 @@ use super::dto::{
     LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
 };
 use super::error::ApiError;
-use super::maps::{hog_spec, map_id};
+use super::descriptors::query_descriptors;
+use super::maps::map_id;
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};
 use crate::localize::{localize, LocalizeOptions};
@@ -113,13 +114,13 @@ async fn run(
                     m
                 }
                 Queries::Images(parts) => {
-                    let Some(spec) = hog_spec(record.descriptor)? else {
+                    let Some(m) = query_descriptors(&record, &parts, max_pixels)? else {
                         return Err(ApiError::BadRequest(format!(
                             "map `{}` stores precomputed descriptors; send query descriptors as JSON",
                             format_id(map)
                         )));
                     };
-                    upload::extract(&spec, &parts, max_pixels, record.dim)?
+                    m
                 }
             };
             let features = started.elapsed().as_secs_f64();

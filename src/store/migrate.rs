@@ -32,10 +32,16 @@ pub const MIGRATIONS: &[Migration] = &[
         doc: include_str!("../../migrations/0002_localizations_by_map.md"),
         apply: localizations_by_map,
     },
+    Migration {
+        version: 3,
+        file: "0003_trips.md",
+        doc: include_str!("../../migrations/0003_trips.md"),
+        apply: trips,
+    },
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 2;
+pub const CURRENT_VERSION: u32 = 3;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -88,6 +94,11 @@ pub fn migrate(db: &sled::Db) -> StoreResult<u32> {
 }
 
 fn initial(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+    Ok(())
+}
+
+/// Layouts before 3 have no trip keys, so there is nothing to convert.
+fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -174,6 +185,9 @@ mod tests {
         let ids: Vec<u64> = page.items.iter().map(|r| r.id).collect();
         assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
         assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
+        // Trips work on an upgraded store, and deleting the map still removes everything.
+        let trip = store.create_trip(map_id, 2, b"{}".to_vec(), vec![7]).unwrap();
+        assert_eq!(store.list_trips(map_id, None, 5).unwrap().items, vec![trip]);
         // Opening again is a no-op: the upgrade does not run twice.
         drop(store);
         let store = Store::open(dir.path()).unwrap();

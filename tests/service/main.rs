@@ -9,3 +9,4 @@ mod errors;
 mod flow;
 mod http;
 mod spec;
+mod trips;
