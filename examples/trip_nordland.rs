@@ -27,14 +27,21 @@ fn files(dir: &Path) -> Vec<PathBuf> {
 
 /// Streams `c` (raw cosine rows) through a trip in batches of `batch`; returns the estimates
 /// as reported at arrival and as finally kept (after the lag window).
-fn stream(c: &Matrix, prior: &[f32], params: TripParams, batch: usize) -> (Vec<FrameEstimate>, Vec<FrameEstimate>) {
+fn stream(
+    c: &Matrix,
+    prior: &[f32],
+    params: TripParams,
+    batch: usize,
+) -> (Vec<FrameEstimate>, Vec<FrameEstimate>) {
     let mut trip = Trip::new(prior.to_vec(), params).expect("valid parameters");
     let mut arrival = Vec::new();
     let mut last = Vec::new();
     for start in (0..c.rows()).step_by(batch) {
         let end = (start + batch).min(c.rows());
         let rows: Vec<&[f32]> = (start..end).map(|i| c.row(i)).collect();
-        let u = trip.push_batch(&Matrix::from_rows(&rows).expect("rows")).expect("batch");
+        let u = trip
+            .push_batch(&Matrix::from_rows(&rows).expect("rows"))
+            .expect("batch");
         arrival.extend(&u.estimates);
         last.extend(&u.estimates);
         for w in &u.window {
@@ -83,21 +90,36 @@ fn main() {
     println!("| method | AP | recall @ 100 % precision | recall @ 99 % precision | max F1 | precision at full recall |");
     println!("| --- | --- | --- | --- | --- | --- |");
     let offline = localize(&winter, &summer, &LocalizeOptions::default()).expect("offline");
-    row("offline flow, F = 1 (whole sequence known)", &score(&offline.predictions));
+    row(
+        "offline flow, F = 1 (whole sequence known)",
+        &score(&offline.predictions),
+    );
 
     let c = cosine_matrix(&winter, &summer).expect("cosine");
     let prior = seasonloc::trip::column_prior(&summer).expect("prior");
     let defaults = TripParams::default();
     let (arrival, last) = stream(&c, &prior, defaults, 10);
-    row("trip, defaults (R = 2, lag 32): estimate at arrival", &score(&predictions(&arrival)));
-    row("trip, defaults: estimate after the lag window", &score(&predictions(&last)));
+    row(
+        "trip, defaults (R = 2, lag 32): estimate at arrival",
+        &score(&predictions(&arrival)),
+    );
+    row(
+        "trip, defaults: estimate after the lag window",
+        &score(&predictions(&last)),
+    );
     let forward = TripParams {
         relocalization: None,
         ..defaults
     };
     let (arrival, last) = stream(&c, &prior, forward, 10);
-    row("trip, no relocalization: at arrival", &score(&predictions(&arrival)));
-    row("trip, no relocalization: after the lag window", &score(&predictions(&last)));
+    row(
+        "trip, no relocalization: at arrival",
+        &score(&predictions(&arrival)),
+    );
+    row(
+        "trip, no relocalization: after the lag window",
+        &score(&predictions(&last)),
+    );
     // The cost of online Eq. 2 alone: the same online solver fed the offline-normalised rows.
     let chat = Normalization::default().apply(&c).expect("normalise");
     let offline_norm = TripParams {
@@ -106,8 +128,14 @@ fn main() {
         ..defaults
     };
     let (arrival, last) = stream(&chat, &prior, offline_norm, 10);
-    row("online solver on offline-normalised rows (no relocalization): at arrival", &score(&predictions(&arrival)));
-    row("online solver on offline-normalised rows: after the lag window", &score(&predictions(&last)));
+    row(
+        "online solver on offline-normalised rows (no relocalization): at arrival",
+        &score(&predictions(&arrival)),
+    );
+    row(
+        "online solver on offline-normalised rows: after the lag window",
+        &score(&predictions(&last)),
+    );
 
     println!();
     let route = jump_route();
@@ -118,11 +146,20 @@ fn main() {
     let prior = seasonloc::trip::column_prior(&map).expect("prior");
     let (arrival, _) = stream(&cq, &prior, defaults, 10);
     println!("jump route (summer 0-{} as the map):", route.map_len - 1);
-    for (seg, delay) in route.segments.iter().zip(relocalization_delays(&route, &arrival)) {
-        println!("  winter {}-{} (from trip frame {}): {}", seg.1, seg.2 - 1, seg.0,
+    for (seg, delay) in route
+        .segments
+        .iter()
+        .zip(relocalization_delays(&route, &arrival))
+    {
+        println!(
+            "  winter {}-{} (from trip frame {}): {}",
+            seg.1,
+            seg.2 - 1,
+            seg.0,
             match delay {
                 Some(d) => format!("found after {d} frames"),
                 None => "not found".into(),
-            });
+            }
+        );
     }
 }

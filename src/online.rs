@@ -166,6 +166,11 @@ impl OnlineSolver {
         &self.params
     }
 
+    /// The `ĉ` rows of the lag window, oldest first (row `rows() - len + k` at index `k`).
+    pub fn window_rows(&self) -> &VecDeque<Vec<f32>> {
+        &self.window_chat
+    }
+
     /// Number of reference columns `D`.
     pub fn references(&self) -> usize {
         self.d
@@ -330,10 +335,12 @@ impl OnlineSolver {
             .map_err(|e| corrupt(format!("solver parameters: {e}")))?;
         let d = r.usize()?;
         if r.remaining() / 16 < d {
-            return Err(corrupt(format!("state is truncated: {d} columns announced")));
+            return Err(corrupt(format!(
+                "state is truncated: {d} columns announced"
+            )));
         }
-        let mut solver = OnlineSolver::new(d, params)
-            .map_err(|e| corrupt(format!("solver size: {e}")))?;
+        let mut solver =
+            OnlineSolver::new(d, params).map_err(|e| corrupt(format!("solver size: {e}")))?;
         solver.rows = r.usize()?;
         solver.x = r.f64s(d)?;
         solver.h = r.f64s(d)?;

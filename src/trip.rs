@@ -29,14 +29,16 @@ use std::collections::VecDeque;
 
 use crate::confidence::{window_ratio, ConfidenceParams, GraphParams};
 use crate::online::{
-    corrupt_state, OnlineParams, OnlineSolver, RowEstimate, StateReader, StateWriter,
-    STATE_FORMAT,
+    corrupt_state, OnlineParams, OnlineSolver, RowEstimate, StateReader, StateWriter, STATE_FORMAT,
 };
 use crate::solver::auto_hidden_cost;
 use crate::{similarity, Error, Matrix, Result};
 
 /// A latest frame whose confidence is at most this is reported as lost.
 pub const LOST_RATIO: f64 = 1.0;
+
+/// Largest accepted confidence half window `L` and radius `r`.
+pub const MAX_CONFIDENCE_WINDOW: usize = 1000;
 
 /// How many map images [`column_prior`] compares each reference with.
 const PRIOR_SAMPLE: usize = 256;
@@ -87,7 +89,9 @@ pub struct FrameEstimate {
     pub frame: usize,
     /// Estimated reference index, `None` when not on the map (hidden).
     pub reference: Option<usize>,
-    /// Local min-marginal ratio (0 when hidden).
+    /// Local min-marginal ratio (0 when hidden): causal for a batch's new frames (the rows before
+    /// it and those of its batch after it); for earlier frames re-traced in the lag window, over
+    /// the rows around it that the window holds.
     pub confidence: f64,
 }
 
@@ -172,6 +176,17 @@ impl Trip {
             relocalization: params.relocalization,
         };
         probe.validate()?;
+        if params.confidence.half_window > MAX_CONFIDENCE_WINDOW
+            || params.confidence.radius > MAX_CONFIDENCE_WINDOW
+        {
+            return Err(Error::param(
+                "confidence",
+                format!(
+                    "half window and radius must be at most {MAX_CONFIDENCE_WINDOW}, got {:?}",
+                    params.confidence
+                ),
+            ));
+        }
         if params.fan_out > crate::solver::MAX_FAN_OUT {
             return Err(Error::param(
                 "fan_out",
@@ -382,6 +397,7 @@ impl Trip {
         let graph = solver.params().graph;
         self.frames += chat.rows();
 
+        let solver = self.solver.as_ref().expect("created above");
         let trace = solver.trace();
         let scored: Vec<(RowEstimate, f64)> = committed
             .iter()
@@ -391,7 +407,8 @@ impl Trip {
                     Some(j) if e.row >= first_new => {
                         self.causal_confidence(&chat, e.row - first_new, j, &graph)
                     }
-                    _ => 0.0,
+                    Some(j) => self.window_confidence(solver, e.row, j, &graph),
+                    None => 0.0,
                 };
                 (*e, conf)
             })
@@ -475,6 +492,25 @@ impl Trip {
             }
         }
         out
+    }
+
+    /// Local ratio of an earlier frame still in the lag window, re-traced at `j`: its `L` rows
+    /// on each side as far as the window holds them (later frames have arrived since, so this
+    /// sees more of its future than the confidence it was first reported with).
+    fn window_confidence(
+        &self,
+        solver: &OnlineSolver,
+        row: usize,
+        j: usize,
+        graph: &GraphParams,
+    ) -> f64 {
+        let window = solver.window_rows();
+        let l = self.params.confidence.half_window;
+        let idx = row + window.len() - solver.rows();
+        let lo = idx.saturating_sub(l);
+        let hi = (idx + l).min(window.len() - 1);
+        let rows: Vec<&[f32]> = (lo..=hi).map(|t| window[t].as_slice()).collect();
+        window_ratio(&rows, idx - lo, graph, self.params.confidence.radius, j)
     }
 
     /// Local ratio of frame `first_new + k` at `j`: the `L` rows before it (from earlier batches
@@ -655,11 +691,26 @@ mod tests {
         assert_eq!(trip.hidden_cost(), Some(1.5));
         let bad = |p: TripParams| Trip::new(prior(d), p).err().unwrap().to_string();
         assert!(bad(TripParams { lag: 0, ..raw }).contains("lag"));
-        assert!(bad(TripParams { fan_out: 5000, ..raw }).contains("fan_out"));
-        assert!(bad(TripParams { prior_weight: -1.0, ..raw }).contains("prior_weight"));
-        assert!(bad(TripParams { relocalization: Some(-2.0), ..raw }).contains("relocalization"));
+        assert!(bad(TripParams {
+            fan_out: 5000,
+            ..raw
+        })
+        .contains("fan_out"));
+        assert!(bad(TripParams {
+            prior_weight: -1.0,
+            ..raw
+        })
+        .contains("prior_weight"));
+        assert!(bad(TripParams {
+            relocalization: Some(-2.0),
+            ..raw
+        })
+        .contains("relocalization"));
         assert!(trip.push_batch(&Matrix::zeros(0, d)).is_err());
-        assert!(matches!(trip.push_batch(&Matrix::zeros(2, d + 1)), Err(Error::Shape(_))));
+        assert!(matches!(
+            trip.push_batch(&Matrix::zeros(2, d + 1)),
+            Err(Error::Shape(_))
+        ));
         assert_eq!(trip.frames(), 4);
     }
 
@@ -695,19 +746,32 @@ mod tests {
         .unwrap();
         let summer = extract_files(&spec, &files("summer")[..route.map_len], &|| {}).unwrap();
         let winter_files = files("winter");
-        let picked: Vec<_> = route.frames.iter().map(|&i| winter_files[i].clone()).collect();
+        let picked: Vec<_> = route
+            .frames
+            .iter()
+            .map(|&i| winter_files[i].clone())
+            .collect();
         let winter = extract_files(&spec, &picked, &|| {}).unwrap();
         let c = similarity::cosine_matrix(&winter, &summer).unwrap();
         let mut trip = Trip::new(column_prior(&summer).unwrap(), TripParams::default()).unwrap();
         let mut arrival = Vec::new();
         for start in (0..c.rows()).step_by(10) {
-            let rows: Vec<&[f32]> = (start..(start + 10).min(c.rows())).map(|i| c.row(i)).collect();
-            arrival.extend(trip.push_batch(&Matrix::from_rows(&rows).unwrap()).unwrap().estimates);
+            let rows: Vec<&[f32]> = (start..(start + 10).min(c.rows()))
+                .map(|i| c.row(i))
+                .collect();
+            arrival.extend(
+                trip.push_batch(&Matrix::from_rows(&rows).unwrap())
+                    .unwrap()
+                    .estimates,
+            );
         }
         let delays = relocalization_delays(&route, &arrival);
         eprintln!("relocalization delays per segment: {delays:?}");
         for (seg, d) in route.segments.iter().zip(&delays) {
-            assert!(d.is_some_and(|d| d <= 15), "segment {seg:?}: {d:?} ({delays:?})");
+            assert!(
+                d.is_some_and(|d| d <= 15),
+                "segment {seg:?}: {d:?} ({delays:?})"
+            );
         }
     }
 }

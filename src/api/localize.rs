@@ -18,12 +18,12 @@ use axum::routing::{get, post};
 use axum::Router;
 use serde::Deserialize;
 
+use super::descriptors::query_descriptors;
 use super::dto::{
     format_id, parse_id, HypothesisDto, LocalizationListResponse, LocalizationResponse,
     LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
 };
 use super::error::ApiError;
-use super::descriptors::query_descriptors;
 use super::maps::map_id;
 use super::state::{blocking, AppState};
 use super::upload::{self, ImagePart};

@@ -116,19 +116,20 @@ impl TripParamsDto {
     /// Resolves defaults and validates every range (errors name the field).
     pub fn into_params(self) -> Result<TripParams, ApiError> {
         let d = TripParams::default();
-        let hidden_cost = match self.hidden_cost {
-            None => d.hidden_cost,
-            Some(serde_json::Value::String(s)) if s == "auto" => None,
-            Some(serde_json::Value::Number(n)) => Some(n.as_f64().ok_or_else(|| {
-                ApiError::param("hidden_cost", format!("{n} is not a number"))
-            })?),
-            Some(other) => {
-                return Err(ApiError::param(
-                    "hidden_cost",
-                    format!("must be a number > 0 or \"auto\", got {other}"),
-                ))
-            }
-        };
+        let hidden_cost =
+            match self.hidden_cost {
+                None => d.hidden_cost,
+                Some(serde_json::Value::String(s)) if s == "auto" => None,
+                Some(serde_json::Value::Number(n)) => Some(n.as_f64().ok_or_else(|| {
+                    ApiError::param("hidden_cost", format!("{n} is not a number"))
+                })?),
+                Some(other) => {
+                    return Err(ApiError::param(
+                        "hidden_cost",
+                        format!("must be a number > 0 or \"auto\", got {other}"),
+                    ))
+                }
+            };
         if self.relocalization == Some(false) && self.relocalization_cost.is_some() {
             return Err(ApiError::param(
                 "relocalization_cost",
@@ -506,7 +507,11 @@ async fn frames(
     Ok(Json(FramesResponse {
         trip_id: format_id(trip),
         frame_count,
-        estimates: update.estimates.iter().map(FrameEstimateDto::from).collect(),
+        estimates: update
+            .estimates
+            .iter()
+            .map(FrameEstimateDto::from)
+            .collect(),
         status,
         window: update.window.iter().map(FrameEstimateDto::from).collect(),
         hidden_cost,

@@ -186,7 +186,9 @@ mod tests {
         assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
         assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
         // Trips work on an upgraded store, and deleting the map still removes everything.
-        let trip = store.create_trip(map_id, 2, b"{}".to_vec(), vec![7]).unwrap();
+        let trip = store
+            .create_trip(map_id, 2, b"{}".to_vec(), vec![7])
+            .unwrap();
         assert_eq!(store.list_trips(map_id, None, 5).unwrap().items, vec![trip]);
         // Opening again is a no-op: the upgrade does not run twice.
         drop(store);

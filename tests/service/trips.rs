@@ -4,7 +4,9 @@
 
 use serde_json::{json, Value};
 
-use crate::common::{create_hog_map, create_vector_map, nordland, nordland_files, Process, Route, Server};
+use crate::common::{
+    create_hog_map, create_vector_map, nordland, nordland_files, Process, Route, Server,
+};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -80,7 +82,9 @@ fn trip_flow_on_generated_images() {
     // The route is easy: the latest frames are found within one frame and the trip is localized.
     assert_eq!(last["status"], "localized", "{last}");
     let latest = &last["estimates"][9];
-    let j = latest["ref"].as_i64().expect("the last frame is on the map");
+    let j = latest["ref"]
+        .as_i64()
+        .expect("the last frame is on the map");
     assert!((j - 39).abs() <= 1, "{latest}");
     let r = c.get(&format!("/v1/trips/{trip}"));
     check("GET", READ, &r);
@@ -98,9 +102,16 @@ fn trip_flow_on_generated_images() {
     let correct = est
         .iter()
         .enumerate()
-        .filter(|(i, e)| e["ref"].as_i64().is_some_and(|j| (j - *i as i64).abs() <= 1))
+        .filter(|(i, e)| {
+            e["ref"]
+                .as_i64()
+                .is_some_and(|j| (j - *i as i64).abs() <= 1)
+        })
         .count();
-    assert!(correct >= 36, "{correct} of 40 frames within one frame: {t}");
+    assert!(
+        correct >= 36,
+        "{correct} of 40 frames within one frame: {t}"
+    );
     // Listing, newest first.
     let second = open(&c, &map, Some(json!({"lag": 8, "hidden_cost": 1.5})));
     let r = c.get(&format!("/v1/maps/{map}/trips?limit=1"));
@@ -110,7 +121,9 @@ fn trip_flow_on_generated_images() {
     assert_eq!(page["items"][0]["params"]["hidden_cost"], 1.5);
     assert!(page["items"][0].get("estimates").is_none());
     let next = page["next"].as_str().unwrap();
-    let page2 = c.get(&format!("/v1/maps/{map}/trips?limit=1&before={next}")).json();
+    let page2 = c
+        .get(&format!("/v1/maps/{map}/trips?limit=1&before={next}"))
+        .json();
     assert_eq!(page2["items"][0]["id"], trip.as_str());
     assert_eq!(page2["next"], Value::Null);
     // Close: idempotent, and frames are refused afterwards.
@@ -120,10 +133,16 @@ fn trip_flow_on_generated_images() {
     let closed_at = r.json()["closed_at_ms"].as_u64().unwrap();
     let again = c.request("POST", &format!("/v1/trips/{trip}/close"), None, &[]);
     assert_eq!(again.json()["closed_at_ms"], closed_at);
-    let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &query_parts(&route, 40..41));
+    let r = c.post_multipart(
+        &format!("/v1/trips/{trip}/frames"),
+        &query_parts(&route, 40..41),
+    );
     check("POST", FRAMES, &r);
     assert_eq!((r.status, r.code()), (409, "trip_closed".into()));
-    assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 40);
+    assert_eq!(
+        c.get(&format!("/v1/trips/{trip}")).json()["frame_count"],
+        40
+    );
     // Deleting the map deletes its trips.
     assert_eq!(c.delete(&format!("/v1/maps/{map}")).status, 204);
     let r = c.get(&format!("/v1/trips/{trip}"));
@@ -145,14 +164,21 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
         (json!({"hidden_cost": "cheap"}), "hidden_cost"),
         (json!({"hidden_cost": -1.0}), "hidden_cost"),
         (json!({"relocalization_cost": -2.0}), "relocalization_cost"),
-        (json!({"relocalization": false, "relocalization_cost": 2.0}), "relocalization_cost"),
+        (
+            json!({"relocalization": false, "relocalization_cost": 2.0}),
+            "relocalization_cost",
+        ),
         (json!({"prior_weight": -1}), "prior_weight"),
         (json!({"lagg": 3}), "lagg"),
         (json!({"lag": "long"}), "lag"),
     ] {
         let r = c.post_json(&trips, &params);
         check("POST", OPEN, &r);
-        assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()), "{params}");
+        assert_eq!(
+            (r.status, r.code()),
+            (400, "invalid_parameter".into()),
+            "{params}"
+        );
         assert!(r.message().contains(field), "{params}: {}", r.message());
     }
     let r = c.request("POST", &trips, Some("text/plain"), b"lag=3");
@@ -169,7 +195,10 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
         check("GET", READ, &r);
         assert_eq!((r.status, r.code()), (404, "trip_not_found".into()));
     }
-    let r = c.post_multipart("/v1/trips/00000000000000ff/frames", &query_parts(&route, 0..1));
+    let r = c.post_multipart(
+        "/v1/trips/00000000000000ff/frames",
+        &query_parts(&route, 0..1),
+    );
     assert_eq!((r.status, r.code()), (404, "trip_not_found".into()));
     let r = c.request("POST", "/v1/trips/00000000000000ff/close", None, &[]);
     assert_eq!((r.status, r.code()), (404, "trip_not_found".into()));
@@ -187,7 +216,10 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     let twin = open(&c, &map, None);
     let frames = format!("/v1/trips/{trip}/frames");
     let first = post_frames(&c, &trip, &query_parts(&route, 0..6));
-    assert_eq!(answer(&first), answer(&post_frames(&c, &twin, &query_parts(&route, 0..6))));
+    assert_eq!(
+        answer(&first),
+        answer(&post_frames(&c, &twin, &query_parts(&route, 0..6)))
+    );
     let mut corrupt = query_parts(&route, 6..9);
     corrupt[1].bytes.truncate(40);
     let r = c.post_multipart(&frames, &corrupt);
@@ -195,7 +227,10 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     assert_eq!((r.status, r.code()), (422, "invalid_image".into()));
     assert!(r.message().contains("image[1]"), "{}", r.message());
     let mut wrong_size = query_parts(&route, 6..8);
-    wrong_size[0] = Part::image("big.png", crate::common::png(&image::GrayImage::new(96, 32)));
+    wrong_size[0] = Part::image(
+        "big.png",
+        crate::common::png(&image::GrayImage::new(96, 32)),
+    );
     let r = c.post_multipart(&frames, &wrong_size);
     assert_eq!((r.status, r.code()), (422, "descriptor_length".into()));
     let r = c.post_multipart(&frames, &[Part::json("params", &json!({}))]);
@@ -223,7 +258,11 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     for q in ["limit=0", "limit=101", "before=xyz", "color=red"] {
         let r = c.get(&format!("/v1/maps/{map}/trips?{q}"));
         check("GET", OPEN, &r);
-        assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()), "{q}");
+        assert_eq!(
+            (r.status, r.code()),
+            (400, "invalid_parameter".into()),
+            "{q}"
+        );
     }
     let r = c.get("/v1/maps/00000000000000ff/trips");
     assert_eq!((r.status, r.code()), (404, "map_not_found".into()));
@@ -243,7 +282,13 @@ fn concurrent_trips_do_not_interfere_and_one_trip_stays_ordered() {
                 let route = &route;
                 s.spawn(move || {
                     (0..3u32)
-                        .map(|b| answer(&post_frames(&c, t, &query_parts(route, b * 10..b * 10 + 10))))
+                        .map(|b| {
+                            answer(&post_frames(
+                                &c,
+                                t,
+                                &query_parts(route, b * 10..b * 10 + 10),
+                            ))
+                        })
                         .collect::<Vec<_>>()
                 })
             })
@@ -270,7 +315,10 @@ fn concurrent_trips_do_not_interfere_and_one_trip_stays_ordered() {
         .collect();
     firsts.sort_unstable();
     assert_eq!(firsts, vec![0, 5]);
-    assert_eq!(c.get(&format!("/v1/trips/{shared}")).json()["frame_count"], 10);
+    assert_eq!(
+        c.get(&format!("/v1/trips/{shared}")).json()["frame_count"],
+        10
+    );
 }
 
 fn serve(dir: &std::path::Path, log: &std::path::Path) -> Process {
@@ -343,7 +391,8 @@ fn online_latest_estimate_equals_offline_localization_on_nordland() {
         &map,
         Some(json!({"normalize": false, "relocalization": false, "hidden_cost": w, "lag": 16})),
     );
-    let part = |p: &std::path::PathBuf| Part::image(&p.file_name().unwrap().to_string_lossy(), read(p));
+    let part =
+        |p: &std::path::PathBuf| Part::image(&p.file_name().unwrap().to_string_lossy(), read(p));
     let queries: Vec<Part> = winter[..150].iter().map(part).collect();
     let mut compared = 0;
     for end in (10..=150).step_by(10) {
