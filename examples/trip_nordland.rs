@@ -99,8 +99,21 @@ fn main() {
     let prior = seasonloc::trip::column_prior(&summer).expect("prior");
     let defaults = TripParams::default();
     let (arrival, last) = stream(&c, &prior, defaults, 10);
+    let mut probe = Trip::new(prior.clone(), defaults).expect("valid parameters");
+    for start in (0..q).step_by(10) {
+        let rows: Vec<&[f32]> = (start..(start + 10).min(q)).map(|i| c.row(i)).collect();
+        probe
+            .push_batch(&Matrix::from_rows(&rows).expect("rows"))
+            .expect("batch");
+    }
+    let state = format!(
+        "state after {q} frames on a {}-image map: {} bytes encoded, {} bytes of heap",
+        summer.rows(),
+        probe.to_bytes().len(),
+        probe.heap_bytes()
+    );
     row(
-        "trip, defaults (R = 2, lag 32): estimate at arrival",
+        "trip, defaults (R = 1, lag 32): estimate at arrival",
         &score(&predictions(&arrival)),
     );
     row(
@@ -138,6 +151,7 @@ fn main() {
     );
 
     println!();
+    println!("{state}");
     let route = jump_route();
     let map_rows: Vec<&[f32]> = (0..route.map_len).map(|j| summer.row(j)).collect();
     let map = Matrix::from_rows(&map_rows).expect("map");
