@@ -22,6 +22,15 @@ pub enum ApiError {
     /// 404 `localization_not_found`.
     #[error("localization `{0}` does not exist")]
     LocalizationNotFound(String),
+    /// 404 `trip_not_found`.
+    #[error("trip `{0}` does not exist")]
+    TripNotFound(String),
+    /// 409 `trip_closed`: frames posted to a closed trip.
+    #[error("trip `{0}` is closed; open a new trip")]
+    TripClosed(String),
+    /// 409 `trip_conflict`: the trip changed while a batch was computed (retry the batch).
+    #[error("{0}")]
+    TripConflict(String),
     /// 404 `route_not_found`.
     #[error("no route for {0}")]
     RouteNotFound(String),
@@ -131,6 +140,9 @@ impl ApiError {
             ApiError::MapNotFound(_) => (S::NOT_FOUND, "map_not_found", false),
             ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
             ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
+            ApiError::TripNotFound(_) => (S::NOT_FOUND, "trip_not_found", false),
+            ApiError::TripClosed(_) => (S::CONFLICT, "trip_closed", false),
+            ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),
             ApiError::MethodNotAllowed => (S::METHOD_NOT_ALLOWED, "method_not_allowed", false),
             ApiError::InvalidParameter { .. } => (S::BAD_REQUEST, "invalid_parameter", false),
             ApiError::BadRequest(_) => (S::BAD_REQUEST, "bad_request", false),
@@ -216,6 +228,9 @@ impl From<StoreError> for ApiError {
             StoreError::DimensionMismatch { .. } => ApiError::DescriptorLength(e.to_string()),
             StoreError::MapFull(id) => ApiError::MapFull(super::dto::format_id(id)),
             StoreError::Conflict(_) => ApiError::MapChanged(e.to_string()),
+            StoreError::TripNotFound(id) => ApiError::TripNotFound(super::dto::format_id(id)),
+            StoreError::TripClosed(id) => ApiError::TripClosed(super::dto::format_id(id)),
+            StoreError::TripConflict { .. } => ApiError::TripConflict(e.to_string()),
             StoreError::Open { .. }
             | StoreError::Sled(_)
             | StoreError::Corrupt { .. }

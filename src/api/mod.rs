@@ -4,7 +4,7 @@
 //! Only this module knows axum and JSON. Handlers parse and validate input, run CPU work on the
 //! rayon pool and store I/O on blocking threads ([`state`]), and convert store and core types
 //! to wire types ([`dto`]) at the edge. One file per resource: [`maps`](self) (maps and their
-//! reference images), `localize` (localizations), `ops` (health, metrics, OpenAPI).
+//! reference images), `localize` (localizations), [`trips`] (online trips), `ops` (health, metrics, OpenAPI).
 
 mod cooc;
 pub mod dto;
@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod ops;
 mod router;
 pub mod state;
+pub mod trips;
 pub mod upload;
 
 pub use error::ApiError;

@@ -22,7 +22,7 @@ use tracing::Level;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{cooc, localize, maps, metrics, ops};
+use super::{cooc, localize, maps, metrics, ops, trips};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -37,6 +37,11 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("post", "/v1/maps/{id}/localize"),
     ("get", "/v1/localizations"),
     ("get", "/v1/localizations/{id}"),
+    ("post", "/v1/maps/{id}/trips"),
+    ("get", "/v1/maps/{id}/trips"),
+    ("post", "/v1/trips/{id}/frames"),
+    ("get", "/v1/trips/{id}"),
+    ("post", "/v1/trips/{id}/close"),
     ("get", "/healthz"),
     ("get", "/readyz"),
     ("get", "/metrics"),
@@ -85,6 +90,7 @@ pub fn app(state: AppState) -> Router {
         .merge(maps::router())
         .merge(cooc::router())
         .merge(localize::router())
+        .merge(trips::router())
         .merge(ops::router())
         .fallback(|req: Request| async move {
             ApiError::RouteNotFound(format!("{} {}", req.method(), req.uri().path()))

@@ -31,6 +31,8 @@ pub struct AppState {
     pub metrics: Arc<Metrics>,
     /// `openapi/openapi.yaml` as JSON.
     pub openapi_json: Bytes,
+    /// Per-trip locks and per-map column priors of open trips.
+    pub trips: Arc<super::trips::TripShared>,
 }
 
 impl AppState {
@@ -45,6 +47,7 @@ impl AppState {
             pool,
             metrics: Arc::new(Metrics::default()),
             openapi_json,
+            trips: Arc::default(),
         })
     }
 }

@@ -11,14 +11,19 @@
 //! | `L` + localization id (`u64` BE) | [`LocalizationRecord`] |
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
 //! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
+//! | `T` + trip id (`u64` BE) | [`TripRecord`] (layout >= 4) |
+//! | `S` + trip id (`u64` BE) | the trip's solver state, opaque bytes from `crate::trip` |
+//! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`]: the frame's latest estimate |
+//! | `t` + map id (`u64` BE) + trip id (`u64` BE) | empty (index of a map's trips) |
 //!
 //! Big-endian integers make sled's lexicographic order the numeric order, so a map's images
-//! iterate in route order and localizations in creation order. Prefixes `T`/`F` are reserved
-//! for trips. Values are a small hand-written binary format starting with a format byte; the
+//! iterate in route order, localizations in creation order and a trip's frames in driving
+//! order. Values are a small hand-written binary format starting with a format byte; the
 //! decoder rejects trailing or missing bytes, so corruption is reported rather than misread.
 
 use super::{
-    CnnSettings, DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, StoreError,
+    CnnSettings, DescriptorSettings, FrameRecord, ImageMeta, LocalizationRecord, MapRecord,
+    StoreError, TripRecord,
 };
 use crate::cooc::keypoints::KeypointParams;
 use crate::cooc::CoocParams;
@@ -39,53 +44,96 @@ pub const COOC_PREFIX: u8 = b'C';
 
 /// `C` + map id: the encoded `CoocMap` of a `cooc` map.
 pub fn cooc_key(id: u64) -> [u8; 9] {
-    let mut k = [COOC_PREFIX; 9];
+    id_key(COOC_PREFIX, id)
+}
+
+/// Prefix of trip records.
+pub const TRIP_PREFIX: u8 = b'T';
+/// Prefix of trip states.
+pub const TRIP_STATE_PREFIX: u8 = b'S';
+/// Prefix of trip frame estimates.
+pub const TRIP_FRAME_PREFIX: u8 = b'F';
+/// Prefix of the by-map trip index.
+pub const TRIP_BY_MAP_PREFIX: u8 = b't';
+
+fn id_key(prefix: u8, id: u64) -> [u8; 9] {
+    let mut k = [prefix; 9];
     k[1..].copy_from_slice(&id.to_be_bytes());
     k
 }
 
-/// `M` + id.
-pub fn map_key(id: u64) -> [u8; 9] {
-    let mut k = [MAP_PREFIX; 9];
-    k[1..].copy_from_slice(&id.to_be_bytes());
-    k
-}
-
-/// `I` + map id: the prefix of all of a map's images.
-pub fn images_prefix(map: u64) -> [u8; 9] {
-    let mut k = [IMAGE_PREFIX; 9];
-    k[1..].copy_from_slice(&map.to_be_bytes());
-    k
-}
-
-/// `I` + map id + index.
-pub fn image_key(map: u64, index: u32) -> [u8; 13] {
-    let mut k = [IMAGE_PREFIX; 13];
-    k[1..9].copy_from_slice(&map.to_be_bytes());
+fn index_key(prefix: u8, id: u64, index: u32) -> [u8; 13] {
+    let mut k = [prefix; 13];
+    k[1..9].copy_from_slice(&id.to_be_bytes());
     k[9..].copy_from_slice(&index.to_be_bytes());
     k
 }
 
+fn pair_key(prefix: u8, a: u64, b: u64) -> [u8; 17] {
+    let mut k = [prefix; 17];
+    k[1..9].copy_from_slice(&a.to_be_bytes());
+    k[9..].copy_from_slice(&b.to_be_bytes());
+    k
+}
+
+/// `T` + trip id.
+pub fn trip_key(id: u64) -> [u8; 9] {
+    id_key(TRIP_PREFIX, id)
+}
+
+/// `S` + trip id.
+pub fn trip_state_key(id: u64) -> [u8; 9] {
+    id_key(TRIP_STATE_PREFIX, id)
+}
+
+/// `F` + trip id: the prefix of a trip's frames.
+pub fn trip_frames_prefix(id: u64) -> [u8; 9] {
+    id_key(TRIP_FRAME_PREFIX, id)
+}
+
+/// `F` + trip id + frame.
+pub fn trip_frame_key(id: u64, frame: u32) -> [u8; 13] {
+    index_key(TRIP_FRAME_PREFIX, id, frame)
+}
+
+/// `t` + map id: the prefix of a map's trip index.
+pub fn trips_by_map_prefix(map: u64) -> [u8; 9] {
+    id_key(TRIP_BY_MAP_PREFIX, map)
+}
+
+/// `t` + map id + trip id.
+pub fn trip_by_map_key(map: u64, id: u64) -> [u8; 17] {
+    pair_key(TRIP_BY_MAP_PREFIX, map, id)
+}
+
+/// `M` + id.
+pub fn map_key(id: u64) -> [u8; 9] {
+    id_key(MAP_PREFIX, id)
+}
+
+/// `I` + map id: the prefix of all of a map's images.
+pub fn images_prefix(map: u64) -> [u8; 9] {
+    id_key(IMAGE_PREFIX, map)
+}
+
+/// `I` + map id + index.
+pub fn image_key(map: u64, index: u32) -> [u8; 13] {
+    index_key(IMAGE_PREFIX, map, index)
+}
+
 /// `L` + id.
 pub fn localization_key(id: u64) -> [u8; 9] {
-    let mut k = [LOCALIZATION_PREFIX; 9];
-    k[1..].copy_from_slice(&id.to_be_bytes());
-    k
+    id_key(LOCALIZATION_PREFIX, id)
 }
 
 /// `l` + map id: the prefix of a map's localization index.
 pub fn by_map_prefix(map: u64) -> [u8; 9] {
-    let mut k = [LOCALIZATION_BY_MAP_PREFIX; 9];
-    k[1..].copy_from_slice(&map.to_be_bytes());
-    k
+    id_key(LOCALIZATION_BY_MAP_PREFIX, map)
 }
 
 /// `l` + map id + localization id.
 pub fn by_map_key(map: u64, id: u64) -> [u8; 17] {
-    let mut k = [LOCALIZATION_BY_MAP_PREFIX; 17];
-    k[1..9].copy_from_slice(&map.to_be_bytes());
-    k[9..].copy_from_slice(&id.to_be_bytes());
-    k
+    pair_key(LOCALIZATION_BY_MAP_PREFIX, map, id)
 }
 
 /// Reads the `u64` at `key[at..at + 8]`.
@@ -469,6 +517,90 @@ pub fn encode_localization(l: &LocalizationRecord) -> Vec<u8> {
     w.u64(l.created_ms);
     w.bytes(&l.document);
     w.0
+}
+
+/// Encodes a trip record.
+pub fn encode_trip(t: &TripRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.u64(t.id);
+    w.u64(t.map_id);
+    w.u64(t.created_ms);
+    match t.closed_ms {
+        None => w.u8(0),
+        Some(ms) => {
+            w.u8(1);
+            w.u64(ms);
+        }
+    }
+    w.u64(t.frame_count);
+    w.u32(t.reference_count);
+    w.u8(t.status);
+    w.bytes(&t.params);
+    w.0
+}
+
+/// Decodes a trip record.
+pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let id = r.u64()?;
+    let map_id = r.u64()?;
+    let created_ms = r.u64()?;
+    let closed_ms = match r.u8()? {
+        0 => None,
+        1 => Some(r.u64()?),
+        t => return Err(StoreError::corrupt(key, format!("bad option tag {t}"))),
+    };
+    let frame_count = r.u64()?;
+    let reference_count = r.u32()?;
+    let status = r.u8()?;
+    let params = r.bytes()?.to_vec();
+    r.finish()?;
+    Ok(TripRecord {
+        id,
+        map_id,
+        created_ms,
+        closed_ms,
+        frame_count,
+        reference_count,
+        status,
+        params,
+    })
+}
+
+/// Encodes a frame's estimate.
+pub fn encode_frame(f: &FrameRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    match f.reference {
+        None => w.u8(0),
+        Some(j) => {
+            w.u8(1);
+            w.u32(j);
+        }
+    }
+    w.f64(f.confidence);
+    w.0
+}
+
+/// Decodes a frame's estimate stored under `key` (the frame index comes from the key).
+pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameRecord, StoreError> {
+    let frame = key
+        .get(9..13)
+        .and_then(|b| b.try_into().ok())
+        .map(u32::from_be_bytes)
+        .ok_or_else(|| StoreError::corrupt(key, "key too short for a frame"))?;
+    let mut r = Reader::new(key, value)?;
+    let reference = match r.u8()? {
+        0 => None,
+        1 => Some(r.u32()?),
+        t => return Err(StoreError::corrupt(key, format!("bad option tag {t}"))),
+    };
+    let confidence = r.f64()?;
+    r.finish()?;
+    Ok(FrameRecord {
+        frame,
+        reference,
+        confidence,
+    })
 }
 
 /// Decodes a localization record.

@@ -61,7 +61,7 @@ impl Store {
         }
     }
 
-    /// Deletes a map with its images and localizations, atomically.
+    /// Deletes a map with its images, localizations and trips, atomically.
     pub fn delete_map(&self, id: u64) -> StoreResult<()> {
         let _guard = self.lock();
         self.get_map(id)?;
@@ -77,6 +77,7 @@ impl Store {
             batch.remove(&codec::localization_key(loc));
             batch.remove(k);
         }
+        self.remove_trips(id, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         self.cache().remove(&id);

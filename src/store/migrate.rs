@@ -38,10 +38,16 @@ pub const MIGRATIONS: &[Migration] = &[
         doc: include_str!("../../migrations/0003_cnn_maps.md"),
         apply: cnn_maps,
     },
+    Migration {
+        version: 4,
+        file: "0004_trips.md",
+        doc: include_str!("../../migrations/0004_trips.md"),
+        apply: trips,
+    },
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 3;
+pub const CURRENT_VERSION: u32 = 4;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -94,6 +100,11 @@ pub fn migrate(db: &sled::Db) -> StoreResult<u32> {
 }
 
 fn initial(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+    Ok(())
+}
+
+/// Layouts before 4 have no trip keys, so there is nothing to convert.
+fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -202,6 +213,11 @@ mod tests {
             .unwrap();
         assert_eq!(store.get_map(created.id).unwrap().descriptor, cnn);
         assert_eq!(store.get_map(map_id).unwrap().name, "old");
+        // Trips work on an upgraded store, and deleting the map still removes everything.
+        let trip = store
+            .create_trip(map_id, 2, b"{}".to_vec(), vec![7])
+            .unwrap();
+        assert_eq!(store.list_trips(map_id, None, 5).unwrap().items, vec![trip]);
         // Opening again is a no-op: the upgrade does not run twice.
         drop(store);
         let store = Store::open(dir.path()).unwrap();

@@ -19,6 +19,7 @@ mod cooc;
 mod localizations;
 mod maps;
 pub mod migrate;
+mod trips;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -27,6 +28,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use crate::Matrix;
 
 pub use maps::NewMap;
+pub use trips::{BatchWrite, TripPage};
 
 /// Errors of the store layer.
 #[derive(Debug, thiserror::Error)]
@@ -80,6 +82,22 @@ pub enum StoreError {
     /// A co-occurrence map changed between reading and writing it (a concurrent write).
     #[error("map {0:016x} was changed by another request; retry")]
     Conflict(u64),
+    /// No trip with this id.
+    #[error("trip {0:016x} does not exist")]
+    TripNotFound(u64),
+    /// The trip was closed; it accepts no more frames.
+    #[error("trip {0:016x} is closed")]
+    TripClosed(u64),
+    /// A batch was computed from a state that is no longer the stored one.
+    #[error("trip {id:016x} has {stored} frames, the batch was computed after {expected}")]
+    TripConflict {
+        /// The trip.
+        id: u64,
+        /// Frames stored.
+        stored: u64,
+        /// Frames the batch assumed.
+        expected: u64,
+    },
     /// A map cannot grow further (more than `u32::MAX` images).
     #[error("map {0:016x} is full")]
     MapFull(u64),
@@ -171,6 +189,38 @@ pub struct LocalizationRecord {
     pub created_ms: u64,
     /// The caller's serialized result.
     pub document: Vec<u8>,
+}
+
+/// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TripRecord {
+    /// Trip id (increasing with creation time).
+    pub id: u64,
+    /// The map it localizes against.
+    pub map_id: u64,
+    /// Creation time, milliseconds since the Unix epoch.
+    pub created_ms: u64,
+    /// When it was closed, if it was.
+    pub closed_ms: Option<u64>,
+    /// Frames consumed so far.
+    pub frame_count: u64,
+    /// The map's image count when the trip was opened: the trip localizes against those.
+    pub reference_count: u32,
+    /// The caller's status code after the last batch (0 before the first).
+    pub status: u8,
+    /// The caller's serialized parameters.
+    pub params: Vec<u8>,
+}
+
+/// The latest estimate of one frame of a trip.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameRecord {
+    /// Frame index since the trip started.
+    pub frame: u32,
+    /// Estimated reference, `None` when not on the map.
+    pub reference: Option<u32>,
+    /// Confidence of the estimate.
+    pub confidence: f64,
 }
 
 /// The store. Cheap to share behind an `Arc`; all methods are blocking (call them off the

@@ -11,3 +11,4 @@ mod errors;
 mod flow;
 mod http;
 mod spec;
+mod trips;
