@@ -34,9 +34,9 @@ pub const MIGRATIONS: &[Migration] = &[
     },
     Migration {
         version: 3,
-        file: "0003_cnn_maps.md",
-        doc: include_str!("../../migrations/0003_cnn_maps.md"),
-        apply: cnn_maps,
+        file: "0003_cnn_and_cooc_maps.md",
+        doc: include_str!("../../migrations/0003_cnn_and_cooc_maps.md"),
+        apply: cnn_and_cooc_maps,
     },
     Migration {
         version: 4,
@@ -117,8 +117,9 @@ fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<(
     Ok(())
 }
 
-/// Version 3 adds a descriptor kind to map records; every version-2 record is already valid.
-fn cnn_maps(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+/// Version 3 adds descriptor kinds (CNN, co-occurrence) and `C` keys; every version-2 record is
+/// already valid.
+fn cnn_and_cooc_maps(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
