@@ -48,12 +48,15 @@ pub fn router() -> Router<AppState> {
         .route("/v1/trips/{id}/close", post(close))
 }
 
+/// A map's column prior with the image count it was computed for.
+type CachedPrior = (u32, Arc<Vec<f32>>);
+
 /// Per-trip locks and the column priors of maps with trips.
 #[derive(Default)]
 pub struct TripShared {
     locks: Mutex<HashMap<u64, Arc<tokio::sync::Mutex<()>>>>,
     /// Map id -> (image count the prior was computed for, prior).
-    priors: Mutex<HashMap<u64, (u32, Arc<Vec<f32>>)>>,
+    priors: Mutex<HashMap<u64, CachedPrior>>,
 }
 
 impl TripShared {
