@@ -26,6 +26,7 @@
 mod exact;
 mod graph;
 mod greedy;
+mod kernel;
 mod marginals;
 #[cfg(test)]
 mod reference;
@@ -35,6 +36,7 @@ mod shortest_path;
 /// the confidence and the online solver use this one definition.
 pub(crate) use graph::match_cost;
 pub use graph::Blocked;
+pub(crate) use kernel::{forward_values_row, Scratch as RowScratch};
 pub use marginals::{row_alternatives, RowAlternatives};
 pub use shortest_path::shortest_path;
 
