@@ -299,7 +299,11 @@ pub(crate) fn range_step<P: BackPtr>(
 /// Pass 1: node costs of columns `b0 .. b0 + cost.len()`.
 fn costs(ctx: &RowCtx<'_>, b0: usize, cost: &mut [f64]) {
     let n = cost.len();
-    row_costs(&ctx.row[b0..b0 + n], ctx.blocked.map(|b| (b, ctx.i, b0)), cost);
+    row_costs(
+        &ctx.row[b0..b0 + n],
+        ctx.blocked.map(|b| (b, ctx.i, b0)),
+        cost,
+    );
 }
 
 /// `cost[t] = 1/row[t]` (`+inf` when `row[t] <= 0`), and `+inf` for the blocked nodes of
@@ -367,7 +371,14 @@ fn step(w: f64, c: f64, b: f64, lx: f64, lh: f64) -> (f64, f64) {
 }
 
 /// Plain scan of `X`, `H` from the carry-in `(lx, lh)`.
-fn scan_from(w: f64, (mut lx, mut lh): (f64, f64), cost: &[f64], base: &[f64], xs: &mut [f64], hs: &mut [f64]) {
+fn scan_from(
+    w: f64,
+    (mut lx, mut lh): (f64, f64),
+    cost: &[f64],
+    base: &[f64],
+    xs: &mut [f64],
+    hs: &mut [f64],
+) {
     for (((&c, &b), x), h) in cost.iter().zip(base).zip(xs.iter_mut()).zip(hs.iter_mut()) {
         (lx, lh) = step(w, c, b, lx, lh);
         *x = lx;
@@ -393,10 +404,8 @@ fn scan_lanes(w: f64, cost: &[f64], base: &[f64], xs: &mut [f64], hs: &mut [f64]
     let (h_body, h_tail) = hs.split_at_mut(body);
     let mut xi = x_body.chunks_exact_mut(len);
     let mut hi = h_body.chunks_exact_mut(len);
-    let x: [&mut [f64]; LANES] =
-        std::array::from_fn(|_| xi.next().expect("LANES chunks of len"));
-    let h: [&mut [f64]; LANES] =
-        std::array::from_fn(|_| hi.next().expect("LANES chunks of len"));
+    let x: [&mut [f64]; LANES] = std::array::from_fn(|_| xi.next().expect("LANES chunks of len"));
+    let h: [&mut [f64]; LANES] = std::array::from_fn(|_| hi.next().expect("LANES chunks of len"));
     let mut lx = [f64::INFINITY; LANES];
     let mut lh = [f64::INFINITY; LANES];
     for t in 0..len {

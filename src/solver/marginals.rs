@@ -158,7 +158,10 @@ impl Backward<'_> {
         row_costs(self.chat.row(i), blocked(i), cost);
         let mut right_x = f64::INFINITY; // c_{i,j+1} + BX[j+1]
         let mut right_h = f64::INFINITY;
-        let cells = g.iter().zip(cost.iter()).zip(cur.x.iter_mut().zip(cur.h.iter_mut()));
+        let cells = g
+            .iter()
+            .zip(cost.iter())
+            .zip(cur.x.iter_mut().zip(cur.h.iter_mut()));
         for ((&gj, &c), (cx, ch)) in cells.rev() {
             let bx = gj.min(right_x);
             let bh = gj.min(right_h);

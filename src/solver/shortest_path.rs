@@ -168,8 +168,9 @@ impl<'a> Dp<'a> {
         }
         let mid = d / 2;
         // H is a running minimum of `base + W`: its carry at `mid` is exact without the left half.
-        let h_mid = prev.map_or(0.0, |p| p[..mid].iter().fold(f64::INFINITY, |a, &v| a.min(v)))
-            + self.w;
+        let h_mid = prev.map_or(0.0, |p| {
+            p[..mid].iter().fold(f64::INFINITY, |a, &v| a.min(v))
+        }) + self.w;
         let (mut left, mut right) = dest.split_at(mid);
         let (carry, ()) = rayon::join(
             || range_step(&ctx, 0, &mut left, inf, s0),
@@ -222,7 +223,10 @@ impl<'a> Dp<'a> {
         let mut scratch = Scratch::default();
         for (i, p) in ptr.chunks_exact_mut(d).enumerate() {
             let before = (i > 0).then_some(&prev[..]);
-            let dest = Dest::Path { m: &mut cur, ptr: p };
+            let dest = Dest::Path {
+                m: &mut cur,
+                ptr: p,
+            };
             self.row_step(i, before, dest, &mut scratch);
             std::mem::swap(&mut prev, &mut cur);
         }
@@ -558,11 +562,19 @@ mod tests {
                 j = jj;
             }
         }
-        let mut kind = if prev_fh[j] { Kind::Hidden } else { Kind::Match };
+        let mut kind = if prev_fh[j] {
+            Kind::Hidden
+        } else {
+            Kind::Match
+        };
         let mut i = q - 1;
         let mut steps = Vec::new();
         loop {
-            steps.push(Step { row: i, col: j, kind });
+            steps.push(Step {
+                row: i,
+                col: j,
+                kind,
+            });
             let p = match kind {
                 Kind::Match => px[i * d + j],
                 Kind::Hidden => ph[i * d + j],
@@ -576,7 +588,11 @@ mod tests {
             }
             i -= 1;
             j -= p.offset;
-            kind = if p.pred_hidden { Kind::Hidden } else { Kind::Match };
+            kind = if p.pred_hidden {
+                Kind::Hidden
+            } else {
+                Kind::Match
+            };
         }
         steps.reverse();
         (steps, rows)
