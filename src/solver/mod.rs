@@ -15,7 +15,8 @@
 //! Matching nodes have capacity 1 (node-disjoint flows); hidden nodes carry any number of flows.
 //!
 //! Code map: the graph helpers (blocked set, input checks, path -> [`Hypothesis`]) live in
-//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs`, greedy and exact `F > 1` in
+//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs` (its row step, the hot loop,
+//! in `kernel.rs`; the confidence reuses it), greedy and exact `F > 1` in
 //! `greedy.rs` / `exact.rs`, min-marginals for confidences in `marginals.rs`, and the test-only
 //! reference solvers (generic min-cost flow, brute force) in `reference.rs`.
 //!
