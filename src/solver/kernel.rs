@@ -30,7 +30,7 @@ use super::graph::{match_cost, Blocked};
 /// Independent chunks scanned together in pass 3.
 pub(crate) const LANES: usize = 8;
 
-/// Columns per block (the block's six `f64` buffers, 48 KiB, stay in L1).
+/// Columns per block (the block's five 8-byte buffers, 40 KiB, stay in the 48 KiB L1).
 pub(crate) const BLOCK: usize = 1024;
 
 /// A compact per-cell back-pointer (see the module doc).
