@@ -26,12 +26,13 @@
 //! matched). On the Nordland dev split these give recall 0.45-0.57 at 99 % precision for
 //! `L` in 3..=8 and `r` in 1..=4, where `ĉ` gives about 0: the choice is not knife-edge.
 //!
-//! Cost: `2(L+1)` row updates of `D` columns per matched query row, rows in parallel (rayon).
+//! Cost: `2L+1` row updates of `D` columns per matched query row, rows in parallel (rayon); the
+//! forward updates use the solver's row kernel.
 
 use rayon::prelude::*;
 
-use crate::solver::{match_cost, Hypothesis};
-use crate::window::{leading_min, trailing_min};
+use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
+use crate::window::leading_min_in_place;
 use crate::{Error, Matrix, Result};
 
 /// Parameters of the local min-marginal ratio.
@@ -135,8 +136,9 @@ fn local_ratio(
 /// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
 /// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end).
 /// Trips use it with the scored row last (a causal window: only frames seen so far).
-// The passes read neighbouring columns of several rows; indices say that more plainly.
-#[allow(clippy::needless_range_loop)]
+///
+/// The forward rows use the solver's row kernel ([`crate::solver`], same operations as the
+/// shortest path); the backward rows are plain right-to-left passes over precomputed costs.
 pub fn window_ratio(
     rows: &[&[f32]],
     scored: usize,
@@ -145,56 +147,52 @@ pub fn window_ratio(
     j_star: usize,
 ) -> f64 {
     let d = rows[scored].len();
-    let (first, i, last) = (0, scored, rows.len() - 1);
+    let (i, last) = (scored, rows.len() - 1);
     let w = graph.hidden_cost;
     let k = graph.fan_out;
 
-    // Forward pass, free start at `first`: fx/fh = cheapest window path ending at the node.
+    // Forward pass, free start at the first row: fx/fh = cheapest window path ending at the node.
     let mut fx = vec![0.0f64; d];
     let mut fh = vec![0.0f64; d];
-    let mut best_prev = vec![0.0f64; d];
-    let mut pred = vec![0.0f64; d];
-    for t in first..=i {
-        if t == first {
-            pred.iter_mut().for_each(|p| *p = 0.0);
-        } else {
-            for (m, (x, h)) in best_prev.iter_mut().zip(fx.iter().zip(&fh)) {
-                *m = x.min(*h);
-            }
-            trailing_min(&best_prev, k, &mut pred);
-        }
-        let row = rows[t];
-        for j in 0..d {
-            fx[j] = pred[j] + match_cost(row[j]);
-            fh[j] = pred[j] + w;
-        }
-        if graph.horizontal {
-            for j in 1..d {
-                fx[j] = fx[j].min(fx[j - 1] + match_cost(row[j]));
-                fh[j] = fh[j].min(fh[j - 1]);
-            }
-        }
+    let mut m_prev = vec![0.0f64; d];
+    let mut m_cur = vec![0.0f64; d];
+    let mut scratch = RowScratch::default();
+    for (t, row) in rows[..=i].iter().enumerate() {
+        let prev = (t > 0).then_some(&m_prev[..]);
+        let out = (&mut fx[..], &mut fh[..], &mut m_cur[..]);
+        forward_values_row(row, prev, k, graph.horizontal, w, out, &mut scratch);
+        std::mem::swap(&mut m_prev, &mut m_cur);
     }
 
     // Backward pass, free end at `last`: bx/bh = cheapest continuation after the node.
     let mut bx = vec![0.0f64; d];
     let mut bh = vec![0.0f64; d];
     let mut next = vec![0.0f64; d];
-    let mut succ = vec![0.0f64; d];
+    let mut cost = vec![0.0f64; d];
     for t in (i..last).rev() {
-        let below = rows[t + 1];
-        for j in 0..d {
-            next[j] = (match_cost(below[j]) + bx[j]).min(w + bh[j]);
+        for (c, &v) in cost.iter_mut().zip(rows[t + 1]) {
+            *c = match_cost(v);
         }
-        leading_min(&next, k, &mut succ);
-        bx.copy_from_slice(&succ);
-        bh.copy_from_slice(&succ);
+        for (((n, &c), &x), &h) in next.iter_mut().zip(&cost).zip(&bx).zip(&bh) {
+            *n = (c + x).min(w + h);
+        }
+        leading_min_in_place(&mut next, k, &mut m_cur);
         if graph.horizontal {
-            let row = rows[t];
-            for j in (0..d - 1).rev() {
-                bx[j] = bx[j].min(match_cost(row[j + 1]) + bx[j + 1]);
-                bh[j] = bh[j].min(bh[j + 1]);
+            for (c, &v) in cost.iter_mut().zip(rows[t]) {
+                *c = match_cost(v);
             }
+            // bx[j] = min(succ[j], c[j+1] + bx[j+1]), bh[j] = min(succ[j], bh[j+1]).
+            let (mut right_x, mut right_h) = (f64::INFINITY, f64::INFINITY);
+            let cells = next.iter().zip(&cost).zip(bx.iter_mut().zip(bh.iter_mut()));
+            for ((&s, &c), (x, h)) in cells.rev() {
+                *x = s.min(right_x);
+                *h = s.min(right_h);
+                right_x = c + *x;
+                right_h = *h;
+            }
+        } else {
+            bx.copy_from_slice(&next);
+            bh.copy_from_slice(&next);
         }
     }
 

@@ -53,6 +53,22 @@ pub fn leading_min(m: &[f64], k: usize, out: &mut [f64]) {
     leading_min_by(m, k, out, |a, b| a < b);
 }
 
+/// In place: `v[j] = min(v[j ..= j+k])` (clamped at the end), values only; `tmp` is scratch
+/// of `v.len()`. `k` shifted passes that vectorise for `k <= 8`, [`leading_min`] above.
+pub fn leading_min_in_place(v: &mut [f64], k: usize, tmp: &mut [f64]) {
+    let d = v.len();
+    tmp.copy_from_slice(v);
+    if k > 8 {
+        leading_min(tmp, k, v);
+        return;
+    }
+    for o in 1..=k.min(d.saturating_sub(1)) {
+        for (a, &b) in v[..d - o].iter_mut().zip(&tmp[o..]) {
+            *a = a.min(b);
+        }
+    }
+}
+
 /// The left operand unless the right one is strictly smaller.
 #[inline]
 fn pick<T: Copy>(left: T, right: T, less: &impl Fn(&T, &T) -> bool) -> T {
@@ -103,7 +119,7 @@ mod tests {
 
     proptest! {
         #[test]
-        fn window_minima_match_naive_with_leftmost_ties(vals in prop::collection::vec(-3i32..3, 1..40), k in 0usize..12) {
+        fn window_minima_match_naive_with_leftmost_ties(vals in prop::collection::vec(-3i32..3, 1..40), k in 0usize..14) {
             // Pair each value with its index: ties must resolve to the leftmost element.
             let m: Vec<(i32, usize)> = vals.iter().copied().zip(0..).collect();
             let n = m.len();
@@ -112,6 +128,12 @@ mod tests {
             prop_assert_eq!(&out, &naive(&m, |j| j.saturating_sub(k), |j| j));
             leading_min_by(&m, k, &mut out, |a, b| a.0 < b.0);
             prop_assert_eq!(&out, &naive(&m, |j| j, |j| (j + k).min(n - 1)));
+            // Values only, in place: every k, both strategies.
+            let mut v: Vec<f64> = vals.iter().map(|&x| f64::from(x)).collect();
+            let mut tmp = vec![0.0; n];
+            leading_min_in_place(&mut v, k, &mut tmp);
+            let want: Vec<f64> = naive(&m, |j| j, |j| (j + k).min(n - 1)).iter().map(|p| f64::from(p.0)).collect();
+            prop_assert_eq!(v, want);
         }
     }
 }

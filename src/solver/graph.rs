@@ -60,6 +60,26 @@ impl Blocked {
         self.bits[n / 64] & (1 << (n % 64)) != 0
     }
 
+    /// Calls `f(j)` for every blocked `x_ij` of row `i` with `lo <= j < hi`, in increasing `j`,
+    /// at the cost of one word test per 64 columns.
+    pub(crate) fn for_each_in_row(&self, i: usize, lo: usize, hi: usize, mut f: impl FnMut(usize)) {
+        let row0 = i * self.cols;
+        let (mut n, end) = (row0 + lo, row0 + hi.min(self.cols));
+        while n < end {
+            let word = self.bits[n / 64] >> (n % 64);
+            if word == 0 {
+                n = (n / 64 + 1) * 64;
+                continue;
+            }
+            n += word.trailing_zeros() as usize;
+            if n >= end {
+                break;
+            }
+            f(n - row0);
+            n += 1;
+        }
+    }
+
     /// Blocks every matching node used by `hypothesis`. Panics when one lies outside the grid.
     pub fn block_hypothesis(&mut self, hypothesis: &Hypothesis) {
         for row in &hypothesis.rows {
@@ -221,6 +241,29 @@ mod tests {
         assert!(b.is_blocked(2, 69) && b.is_blocked(0, 0));
         assert!(!b.is_blocked(1, 5) && !b.is_blocked(9, 9));
         assert_eq!(b.len(), 2);
+    }
+
+    #[test]
+    fn for_each_in_row_lists_the_blocked_columns_of_a_range() {
+        let mut b = Blocked::new(3, 150);
+        let cols = [0, 1, 63, 64, 65, 127, 128, 149];
+        for &j in &cols {
+            b.block(1, j);
+        }
+        b.block(0, 149);
+        b.block(2, 0);
+        let list = |lo, hi| {
+            let mut v = Vec::new();
+            b.for_each_in_row(1, lo, hi, |j| v.push(j));
+            v
+        };
+        assert_eq!(list(0, 150), cols);
+        assert_eq!(list(1, 128), vec![1, 63, 64, 65, 127]);
+        assert_eq!(list(66, 127), Vec::<usize>::new());
+        assert_eq!(list(149, 150), vec![149]);
+        let mut v = Vec::new();
+        b.for_each_in_row(0, 0, 150, |j| v.push(j));
+        assert_eq!(v, vec![149]);
     }
 
     #[test]

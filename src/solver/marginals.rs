@@ -13,8 +13,10 @@
 //! at a time from the next checkpoint. Time: two backward passes and one forward pass.
 
 use super::graph::{check_inputs, Blocked};
+use super::kernel::row_costs;
 use super::shortest_path::{Dp, RowState, Scratch};
 use super::Hypothesis;
+use crate::window::leading_min_in_place;
 use crate::{Error, Matrix, Result};
 
 /// The min-marginals of one query row.
@@ -55,7 +57,7 @@ pub fn row_alternatives(
     let (q, d) = (chat.rows(), chat.cols());
     let dp = Dp::new(chat, fan_out, horizontal, w, blocked);
     let back = Backward {
-        dp: &dp,
+        blocked,
         chat,
         k: fan_out,
         horizontal,
@@ -65,7 +67,7 @@ pub fn row_alternatives(
     // Backward pass: checkpoints at rows 0, s, 2s, ...
     let mut next = BackRow::new(d);
     let mut cur = BackRow::new(d);
-    let mut scratch = vec![0.0; d];
+    let mut scratch = BackScratch::new(d);
     let mut checkpoints = vec![BackRow::new(d); q.div_ceil(s)];
     for i in (0..q).rev() {
         back.step(i, (i + 1 < q).then_some(&next), &mut cur, &mut scratch);
@@ -126,7 +128,7 @@ impl BackRow {
 }
 
 struct Backward<'a> {
-    dp: &'a Dp<'a>,
+    blocked: Option<&'a Blocked>,
     chat: &'a Matrix,
     k: usize,
     horizontal: bool,
@@ -134,53 +136,57 @@ struct Backward<'a> {
 }
 
 impl Backward<'_> {
-    /// Row `i` from row `i+1` (`None` for the last row). `g` is scratch of length `D`.
-    fn step(&self, i: usize, next: Option<&BackRow>, cur: &mut BackRow, g: &mut [f64]) {
-        let row = self.chat.row(i);
+    /// Row `i` from row `i+1` (`None` for the last row). `g`, `cost`, `tmp`: scratch of `D`.
+    fn step(&self, i: usize, next: Option<&BackRow>, cur: &mut BackRow, s: &mut BackScratch) {
+        let BackScratch { g, cost, tmp } = s;
+        let blocked = |row: usize| self.blocked.map(|b| (b, row, 0));
         match next {
             None => g.fill(0.0),
             Some(n) => {
-                let nrow = self.chat.row(i + 1);
-                for (kk, gk) in g.iter_mut().enumerate() {
-                    let c = self.dp.x_cost(i + 1, kk, nrow[kk]);
-                    *gk = (c + n.x[kk]).min(self.w + n.h[kk]);
+                row_costs(self.chat.row(i + 1), blocked(i + 1), cost);
+                for (((gk, &c), &x), &h) in g.iter_mut().zip(cost.iter()).zip(&n.x).zip(&n.h) {
+                    *gk = (c + x).min(self.w + h);
                 }
-                window_min_ahead(g, self.k);
+                leading_min_in_place(g, self.k, tmp);
             }
         }
+        if !self.horizontal {
+            cur.x.copy_from_slice(g);
+            cur.h.copy_from_slice(g);
+            return;
+        }
+        row_costs(self.chat.row(i), blocked(i), cost);
         let mut right_x = f64::INFINITY; // c_{i,j+1} + BX[j+1]
         let mut right_h = f64::INFINITY;
         let cells = g
             .iter()
-            .zip(row)
+            .zip(cost.iter())
             .zip(cur.x.iter_mut().zip(cur.h.iter_mut()));
-        for (j, ((&gj, &v), (cx, ch))) in cells.enumerate().rev() {
+        for ((&gj, &c), (cx, ch)) in cells.rev() {
             let bx = gj.min(right_x);
             let bh = gj.min(right_h);
             *cx = bx;
             *ch = bh;
-            if self.horizontal {
-                right_x = self.dp.x_cost(i, j, v) + bx;
-                right_h = bh;
-            }
+            right_x = c + bx;
+            right_h = bh;
         }
     }
 }
 
-/// In place: `g[j] = min(g[j..=j+k])` (clamped), by a monotone deque from the right.
-fn window_min_ahead(g: &mut [f64], k: usize) {
-    let d = g.len();
-    let src = g.to_vec();
-    let mut dq = std::collections::VecDeque::with_capacity(k.min(d) + 1);
-    for (j, gj) in g.iter_mut().enumerate().rev() {
-        while dq.back().is_some_and(|&b: &usize| src[b] >= src[j]) {
-            dq.pop_back();
+/// Scratch rows of [`Backward::step`].
+struct BackScratch {
+    g: Vec<f64>,
+    cost: Vec<f64>,
+    tmp: Vec<f64>,
+}
+
+impl BackScratch {
+    fn new(d: usize) -> Self {
+        BackScratch {
+            g: vec![0.0; d],
+            cost: vec![0.0; d],
+            tmp: vec![0.0; d],
         }
-        dq.push_back(j);
-        while dq.front().is_some_and(|&f| f > j + k) {
-            dq.pop_front();
-        }
-        *gj = src[*dq.front().expect("just pushed")];
     }
 }
 

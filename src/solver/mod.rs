@@ -15,7 +15,8 @@
 //! Matching nodes have capacity 1 (node-disjoint flows); hidden nodes carry any number of flows.
 //!
 //! Code map: the graph helpers (blocked set, input checks, path -> [`Hypothesis`]) live in
-//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs`, greedy and exact `F > 1` in
+//! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs` (its row step, the hot loop,
+//! in `kernel.rs`; the confidence reuses it), greedy and exact `F > 1` in
 //! `greedy.rs` / `exact.rs`, min-marginals for confidences in `marginals.rs`, and the test-only
 //! reference solvers (generic min-cost flow, brute force) in `reference.rs`.
 //!
@@ -26,6 +27,7 @@
 mod exact;
 mod graph;
 mod greedy;
+mod kernel;
 mod marginals;
 #[cfg(test)]
 mod reference;
@@ -35,6 +37,7 @@ mod shortest_path;
 /// the confidence and the online solver use this one definition.
 pub(crate) use graph::match_cost;
 pub use graph::Blocked;
+pub(crate) use kernel::{forward_values_row, Scratch as RowScratch};
 pub use marginals::{row_alternatives, RowAlternatives};
 pub use shortest_path::shortest_path;
 

@@ -6,30 +6,45 @@
 //! `base_k = min_{j in [k-K, k]} M_i[j]` is a sliding-window minimum; then
 //! `X_{i+1}[k] = min(base_k + c_k, X_{i+1}[k-1] + c_k)` and `H_{i+1}[k] = min(base_k + W,
 //! H_{i+1}[k-1])` (the second terms only with horizontal edges), one left-to-right pass.
-//! The window minimum is a direct scan for `K <= DIRECT_WINDOW_MAX_K` and a monotone deque
-//! (amortised O(1) per cell, independent of `K`) above; both give the same answer.
+//! The row step itself (blocks, interleaved chunk scans with an exact fix-up, packed pointers)
+//! is in `kernel.rs`. The window minimum is a direct scan for `K <= DIRECT_WINDOW_MAX_K` and a
+//! monotone deque (amortised O(1) per cell, independent of `K`) above; both give the same answer.
 //!
-//! Costs are accumulated in `f64`. Memory: four `f64` vectors of length `D` per row state (two
-//! states) plus one back-pointer per node: one byte (`K <= 63`) or two bytes (`K <= 16383`),
-//! encoding "came horizontally", "predecessor is hidden" and the column offset `0..=K`.
+//! Wide rows (at least [`SPLIT_MIN_COLS`] columns) are split in two halves computed on two
+//! threads (`rayon::join`). The right half starts from the exact `H` carry (`W` plus the
+//! minimum of the previous row's `M` left of the split: `H` is a running minimum) and from an
+//! `X` carry of `+inf`; afterwards the true `X` carry is checked at the split column, and in the
+//! rare row where it would change that column the right half is recomputed from the true carry.
+//! Results never depend on the split.
+//!
+//! Costs are accumulated in `f64`. Memory: two `f64` vectors of length `D` (previous and current
+//! `M`) plus one back-pointer per cell: one byte (`K <= 15`) or two bytes (`K <= 4095`), packing
+//! the window offset `0..=K`, whether `M` of the cell is hidden, and the "came horizontally"
+//! flags of `x_ij` and `h_ij`.
 //!
 //! Tie-breaking (deterministic): among equal window minima the largest column (smallest
 //! offset) wins; a matching node beats a hidden node of the same cell (`M` takes `x` unless
 //! `h` is strictly cheaper); entering a node by a forward edge beats arriving horizontally; at
 //! the sink the smallest column of the last row wins.
 
-use super::graph::{check_inputs, hypothesis_from_steps, match_cost, Blocked, Kind, Step};
+use super::graph::{check_inputs, hypothesis_from_steps, Blocked, Kind, Step};
+use super::kernel::{self, base_value, node_cost, range_step, BackPtr, Dest, RowCtx};
 use super::Hypothesis;
 use crate::{Matrix, Result};
+
+pub(crate) use super::kernel::Window;
 
 /// Largest fan-out for which the window minimum is a direct scan instead of a monotone deque
 /// (measured with `benches/solver.rs`, group `window`).
 pub(crate) const DIRECT_WINDOW_MAX_K: usize = 8;
 
+/// Rows with at least this many columns are computed on two threads (two halves).
+pub(crate) const SPLIT_MIN_COLS: usize = 8192;
+
 /// The shortest source-sink path for hidden cost `w`, never using a node of `blocked`.
 ///
 /// Runs in `O(Q·D)` time whatever the fan-out, with `O(D)` cost memory and one or two bytes of
-/// back-pointer per node. The returned hypothesis has rank 1. Fails on an empty or non-finite
+/// back-pointer per cell. The returned hypothesis has rank 1. Fails on an empty or non-finite
 /// matrix, `fan_out > MAX_FAN_OUT`, a `w` that is not finite and > 0, or a blocked set of
 /// another shape.
 pub fn shortest_path(
@@ -44,67 +59,6 @@ pub fn shortest_path(
     Ok(hypothesis_from_steps(chat, w, &steps, 1))
 }
 
-/// How the sliding-window minimum is computed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Window {
-    /// Scan the `K + 1` candidates.
-    Direct,
-    /// Monotone deque of candidate columns.
-    Deque,
-}
-
-/// A compact back-pointer.
-trait BackPtr: Copy + Default {
-    const MAX_OFFSET: usize;
-    fn forward(from_hidden: bool, offset: usize) -> Self;
-    fn horizontal() -> Self;
-    fn is_horizontal(self) -> bool;
-    fn pred_hidden(self) -> bool;
-    fn offset(self) -> usize;
-}
-
-impl BackPtr for u8 {
-    const MAX_OFFSET: usize = 0x3f;
-    #[inline]
-    fn forward(from_hidden: bool, offset: usize) -> Self {
-        (u8::from(from_hidden) << 6) | offset as u8
-    }
-    #[inline]
-    fn horizontal() -> Self {
-        0x80
-    }
-    fn is_horizontal(self) -> bool {
-        self & 0x80 != 0
-    }
-    fn pred_hidden(self) -> bool {
-        self & 0x40 != 0
-    }
-    fn offset(self) -> usize {
-        usize::from(self & 0x3f)
-    }
-}
-
-impl BackPtr for u16 {
-    const MAX_OFFSET: usize = 0x3fff;
-    #[inline]
-    fn forward(from_hidden: bool, offset: usize) -> Self {
-        (u16::from(from_hidden) << 14) | offset as u16
-    }
-    #[inline]
-    fn horizontal() -> Self {
-        0x8000
-    }
-    fn is_horizontal(self) -> bool {
-        self & 0x8000 != 0
-    }
-    fn pred_hidden(self) -> bool {
-        self & 0x4000 != 0
-    }
-    fn offset(self) -> usize {
-        usize::from(self & 0x3fff)
-    }
-}
-
 /// The DP values of one row.
 #[derive(Clone, Debug)]
 pub(crate) struct RowState {
@@ -114,8 +68,6 @@ pub(crate) struct RowState {
     pub h: Vec<f64>,
     /// `min(X[j], H[j])`.
     pub m: Vec<f64>,
-    /// Whether `m[j]` is the hidden node (`H[j] < X[j]`).
-    pub from_h: Vec<bool>,
 }
 
 impl RowState {
@@ -124,106 +76,14 @@ impl RowState {
             x: vec![0.0; d],
             h: vec![0.0; d],
             m: vec![0.0; d],
-            from_h: vec![false; d],
         }
     }
 }
 
-/// Monotone deque of column indices with strictly increasing values front to back.
-#[derive(Default)]
-pub(crate) struct MonoDeque {
-    idx: Vec<usize>,
-    head: usize,
-}
-
-impl MonoDeque {
-    pub(crate) fn clear(&mut self) {
-        self.idx.clear();
-        self.head = 0;
-    }
-
-    /// Pushes column `kk` of `vals` and returns the argmin of `vals[kk-k..=kk]` (latest on ties).
-    /// Columns must be pushed in increasing order.
-    #[inline]
-    pub(crate) fn push_min(&mut self, vals: &[f64], kk: usize, k: usize) -> usize {
-        let v = vals[kk];
-        while self.idx.len() > self.head && vals[self.idx[self.idx.len() - 1]] >= v {
-            self.idx.pop();
-        }
-        self.idx.push(kk);
-        while self.idx[self.head] + k < kk {
-            self.head += 1;
-        }
-        self.idx[self.head]
-    }
-}
-
-/// Per-row work buffers of the DP, reused from row to row.
+/// Work buffers of a row step (one per half of a split row), reused from row to row.
 #[derive(Default)]
 pub(crate) struct Scratch {
-    dq: MonoDeque,
-    cost: Vec<f64>,
-    base: Vec<f64>,
-    /// Window offsets, kept as `f64` so the window pass is all same-width selects and
-    /// vectorises (an integer select beside a float compare stays a branch).
-    off: Vec<f64>,
-}
-
-/// Columns per block of [`Dp::row_step`].
-const BLOCK: usize = 2048;
-
-/// What pass (3) reads: `W`, the block's costs, window minima and offsets, the previous row,
-/// and the block's first column.
-type ScanArgs<'a> = (
-    f64,
-    &'a [f64],
-    &'a [f64],
-    &'a [f64],
-    Option<&'a RowState>,
-    usize,
-);
-
-/// Pass (3) of [`Dp::row_step`] on one block: `X[j] = min(base + c, X[j-1] + c)`,
-/// `H[j] = min(base + W, H[j-1])` (left terms only with horizontal edges), `M`, and the
-/// back-pointers. `carry` is `(X, H)` of the column left of the block; returns the block's last.
-#[inline]
-fn scan<P: BackPtr, const HORIZONTAL: bool, const STORE_XH: bool>(
-    (w, cost, base, off, prev, b0): ScanArgs<'_>,
-    (mut left_x, mut left_h): (f64, f64),
-    cur: &mut RowState,
-    mut ptrs: Option<(&mut [P], &mut [P])>,
-) -> (f64, f64) {
-    for t in 0..cost.len() {
-        let j = b0 + t;
-        let (c, b) = (cost[t], base[t]);
-        let ex = b + c;
-        let hx = left_x + c;
-        let x_horiz = hx < ex;
-        let vx = if x_horiz { hx } else { ex };
-        let eh = b + w;
-        let h_horiz = left_h < eh;
-        let vh = if h_horiz { left_h } else { eh };
-        if HORIZONTAL {
-            left_x = vx;
-            left_h = vh;
-        }
-        if STORE_XH {
-            cur.x[j] = vx;
-            cur.h[j] = vh;
-        }
-        let hidden = vh < vx;
-        cur.m[j] = if hidden { vh } else { vx };
-        cur.from_h[j] = hidden;
-        if let Some((px, ph)) = ptrs.as_mut() {
-            // Offsets are small whole numbers, exact in f64.
-            let o = off[t] as usize;
-            let fh = prev.is_some_and(|p| p.from_h[j - o]);
-            let fwd = P::forward(fh, o);
-            px[t] = if x_horiz { P::horizontal() } else { fwd };
-            ph[t] = if h_horiz { P::horizontal() } else { fwd };
-        }
-    }
-    (left_x, left_h)
+    halves: [kernel::Scratch; 2],
 }
 
 /// One dynamic programme over the graph of `chat`.
@@ -234,6 +94,8 @@ pub(crate) struct Dp<'a> {
     horizontal: bool,
     w: f64,
     window: Window,
+    block: usize,
+    split_min: usize,
 }
 
 impl<'a> Dp<'a> {
@@ -257,6 +119,8 @@ impl<'a> Dp<'a> {
             horizontal,
             w,
             window,
+            block: kernel::BLOCK,
+            split_min: SPLIT_MIN_COLS,
         }
     }
 
@@ -267,119 +131,61 @@ impl<'a> Dp<'a> {
         self
     }
 
-    /// Cost of `x_ij`, `+inf` when unusable or blocked.
-    #[inline]
-    pub(crate) fn x_cost(&self, i: usize, j: usize, v: f32) -> f64 {
-        if self.blocked.is_some_and(|b| b.is_blocked(i, j)) {
-            f64::INFINITY
-        } else {
-            match_cost(v)
-        }
+    /// Forces the block size and the split threshold (tests: tiny chunks, splits of tiny rows).
+    #[cfg(test)]
+    pub(crate) fn with_layout(mut self, block: usize, split_min: usize) -> Self {
+        self.block = block;
+        self.split_min = split_min;
+        self
     }
 
-    /// Computes row `i` into `cur` from the previous row (`None` for row 0), writing
-    /// back-pointers when `ptrs` is given.
-    ///
-    /// Three passes, so the first two vectorise and the third carries only the serial
-    /// horizontal dependency: (1) node costs `1/ĉ` of the row; (2) the window minimum of the
-    /// previous row and its offset (`K` shifted compare-and-select passes for small `K`, a
-    /// monotone deque otherwise); (3) the left-to-right scan with the horizontal edges. The
-    /// arithmetic and tie rules are those of one fused loop, so results do not depend on it.
-    #[inline]
+    /// Computes row `i` into `dest` (all `D` columns) from `M` of the previous row (`None` for
+    /// row 0). Splits wide rows between two threads (see the module doc).
     fn row_step<P: BackPtr>(
         &self,
         i: usize,
-        prev: Option<&RowState>,
-        cur: &mut RowState,
-        ptrs: Option<(&mut [P], &mut [P])>,
+        prev: Option<&[f64]>,
+        mut dest: Dest<'_, P>,
         scratch: &mut Scratch,
     ) {
-        let row = self.chat.row(i);
-        let d = row.len();
-        let Scratch {
-            dq,
-            cost,
-            base,
-            off,
-        } = scratch;
-        cost.resize(BLOCK, 0.0);
-        base.resize(BLOCK, 0.0);
-        off.resize(BLOCK, 0.0);
-        dq.clear();
-        let mut ptrs = ptrs;
-        let mut carry = (f64::INFINITY, f64::INFINITY);
-        // Columns in blocks of `BLOCK`, so the per-row buffers stay in L1 on wide maps.
-        for b0 in (0..d).step_by(BLOCK) {
-            let b1 = (b0 + BLOCK).min(d);
-            let n = b1 - b0;
-            let (cost, base, off) = (&mut cost[..n], &mut base[..n], &mut off[..n]);
-
-            // (1) Node costs.
-            for (c, &v) in cost.iter_mut().zip(&row[b0..b1]) {
-                *c = match_cost(v);
+        let ctx = RowCtx {
+            row: self.chat.row(i),
+            i,
+            blocked: self.blocked,
+            prev,
+            k: self.k,
+            horizontal: self.horizontal,
+            w: self.w,
+            window: self.window,
+            block: self.block,
+        };
+        let d = dest.len();
+        let inf = (f64::INFINITY, f64::INFINITY);
+        let [s0, s1] = &mut scratch.halves;
+        if d < self.split_min.max(2) {
+            range_step(&ctx, 0, &mut dest, inf, s0);
+            return;
+        }
+        let mid = d / 2;
+        // H is a running minimum of `base + W`: its carry at `mid` is exact without the left half.
+        let h_mid = prev.map_or(0.0, |p| {
+            p[..mid].iter().fold(f64::INFINITY, |a, &v| a.min(v))
+        }) + self.w;
+        let (mut left, mut right) = dest.split_at(mid);
+        let (carry, ()) = rayon::join(
+            || range_step(&ctx, 0, &mut left, inf, s0),
+            || {
+                range_step(&ctx, mid, &mut right, (f64::INFINITY, h_mid), s1);
+            },
+        );
+        if self.horizontal {
+            debug_assert_eq!(carry.1, h_mid, "exact H carry at the split");
+            // The right half assumed X[mid] came by a forward edge; redo it when it did not.
+            let c = node_cost(&ctx, mid);
+            let ex = base_value(&ctx, mid) + c;
+            if carry.0 + c < ex {
+                range_step(&ctx, mid, &mut right, (carry.0, h_mid), s1);
             }
-            if let Some(b) = self.blocked {
-                for (t, c) in cost.iter_mut().enumerate() {
-                    if b.is_blocked(i, b0 + t) {
-                        *c = f64::INFINITY;
-                    }
-                }
-            }
-
-            // (2) Window minimum of the previous row: base[j] = min m[j-K..=j], off = j - argmin
-            // (the latest column on ties).
-            match prev {
-                None => {
-                    base.fill(0.0);
-                    off.fill(0.0);
-                }
-                Some(p) => match self.window {
-                    Window::Direct => {
-                        base.copy_from_slice(&p.m[b0..b1]);
-                        off.fill(0.0);
-                        // o < d keeps every candidate slice in range (the first block
-                        // holds min(d, BLOCK) > o columns; later blocks start past K).
-                        for o in 1..=self.k.min(d - 1) {
-                            // Columns b0+t with b0+t >= o have a candidate at b0+t-o.
-                            let first = o.saturating_sub(b0).min(n);
-                            let of_o = o as f64;
-                            for ((b, of), &cand) in base[first..]
-                                .iter_mut()
-                                .zip(off[first..].iter_mut())
-                                .zip(&p.m[b0 + first - o..b1 - o])
-                            {
-                                // Unconditional selects, so this loop vectorises instead of
-                                // branching on noisy data.
-                                let better = cand < *b;
-                                *b = if better { cand } else { *b };
-                                *of = if better { of_o } else { *of };
-                            }
-                        }
-                    }
-                    Window::Deque => {
-                        for t in 0..n {
-                            let kk = b0 + t;
-                            let j = dq.push_min(&p.m, kk, self.k);
-                            base[t] = p.m[j];
-                            off[t] = (kk - j) as f64;
-                        }
-                    }
-                },
-            }
-
-            // (3) The scan along the row. `X` and `H` themselves are only stored for the
-            // values pass of the min-marginals; the path search needs `M` and the pointers.
-            let block_ptrs = ptrs
-                .as_mut()
-                .map(|(px, ph)| (&mut px[b0..b1], &mut ph[b0..b1]));
-            let w = self.w;
-            let args = (w, &*cost, &*base, &*off, prev, b0);
-            carry = match (self.horizontal, block_ptrs.is_some()) {
-                (true, true) => scan::<P, true, false>(args, carry, cur, block_ptrs),
-                (true, false) => scan::<P, true, true>(args, carry, cur, block_ptrs),
-                (false, true) => scan::<P, false, false>(args, carry, cur, block_ptrs),
-                (false, false) => scan::<P, false, true>(args, carry, cur, block_ptrs),
-            };
         }
     }
 
@@ -391,7 +197,12 @@ impl<'a> Dp<'a> {
         cur: &mut RowState,
         scratch: &mut Scratch,
     ) {
-        self.row_step::<u8>(i, prev, cur, None, scratch);
+        let dest: Dest<u8> = Dest::Values {
+            m: &mut cur.m,
+            x: &mut cur.x,
+            h: &mut cur.h,
+        };
+        self.row_step(i, prev.map(|p| &p.m[..]), dest, scratch);
     }
 
     /// The nodes of the shortest path, in visiting order.
@@ -406,33 +217,35 @@ impl<'a> Dp<'a> {
     fn run<P: BackPtr>(&self) -> Vec<Step> {
         let (q, d) = (self.chat.rows(), self.chat.cols());
         debug_assert!(self.k <= P::MAX_OFFSET);
-        let mut ptr_x = vec![P::default(); q * d];
-        let mut ptr_h = vec![P::default(); q * d];
-        let mut prev = RowState::new(d);
-        let mut cur = RowState::new(d);
+        let mut ptr = vec![P::default(); q * d];
+        let mut prev = vec![0.0; d];
+        let mut cur = vec![0.0; d];
         let mut scratch = Scratch::default();
-        for (i, (px, ph)) in ptr_x
-            .chunks_exact_mut(d)
-            .zip(ptr_h.chunks_exact_mut(d))
-            .enumerate()
-        {
-            let p = (i > 0).then_some(&prev);
-            self.row_step(i, p, &mut cur, Some((px, ph)), &mut scratch);
+        for (i, p) in ptr.chunks_exact_mut(d).enumerate() {
+            let before = (i > 0).then_some(&prev[..]);
+            let dest = Dest::Path {
+                m: &mut cur,
+                ptr: p,
+            };
+            self.row_step(i, before, dest, &mut scratch);
             std::mem::swap(&mut prev, &mut cur);
         }
-        // `prev` now holds the last row. Sink: smallest column on ties.
+        // `prev` now holds M of the last row. Sink: smallest column on ties.
         let mut j = 0;
-        for (jj, &v) in prev.m.iter().enumerate().skip(1) {
-            if v < prev.m[j] {
+        for (jj, &v) in prev.iter().enumerate().skip(1) {
+            if v < prev[j] {
                 j = jj;
             }
         }
-        let mut kind = if prev.from_h[j] {
-            Kind::Hidden
-        } else {
-            Kind::Match
+        let kind_at = |i: usize, j: usize| {
+            if ptr[i * d + j].m_hidden() {
+                Kind::Hidden
+            } else {
+                Kind::Match
+            }
         };
         let mut i = q - 1;
+        let mut kind = kind_at(i, j);
         let mut steps = Vec::with_capacity(q);
         loop {
             steps.push(Step {
@@ -440,11 +253,12 @@ impl<'a> Dp<'a> {
                 col: j,
                 kind,
             });
-            let p = match kind {
-                Kind::Match => ptr_x[i * d + j],
-                Kind::Hidden => ptr_h[i * d + j],
+            let p = ptr[i * d + j];
+            let horizontal = match kind {
+                Kind::Match => p.x_horizontal(),
+                Kind::Hidden => p.h_horizontal(),
             };
-            if p.is_horizontal() {
+            if horizontal {
                 j -= 1;
                 continue;
             }
@@ -453,11 +267,7 @@ impl<'a> Dp<'a> {
             }
             i -= 1;
             j -= p.offset();
-            kind = if p.pred_hidden() {
-                Kind::Hidden
-            } else {
-                Kind::Match
-            };
+            kind = kind_at(i, j);
         }
         steps.reverse();
         steps
@@ -466,6 +276,7 @@ impl<'a> Dp<'a> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::graph::match_cost;
     use super::super::reference::{brute_force_best, check_valid, random_instance};
     use super::*;
     use proptest::prelude::*;
@@ -605,6 +416,229 @@ mod tests {
             let a = Dp::new(&chat, k, horizontal, w, None).with_window(Window::Direct).shortest_steps();
             let b = Dp::new(&chat, k, horizontal, w, None).with_window(Window::Deque).shortest_steps();
             prop_assert_eq!(a, b);
+        }
+
+        #[test]
+        fn kernel_is_bit_identical_to_the_plain_scan(
+            (chat, blocked) in wide_instance(),
+            k in 0usize..=12,
+            horizontal: bool,
+            w in prop::sample::select(vec![0.5f64, 1.0, 1.25, 3.0, 40.0]),
+            block in prop::sample::select(vec![1usize, 2, 3, 7, 8, 9, 16, 17, 64, 1024]),
+            split_min in prop::sample::select(vec![1usize, 2, 5, 33, usize::MAX]),
+            deque: bool,
+        ) {
+            let b = blocked.as_ref();
+            let (want, want_rows) = plain(&chat, k, horizontal, w, b);
+            let window = if deque { Window::Deque } else { Window::Direct };
+            let dp = Dp::new(&chat, k, horizontal, w, b)
+                .with_window(window)
+                .with_layout(block, split_min);
+            let got = dp.shortest_steps();
+            prop_assert_eq!(&got, &want);
+            let (hg, hw) = (hypothesis_from_steps(&chat, w, &got, 1), hypothesis_from_steps(&chat, w, &want, 1));
+            prop_assert_eq!(hg.cost.to_bits(), hw.cost.to_bits());
+            // The values pass of the min-marginals goes through the same kernel.
+            let d = chat.cols();
+            let (mut prev, mut cur) = (RowState::new(d), RowState::new(d));
+            let mut scratch = Scratch::default();
+            for (i, (x, h, m)) in want_rows.iter().enumerate() {
+                dp.values_step(i, (i > 0).then_some(&prev), &mut cur, &mut scratch);
+                prop_assert_eq!(bits(&cur.x), bits(x), "X of row {}", i);
+                prop_assert_eq!(bits(&cur.h), bits(h), "H of row {}", i);
+                prop_assert_eq!(bits(&cur.m), bits(m), "M of row {}", i);
+                std::mem::swap(&mut prev, &mut cur);
+            }
+        }
+    }
+
+    fn bits(v: &[f64]) -> Vec<u64> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// Wider random instances than `random_instance`, from a few exactly representable values
+    /// (so costs tie often, also at chunk borders) plus noise, with a random blocked set.
+    fn wide_instance() -> impl Strategy<Value = (Matrix, Option<Blocked>)> {
+        (1usize..=7, 1usize..=90).prop_flat_map(|(q, d)| {
+            let value = prop_oneof![
+                prop::sample::select(vec![-1.0f32, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0]),
+                0.05f32..5.0,
+            ];
+            (
+                prop::collection::vec(value, q * d),
+                prop::collection::vec(0u8..12, q * d),
+                any::<bool>(),
+                Just((q, d)),
+            )
+                .prop_map(|(v, mask, use_blocked, (q, d))| {
+                    let chat = Matrix::from_vec(q, d, v).expect("q*d values");
+                    let blocked = use_blocked.then(|| {
+                        let mut b = Blocked::new(q, d);
+                        for (n, &r) in mask.iter().enumerate() {
+                            if r == 0 {
+                                b.block(n / d, n % d);
+                            }
+                        }
+                        b
+                    });
+                    (chat, blocked)
+                })
+        })
+    }
+
+    type RowValues = (Vec<f64>, Vec<f64>, Vec<f64>);
+
+    /// The plain fused left-to-right scan, one cell at a time with per-node pointers (the
+    /// solver before `kernel.rs`): the reference the kernel must equal bit for bit. Returns the
+    /// path and every row's `(X, H, M)`.
+    fn plain(
+        chat: &Matrix,
+        k: usize,
+        horizontal: bool,
+        w: f64,
+        blocked: Option<&Blocked>,
+    ) -> (Vec<Step>, Vec<RowValues>) {
+        #[derive(Clone, Copy, Default)]
+        struct Ptr {
+            horizontal: bool,
+            pred_hidden: bool,
+            offset: usize,
+        }
+        let (q, d) = (chat.rows(), chat.cols());
+        let mut px = vec![Ptr::default(); q * d];
+        let mut ph = vec![Ptr::default(); q * d];
+        let mut rows: Vec<RowValues> = Vec::new();
+        let mut prev_m = vec![0.0; d];
+        let mut prev_fh = vec![false; d];
+        for i in 0..q {
+            let (mut x, mut h, mut m, mut fh) =
+                (vec![0.0; d], vec![0.0; d], vec![0.0; d], vec![false; d]);
+            let (mut lx, mut lh) = (f64::INFINITY, f64::INFINITY);
+            for j in 0..d {
+                let c = if blocked.is_some_and(|b| b.is_blocked(i, j)) {
+                    f64::INFINITY
+                } else {
+                    match_cost(chat.get(i, j))
+                };
+                let (b, o) = if i == 0 {
+                    (0.0, 0)
+                } else {
+                    let (mut b, mut o) = (prev_m[j], 0);
+                    for oo in 1..=k.min(j) {
+                        if prev_m[j - oo] < b {
+                            (b, o) = (prev_m[j - oo], oo);
+                        }
+                    }
+                    (b, o)
+                };
+                let fwd = Ptr {
+                    horizontal: false,
+                    pred_hidden: i > 0 && prev_fh[j - o],
+                    offset: o,
+                };
+                let horiz = Ptr {
+                    horizontal: true,
+                    ..Ptr::default()
+                };
+                let (ex, hx) = (b + c, lx + c);
+                let vx = if hx < ex { hx } else { ex };
+                let (eh, vh) = (b + w, if lh < b + w { lh } else { b + w });
+                px[i * d + j] = if hx < ex { horiz } else { fwd };
+                ph[i * d + j] = if lh < eh { horiz } else { fwd };
+                if horizontal {
+                    (lx, lh) = (vx, vh);
+                }
+                (x[j], h[j]) = (vx, vh);
+                fh[j] = vh < vx;
+                m[j] = if fh[j] { vh } else { vx };
+            }
+            prev_m.clone_from(&m);
+            prev_fh = fh;
+            rows.push((x, h, m));
+        }
+        let mut j = 0;
+        for jj in 1..d {
+            if prev_m[jj] < prev_m[j] {
+                j = jj;
+            }
+        }
+        let mut kind = if prev_fh[j] {
+            Kind::Hidden
+        } else {
+            Kind::Match
+        };
+        let mut i = q - 1;
+        let mut steps = Vec::new();
+        loop {
+            steps.push(Step {
+                row: i,
+                col: j,
+                kind,
+            });
+            let p = match kind {
+                Kind::Match => px[i * d + j],
+                Kind::Hidden => ph[i * d + j],
+            };
+            if p.horizontal {
+                j -= 1;
+                continue;
+            }
+            if i == 0 {
+                break;
+            }
+            i -= 1;
+            j -= p.offset;
+            kind = if p.pred_hidden {
+                Kind::Hidden
+            } else {
+                Kind::Match
+            };
+        }
+        steps.reverse();
+        (steps, rows)
+    }
+
+    #[test]
+    fn long_horizontal_runs_cross_chunk_and_split_borders() {
+        // Row 0 is usable only at column 0, row 2 only at the last column, row 1 is cheap
+        // everywhere and W is high: the path of row 1 enters at the left and walks right
+        // through every chunk border and the split.
+        let d = 300;
+        let mut r0 = vec![-1.0f32; d];
+        r0[0] = 1.0;
+        let r1 = vec![10.0f32; d];
+        let mut r2 = vec![-1.0f32; d];
+        r2[d - 1] = 50.0;
+        let chat = Matrix::from_rows(&[r0, r1, r2]).unwrap();
+        let (want, _) = plain(&chat, 2, true, 100.0, None);
+        let h = hypothesis_from_steps(&chat, 100.0, &want, 1);
+        assert!(h.rows[1].matches.len() > 250, "{:?}", cols(&h)[1].len());
+        for block in [1, 3, 8, 16, 50, 64, 1024] {
+            for split_min in [1, 2, 64, usize::MAX] {
+                for window in [Window::Direct, Window::Deque] {
+                    let got = Dp::new(&chat, 2, true, 100.0, None)
+                        .with_window(window)
+                        .with_layout(block, split_min)
+                        .shortest_steps();
+                    assert_eq!(got, want, "block {block}, split at {split_min}, {window:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn equal_costs_everywhere_break_ties_like_the_plain_scan() {
+        let chat = Matrix::from_vec(6, 200, vec![2.0f32; 1200]).unwrap();
+        for (k, w) in [(0, 0.5), (1, 0.5), (4, 0.5), (4, 1.0), (9, 0.25)] {
+            let (want, _) = plain(&chat, k, true, w, None);
+            for block in [1, 8, 24, 1024] {
+                for split_min in [1, usize::MAX] {
+                    let got = Dp::new(&chat, k, true, w, None)
+                        .with_layout(block, split_min)
+                        .shortest_steps();
+                    assert_eq!(got, want, "K {k}, W {w}, block {block}, split {split_min}");
+                }
+            }
         }
     }
 }
