@@ -166,7 +166,10 @@ mod tests {
         // The start, the jump back (1499 -> 300) and the stretch off the map are found within
         // 15 frames. The re-entry after the off-map stretch is measured, not yet met (README).
         for (seg, d) in route.segments[..3].iter().zip(&delays) {
-            assert!(d.is_some_and(|d| d <= 15), "segment {seg:?}: {d:?} ({delays:?})");
+            assert!(
+                d.is_some_and(|d| d <= 15),
+                "segment {seg:?}: {d:?} ({delays:?})"
+            );
         }
     }
 }
