@@ -472,6 +472,8 @@ impl Trip {
             return c.clone();
         }
         let mut out = Matrix::zeros(c.rows(), c.cols());
+        let mut means = vec![0.0f64; c.cols()];
+        let mut scratch = vec![0.0f64; c.cols()];
         for (i, row) in c.iter_rows().enumerate() {
             for (s, v) in self.column_sums.iter_mut().zip(row) {
                 *s += f64::from(*v);
@@ -484,9 +486,22 @@ impl Trip {
             } else {
                 0.0
             };
+            // Floor every column mean at half the median column mean, as the offline default
+            // (`similarity::normalize_columns_floored`): a near-empty reference (a dark tunnel
+            // frame) would otherwise get an exploding `ĉ` and hold the path for good.
+            for (m, (p, s)) in means
+                .iter_mut()
+                .zip(self.prior.iter().zip(&self.column_sums))
+            {
+                *m = (n0 * scale * f64::from(*p) + s) / (n0 + n);
+            }
+            scratch.copy_from_slice(&means);
+            let mid = scratch.len() / 2;
+            let (_, median, _) = scratch.select_nth_unstable_by(mid, f64::total_cmp);
+            let floor = similarity::MEAN_FLOOR_FRACTION * *median;
             let out_row = out.row_mut(i);
             for j in 0..row.len() {
-                let mean = (n0 * scale * f64::from(self.prior[j]) + self.column_sums[j]) / (n0 + n);
+                let mean = means[j].max(floor);
                 out_row[j] = if mean > 1e-12 {
                     (f64::from(row[j]) / mean) as f32
                 } else {

@@ -103,7 +103,7 @@ pub struct TripParamsDto {
     /// Allow re-entry anywhere on the map (default true).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub relocalization: Option<bool>,
-    /// Cost `R` of a re-entry (default 2.0).
+    /// Cost `R` of a re-entry (default 1.0).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub relocalization_cost: Option<f64>,
     /// Frames' worth of weight of the map's prior column means (default 100).
