@@ -3,14 +3,8 @@
 
 use super::{codec, now_ms, LocalizationRecord, Store, StoreError, StoreResult};
 
-/// One page of a listing.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Page {
-    /// Records, newest first.
-    pub items: Vec<LocalizationRecord>,
-    /// Pass as `before` to get the next page; `None` on the last page.
-    pub next: Option<u64>,
-}
+/// One page of a localization listing.
+pub type Page = super::Page<LocalizationRecord>;
 
 impl Store {
     /// A fresh localization id, larger than every earlier one.
@@ -58,36 +52,20 @@ impl Store {
         before: Option<u64>,
         limit: usize,
     ) -> StoreResult<Page> {
-        let mut ids = Vec::with_capacity(limit + 1);
+        let get = |id| self.get_localization(id);
         match map {
             Some(map) => {
                 self.get_map(map)?;
                 let lo = codec::by_map_key(map, 0);
                 let hi = codec::by_map_key(map, before.unwrap_or(u64::MAX));
-                for kv in self.db.range(lo..hi).rev().take(limit + 1) {
-                    ids.push(codec::id_at(&kv?.0, 9)?);
-                }
-                // `u64::MAX` itself is excluded by the half-open range; ids never reach it.
+                self.page(&lo, &hi, 9, limit, get)
             }
             None => {
                 let lo = codec::localization_key(0);
                 let hi = codec::localization_key(before.unwrap_or(u64::MAX));
-                for kv in self.db.range(lo..hi).rev().take(limit + 1) {
-                    ids.push(codec::id_at(&kv?.0, 1)?);
-                }
+                self.page(&lo, &hi, 1, limit, get)
             }
         }
-        let next = if ids.len() > limit {
-            ids.truncate(limit);
-            ids.last().copied()
-        } else {
-            None
-        };
-        let items = ids
-            .into_iter()
-            .map(|id| self.get_localization(id))
-            .collect::<StoreResult<Vec<_>>>()?;
-        Ok(Page { items, next })
     }
 }
 

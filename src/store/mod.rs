@@ -234,7 +234,41 @@ pub struct Store {
     cache: Mutex<HashMap<u64, Arc<Matrix>>>,
 }
 
+/// One page of a listing, newest first.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Page<T> {
+    /// Records, newest first.
+    pub items: Vec<T>,
+    /// Pass as `before` to get the next page; `None` on the last page.
+    pub next: Option<u64>,
+}
+
 impl Store {
+    /// The newest-first page of the index keys in `lo..hi` (each holding an id at
+    /// `key[at..at + 8]`): at most `limit` records read with `get`, and the `before` of the
+    /// next page. `hi` is exclusive, so an id of `u64::MAX` (never issued) is never listed.
+    fn page<T>(
+        &self,
+        lo: &[u8],
+        hi: &[u8],
+        at: usize,
+        limit: usize,
+        get: impl Fn(u64) -> StoreResult<T>,
+    ) -> StoreResult<Page<T>> {
+        let mut ids = Vec::with_capacity(limit + 1);
+        for kv in self.db.range(lo..hi).rev().take(limit + 1) {
+            ids.push(codec::id_at(&kv?.0, at)?);
+        }
+        let next = if ids.len() > limit {
+            ids.truncate(limit);
+            ids.last().copied()
+        } else {
+            None
+        };
+        let items = ids.into_iter().map(get).collect::<StoreResult<Vec<_>>>()?;
+        Ok(Page { items, next })
+    }
+
     /// Opens (or creates) the store in `dir` and upgrades its layout to
     /// [`migrate::CURRENT_VERSION`].
     pub fn open(dir: &Path) -> StoreResult<Store> {

@@ -10,13 +10,7 @@
 use super::{codec, now_ms, FrameRecord, Store, StoreError, StoreResult, TripRecord};
 
 /// One page of a trip listing.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TripPage {
-    /// Records, newest first.
-    pub items: Vec<TripRecord>,
-    /// Pass as `before` to get the next page; `None` on the last page.
-    pub next: Option<u64>,
-}
+pub type TripPage = super::Page<TripRecord>;
 
 /// What one batch changes.
 #[derive(Clone, Debug)]
@@ -143,21 +137,7 @@ impl Store {
         self.get_map(map)?;
         let lo = codec::trip_by_map_key(map, 0);
         let hi = codec::trip_by_map_key(map, before.unwrap_or(u64::MAX));
-        let mut ids = Vec::with_capacity(limit + 1);
-        for kv in self.db.range(lo..hi).rev().take(limit + 1) {
-            ids.push(codec::id_at(&kv?.0, 9)?);
-        }
-        let next = if ids.len() > limit {
-            ids.truncate(limit);
-            ids.last().copied()
-        } else {
-            None
-        };
-        let items = ids
-            .into_iter()
-            .map(|id| self.get_trip(id))
-            .collect::<StoreResult<Vec<_>>>()?;
-        Ok(TripPage { items, next })
+        self.page(&lo, &hi, 9, limit, |id| self.get_trip(id))
     }
 
     /// Adds the removal of every trip of `map` (records, states, frames, index) to `batch`.
