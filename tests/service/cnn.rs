@@ -1,6 +1,6 @@
-//! CNN maps over HTTP: creation records the model's identity, append and localize equal the
-//! library on the same images, every creation error is a precise 400, and a model file changed
-//! after creation is 409 `model_mismatch` that stores nothing. Needs the shipped model
+//! CNN maps over HTTP: creation records the model's identity, append, localize and trips equal
+//! the library on the same images, every creation error is a precise 400, and a model file
+//! changed after creation is 409 `model_mismatch` that stores nothing. Needs the shipped model
 //! (`../shared/models`); each test prints a message and passes when it is absent.
 
 use std::path::{Path, PathBuf};
@@ -305,4 +305,74 @@ fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.code(), "model_mismatch");
     assert!(r.message().contains("sha256"), "{}", r.message());
+}
+
+/// Trips on a CNN map describe their frames with the map's model: the latest estimate equals
+/// `/localize` of the same frames (F = 1, raw similarities, fixed `W`, no relocalization), and
+/// a model changed after creation is 409 `model_mismatch` that leaves the trip as it was.
+#[test]
+fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
+    let Some((_dir, model)) = model_copy() else {
+        return;
+    };
+    let server = Server::start();
+    let c = &server.client;
+    let r = create(
+        c,
+        json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch"}),
+    );
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json()["id"].as_str().unwrap().to_string();
+    let route = Route::new(16, 3);
+    let refs: Vec<Vec<u8>> = (0..16).map(|i| route.reference_png(i)).collect();
+    let queries: Vec<Vec<u8>> = (4..12).map(|i| route.query_png(i)).collect();
+    let r = images(c, &format!("/v1/maps/{id}/images"), &refs, None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+
+    let r = c.post_json(
+        &format!("/v1/maps/{id}/trips"),
+        &json!({"fan_out": 4, "hidden_cost": 1.5, "horizontal": true,
+                "relocalization": false, "normalize": false}),
+    );
+    check("post", "/v1/maps/{id}/trips", &r);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let frames = format!("/v1/trips/{trip}/frames");
+    let params = json!({"fan_out": 4, "hidden_cost": 1.5, "flows": 1, "exact": false,
+                        "horizontal": true, "normalize": false});
+    for (a, b) in [(0, 5), (5, 8)] {
+        let r = images(c, &frames, &queries[a..b], None);
+        check("post", "/v1/trips/{id}/frames", &r);
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        let got = r.json();
+        let estimates = got["estimates"].as_array().unwrap();
+        assert_eq!(estimates.len(), b - a);
+        let latest = estimates.last().unwrap();
+        assert_eq!(latest["frame"].as_u64().unwrap() as usize, b - 1);
+        // Offline over the frames so far: the latest frame's prediction (absent = hidden).
+        let r = images(
+            c,
+            &format!("/v1/maps/{id}/localize"),
+            &queries[..b],
+            Some(params.clone()),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        let offline = r.json()["predictions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["query"].as_u64() == Some(b as u64 - 1))
+            .map(|p| p["ref"].clone())
+            .unwrap_or(Value::Null);
+        assert_eq!(latest["ref"], offline, "frame {}", b - 1);
+    }
+
+    // The model file changes: frames are refused, the trip keeps its 8 frames.
+    let original = std::fs::read(&model).unwrap();
+    std::fs::write(&model, &original[..original.len() / 2]).unwrap();
+    let r = images(c, &frames, &queries[..2], None);
+    check("post", "/v1/trips/{id}/frames", &r);
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.code(), "model_mismatch");
+    assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 8);
 }
