@@ -72,17 +72,7 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::{DescriptorSettings, NewMap};
-
-    fn map(store: &Store) -> u64 {
-        store
-            .create_map(NewMap {
-                name: "m".into(),
-                descriptor: DescriptorSettings::Precomputed { dim: 1 },
-            })
-            .unwrap()
-            .id
-    }
+    use crate::store::test_map as map;
 
     #[test]
     fn lists_newest_first_with_pages() {

@@ -331,3 +331,15 @@ pub(crate) fn now_ms() -> u64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as u64)
 }
+
+/// A new empty map of 1-D precomputed descriptors, for the store's unit tests.
+#[cfg(test)]
+pub(crate) fn test_map(store: &Store) -> u64 {
+    store
+        .create_map(NewMap {
+            name: "m".into(),
+            descriptor: DescriptorSettings::Precomputed { dim: 1 },
+        })
+        .expect("a new map in a fresh store")
+        .id
+}

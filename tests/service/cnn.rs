@@ -68,6 +68,19 @@ fn images(
     c.post_multipart(path, &parts)
 }
 
+/// The descriptor both flow tests use: `block10` of the model, whole frame stretched.
+fn stretch_block10(model: &Path) -> Value {
+    json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch"})
+}
+
+/// References 0..16 of a generated route and queries of its places 4..12.
+fn route_pngs() -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
+    let route = Route::new(16, 3);
+    let refs = (0..16).map(|i| route.reference_png(i)).collect();
+    let queries = (4..12).map(|i| route.query_png(i)).collect();
+    (refs, queries)
+}
+
 #[test]
 fn cnn_map_equals_the_library_and_records_the_model_identity() {
     let Some((_dir, model)) = model_copy() else {
@@ -75,10 +88,7 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
     };
     let server = Server::start();
     let c = &server.client;
-    let r = create(
-        c,
-        json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch"}),
-    );
+    let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let map = r.json();
     let id = map["id"].as_str().unwrap().to_string();
@@ -101,9 +111,7 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
         identity.preprocessing.as_str()
     );
 
-    let route = Route::new(16, 3);
-    let refs: Vec<Vec<u8>> = (0..16).map(|i| route.reference_png(i)).collect();
-    let queries: Vec<Vec<u8>> = (4..12).map(|i| route.query_png(i)).collect();
+    let (refs, queries) = route_pngs();
     for (a, b) in [(0, 10), (10, 16)] {
         let r = images(c, &format!("/v1/maps/{id}/images"), &refs[a..b], None);
         check("post", "/v1/maps/{id}/images", &r);
@@ -317,15 +325,10 @@ fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
     };
     let server = Server::start();
     let c = &server.client;
-    let r = create(
-        c,
-        json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch"}),
-    );
+    let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();
-    let route = Route::new(16, 3);
-    let refs: Vec<Vec<u8>> = (0..16).map(|i| route.reference_png(i)).collect();
-    let queries: Vec<Vec<u8>> = (4..12).map(|i| route.query_png(i)).collect();
+    let (refs, queries) = route_pngs();
     let r = images(c, &format!("/v1/maps/{id}/images"), &refs, None);
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
 
