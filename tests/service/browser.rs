@@ -10,7 +10,8 @@
 //! Every exception thrown by a page's scripts, every console error and every request the
 //! page makes is recorded, so tests can assert that a page ran cleanly and stayed on its
 //! origin. [`Browser::launch`] returns `None` with a `SKIPPED` line when no Chromium is
-//! installed (CI installs Debian's `chromium`).
+//! installed, except under `CI=true`, where `.ci/run` installs Debian's `chromium` and a
+//! missing browser fails the test.
 
 use std::collections::VecDeque;
 use std::io::{BufRead, BufReader, Write};
@@ -70,9 +71,13 @@ impl Browser {
     /// CSS pixels; `None` (after printing why) when no Chromium is installed.
     pub fn launch(width: u32, height: u32) -> Option<Browser> {
         let Some(chrome) = chromium() else {
-            eprintln!(
-                "SKIPPED: no chromium on PATH (apt-get install chromium, or set SEASONLOC_CHROMIUM)"
+            let why = "no chromium on PATH (apt-get install chromium, or set SEASONLOC_CHROMIUM)";
+            // CI installs chromium: there a missing browser is a failure, never a silent skip.
+            assert!(
+                std::env::var("CI").as_deref() != Ok("true"),
+                "CI=true but {why}"
             );
+            eprintln!("SKIPPED: {why}");
             return None;
         };
         let profile = tempfile::tempdir().unwrap();
