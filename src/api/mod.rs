@@ -4,9 +4,11 @@
 //! Only this module knows axum and JSON. Handlers parse and validate input, run CPU work on the
 //! rayon pool and store I/O on blocking threads ([`state`]), and convert store and core types
 //! to wire types ([`dto`]) at the edge. One file per resource: [`maps`](self) (maps and their
-//! reference images), `localize` (localizations), [`trips`] (online trips), `ops` (health, metrics, OpenAPI).
+//! reference images), `localize` (localizations), [`trips`] (online trips), `ops` (health, metrics, OpenAPI),
+//! `dashboard` (the embedded web dashboard for people).
 
 mod cooc;
+mod dashboard;
 pub mod dto;
 pub mod error;
 pub mod extract;
