@@ -343,3 +343,6 @@ pub(crate) fn test_map(store: &Store) -> u64 {
         .expect("a new map in a fresh store")
         .id
 }
+
+#[cfg(test)]
+mod golden;
