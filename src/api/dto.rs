@@ -1,17 +1,21 @@
 //! Wire types of the API (JSON request and response bodies) and their conversions from and to
-//! store and core types. Only this layer knows the wire format: core and store types can change
-//! without changing it.
+//! the use cases' types (store records, core types). Only this layer knows the wire format:
+//! core types and stored documents can change without changing it, and the reverse.
 //!
 //! Ids are 16 lowercase hex digits (the store's `u64`, so they sort by creation time).
 
 use serde::{Deserialize, Serialize};
 
+use super::cooc::CoocMethodDto;
 use super::error::ApiError;
 use crate::features::cnn::CnnResize;
-use crate::localize::{LocalizeOptions, StageTimings};
+use crate::localize::LocalizeOptions;
 use crate::similarity::Normalization;
-use crate::solver::{HiddenCost, Hypothesis, Match, RowAssignment, SolverParams};
-use crate::store::{DescriptorSettings, ImageMeta, MapRecord};
+use crate::solver::{HiddenCost, SolverParams};
+use crate::store::document::{
+    HiddenCostMode, StoredHypothesis, StoredMethod, StoredParams, StoredPrediction, StoredTimings,
+};
+use crate::store::{DescriptorSettings, ImageMeta, LocalizationDocument, MapRecord};
 
 /// Formats a store id for the wire.
 pub fn format_id(id: u64) -> String {
@@ -332,7 +336,7 @@ pub struct LocalizeParams {
     /// Stop adding flows once a path's hidden fraction exceeds this (default none).
     pub stop_hidden_fraction: Option<f64>,
     /// `cooc` maps only: `flow` (default), `cooc` or `cooc-seq`.
-    pub method: Option<super::cooc::CoocMethod>,
+    pub method: Option<CoocMethodDto>,
 }
 
 impl LocalizeParams {
@@ -419,25 +423,28 @@ pub struct ParamsUsed {
     pub stop_hidden_fraction: Option<f64>,
     /// The method of a `cooc` map (absent for other maps).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub method: Option<super::cooc::CoocMethod>,
+    pub method: Option<CoocMethodDto>,
 }
 
-impl ParamsUsed {
-    /// The options plus the resolved hidden cost.
-    pub fn new(o: &LocalizeOptions, resolved_hidden_cost: f64) -> Self {
+impl From<&StoredParams> for ParamsUsed {
+    fn from(p: &StoredParams) -> Self {
         ParamsUsed {
-            fan_out: o.solver.fan_out,
-            hidden_cost_mode: match o.solver.hidden_cost {
-                HiddenCost::Auto => "auto".into(),
-                HiddenCost::Fixed(_) => "fixed".into(),
+            fan_out: p.fan_out,
+            hidden_cost_mode: match p.hidden_cost_mode {
+                HiddenCostMode::Auto => "auto".into(),
+                HiddenCostMode::Fixed => "fixed".into(),
             },
-            hidden_cost: resolved_hidden_cost,
-            flows: o.solver.flows,
-            exact: o.solver.exact,
-            horizontal: o.solver.horizontal,
-            normalize: o.normalization != Normalization::None,
-            stop_hidden_fraction: o.solver.stop_hidden_fraction,
-            method: None,
+            hidden_cost: p.hidden_cost,
+            flows: p.flows,
+            exact: p.exact,
+            horizontal: p.horizontal,
+            normalize: p.normalize,
+            stop_hidden_fraction: p.stop_hidden_fraction,
+            method: p.method.map(|m| match m {
+                StoredMethod::Flow => CoocMethodDto::Flow,
+                StoredMethod::Cooc => CoocMethodDto::Cooc,
+                StoredMethod::CoocSeq => CoocMethodDto::CoocSeq,
+            }),
         }
     }
 }
@@ -452,15 +459,6 @@ pub struct MatchDto {
     pub similarity: f32,
 }
 
-impl From<&Match> for MatchDto {
-    fn from(m: &Match) -> Self {
-        MatchDto {
-            reference: m.reference,
-            similarity: m.similarity,
-        }
-    }
-}
-
 /// One row of a hypothesis.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct RowDto {
@@ -468,15 +466,6 @@ pub struct RowDto {
     pub query: usize,
     /// Matches (empty = hidden).
     pub matches: Vec<MatchDto>,
-}
-
-impl From<&RowAssignment> for RowDto {
-    fn from(r: &RowAssignment) -> Self {
-        RowDto {
-            query: r.query,
-            matches: r.matches.iter().map(MatchDto::from).collect(),
-        }
-    }
 }
 
 /// A route hypothesis.
@@ -490,12 +479,26 @@ pub struct HypothesisDto {
     pub rows: Vec<RowDto>,
 }
 
-impl From<&Hypothesis> for HypothesisDto {
-    fn from(h: &Hypothesis) -> Self {
+impl From<&StoredHypothesis> for HypothesisDto {
+    fn from(h: &StoredHypothesis) -> Self {
         HypothesisDto {
             rank: h.rank,
             cost: h.cost,
-            rows: h.rows.iter().map(RowDto::from).collect(),
+            rows: h
+                .rows
+                .iter()
+                .map(|r| RowDto {
+                    query: r.query,
+                    matches: r
+                        .matches
+                        .iter()
+                        .map(|m| MatchDto {
+                            reference: m.reference,
+                            similarity: m.similarity,
+                        })
+                        .collect(),
+                })
+                .collect(),
         }
     }
 }
@@ -512,8 +515,8 @@ pub struct PredictionDto {
     pub confidence: f64,
 }
 
-impl From<&crate::eval::Prediction> for PredictionDto {
-    fn from(p: &crate::eval::Prediction) -> Self {
+impl From<&StoredPrediction> for PredictionDto {
+    fn from(p: &StoredPrediction) -> Self {
         PredictionDto {
             query: p.query,
             reference: p.reference,
@@ -535,14 +538,13 @@ pub struct TimingsDto {
     pub solve: f64,
 }
 
-impl TimingsDto {
-    /// Combines the service's own stages with the core's.
-    pub fn new(load_references: f64, features: f64, core: StageTimings) -> Self {
+impl From<&StoredTimings> for TimingsDto {
+    fn from(t: &StoredTimings) -> Self {
         TimingsDto {
-            load_references,
-            features,
-            similarity: core.similarity,
-            solve: core.solve,
+            load_references: t.load_references,
+            features: t.features,
+            similarity: t.similarity,
+            solve: t.solve,
         }
     }
 }
@@ -570,6 +572,24 @@ pub struct LocalizationResponse {
     pub predictions: Vec<PredictionDto>,
     /// Seconds per stage.
     pub timings: TimingsDto,
+}
+
+impl From<&LocalizationDocument> for LocalizationResponse {
+    fn from(d: &LocalizationDocument) -> Self {
+        let r = &d.result;
+        LocalizationResponse {
+            id: format_id(d.id),
+            map_id: format_id(d.map_id),
+            created_at_ms: d.created_at_ms,
+            query_count: r.query_count,
+            reference_count: r.reference_count,
+            params: ParamsUsed::from(&r.params),
+            total_cost: r.total_cost,
+            hypotheses: r.hypotheses.iter().map(HypothesisDto::from).collect(),
+            predictions: r.predictions.iter().map(PredictionDto::from).collect(),
+            timings: TimingsDto::from(&r.timings),
+        }
+    }
 }
 
 /// `GET /v1/localizations` body.
