@@ -89,3 +89,6 @@ impl App {
         Ok(self.store.flush().await?)
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -149,7 +149,7 @@ mod tests {
         let mut files: Vec<String> = std::fs::read_dir(dir)
             .unwrap()
             .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .filter(|n| n != "README.md")
+            .filter(|n| n != "README.md" && n.ends_with(".md"))
             .collect();
         files.sort();
         let steps: Vec<&str> = MIGRATIONS.iter().map(|m| m.file).collect();
