@@ -12,6 +12,7 @@ COPY src ./src
 COPY benches ./benches
 COPY migrations ./migrations
 COPY openapi ./openapi
+COPY assets ./assets
 RUN cargo build --release --locked --bin seasonloc || cargo build --release --bin seasonloc
 
 FROM debian:bookworm-slim AS runtime

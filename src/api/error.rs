@@ -31,6 +31,9 @@ pub enum ApiError {
     /// 409 `trip_conflict`: the trip changed while a batch was computed (retry the batch).
     #[error("{0}")]
     TripConflict(String),
+    /// 404 `asset_not_found`: a dashboard file that does not exist.
+    #[error("no dashboard file `{0}`")]
+    AssetNotFound(String),
     /// 404 `route_not_found`.
     #[error("no route for {0}")]
     RouteNotFound(String),
@@ -140,6 +143,7 @@ impl ApiError {
             ApiError::MapNotFound(_) => (S::NOT_FOUND, "map_not_found", false),
             ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
             ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
+            ApiError::AssetNotFound(_) => (S::NOT_FOUND, "asset_not_found", false),
             ApiError::TripNotFound(_) => (S::NOT_FOUND, "trip_not_found", false),
             ApiError::TripClosed(_) => (S::CONFLICT, "trip_closed", false),
             ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),

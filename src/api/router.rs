@@ -22,7 +22,7 @@ use tracing::Level;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{cooc, localize, maps, metrics, ops, trips};
+use super::{cooc, dashboard, localize, maps, metrics, ops, trips};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -46,6 +46,11 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/readyz"),
     ("get", "/metrics"),
     ("get", "/openapi.json"),
+    ("get", "/"),
+    ("get", "/maps/{id}"),
+    ("get", "/localizations/{id}"),
+    ("get", "/trips/{id}"),
+    ("get", "/assets/{name}"),
 ];
 
 const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
@@ -92,6 +97,7 @@ pub fn app(state: AppState) -> Router {
         .merge(localize::router())
         .merge(trips::router())
         .merge(ops::router())
+        .merge(dashboard::router())
         .fallback(|req: Request| async move {
             ApiError::RouteNotFound(format!("{} {}", req.method(), req.uri().path()))
         })

@@ -4,20 +4,18 @@
 //! These methods work on the images themselves, not on a global descriptor: the reference
 //! folder is the single mapping drive (image `k` = location `k`), from which the vocabulary and
 //! the location models are learned ([`CoocMap::build`]); the queries are quantised with that
-//! vocabulary. Every flag left unset keeps the library default ([`CoocParams::default`],
+//! vocabulary and localized by the one co-occurrence entry point ([`crate::cooc::CoocQueries`]). Every flag left unset keeps the library default ([`CoocParams::default`],
 //! [`SequenceParams::default`]), so the CLI never carries a second copy of the defaults.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use clap::Args;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use crate::cooc::{CoocMap, CoocParams, Drive, Schedule, SequenceParams, Word};
-use crate::eval::Prediction;
+use crate::cooc::{CoocMap, CoocParams, Drive, SequenceParams};
 use crate::features::load_image_file;
-use crate::{Matrix, Result};
+use crate::Result;
 
 /// Flags of the co-occurrence methods (all optional; unset = the library default).
 #[derive(Debug, Clone, Default, Args)]
@@ -103,60 +101,16 @@ impl CoocArgs {
     }
 }
 
-/// A co-occurrence map of the reference folder and the quantised queries, with the score matrix
-/// computed on first use.
-pub struct CoocRun {
-    /// The map built from the reference images.
-    pub map: CoocMap,
-    /// The visual words of every query, in query order.
-    pub queries: Vec<Vec<Word>>,
-    scores: Option<Matrix>,
-    /// Seconds spent on the score matrix (0 until it is computed).
-    pub score_seconds: f64,
-}
-
-impl CoocRun {
-    /// Loads both folders (in parallel), builds the map from the references and quantises the
-    /// queries.
-    pub fn build(params: &CoocParams, references: &[PathBuf], queries: &[PathBuf]) -> Result<Self> {
-        let references = load_gray(references)?;
-        let map = CoocMap::build(params, &[Drive::sequential(0.0, references)?])?;
-        let queries = map.quantize_all(&load_gray(queries)?)?;
-        Ok(CoocRun {
-            map,
-            queries,
-            scores: None,
-            score_seconds: 0.0,
-        })
-    }
-
-    /// The `Q x L` co-occurrence score matrix (computed once).
-    pub fn scores(&mut self) -> &Matrix {
-        self.scores.get_or_insert_with(|| {
-            let t = Instant::now();
-            let scores = self.map.score_matrix_words(&self.queries);
-            self.score_seconds = t.elapsed().as_secs_f64();
-            scores
-        })
-    }
-
-    /// Single-image recognition (best-first simultaneous matching): the best location per
-    /// query with its consistent-group size as confidence; none for a query sharing no word.
-    pub fn single(&self) -> Vec<Prediction> {
-        self.queries
-            .par_iter()
-            .enumerate()
-            .filter_map(|(i, q)| {
-                self.map
-                    .recognize_words(q, Schedule::BestFirst)
-                    .map(|r| Prediction {
-                        query: i,
-                        reference: r.location,
-                        confidence: r.score as f64,
-                    })
-            })
-            .collect()
-    }
+/// Builds the map from the reference images (one drive, image `k` = location `k`) and returns
+/// it with the query images, both loaded in parallel.
+pub fn build_map(
+    params: &CoocParams,
+    references: &[PathBuf],
+    queries: &[PathBuf],
+) -> Result<(CoocMap, Vec<GrayImage>)> {
+    let references = load_gray(references)?;
+    let map = CoocMap::build(params, &[Drive::sequential(0.0, references)?])?;
+    Ok((map, load_gray(queries)?))
 }
 
 fn load_gray(files: &[PathBuf]) -> Result<Vec<GrayImage>> {

@@ -23,11 +23,10 @@ use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{json, Value};
 
-use super::cooc::{CoocArgs, CoocRun};
+use super::cooc::CoocArgs;
 use super::{DescriptorArgs, SolverArgs};
 use crate::baselines::{best_match, seqslam, SeqSlamParams};
-use crate::cooc::sequence::match_sequences;
-use crate::cooc::{flow_similarity, SequenceParams};
+use crate::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use crate::eval::{
     evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
 };
@@ -65,8 +64,18 @@ impl Method {
         }
     }
 
+    /// The co-occurrence method this is, if it is one.
+    fn cooc(self) -> Option<CoocMethod> {
+        match self {
+            Method::Cooc => Some(CoocMethod::Single),
+            Method::CoocSeq => Some(CoocMethod::Sequence),
+            Method::CoocFlow => Some(CoocMethod::Flow),
+            Method::Flow | Method::BestMatch | Method::Seqslam => None,
+        }
+    }
+
     fn is_cooc(self) -> bool {
-        matches!(self, Method::Cooc | Method::CoocSeq | Method::CoocFlow)
+        self.cooc().is_some()
     }
 }
 
@@ -142,11 +151,11 @@ pub struct EvalArgs {
 }
 
 /// What the methods are computed from: descriptor similarity matrices and/or a co-occurrence map.
-struct Inputs {
+struct Inputs<'m> {
     /// Raw cosine matrix C and its normalised ĉ (descriptor methods).
     descriptors: Option<(Matrix, Matrix)>,
-    /// The co-occurrence map and quantised queries (co-occurrence methods).
-    cooc: Option<CoocRun>,
+    /// The quantised queries on the co-occurrence map (co-occurrence methods).
+    cooc: Option<CoocQueries<'m>>,
 }
 
 /// Runs `eval` and returns the JSON report.
@@ -211,19 +220,27 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         }
         inputs.descriptors = Some((c, chat));
     }
-    if let Some(params) = &cooc_params {
-        let mut run = CoocRun::build(params, &reference_files, &query_files)?;
+    let cooc_map = match &cooc_params {
+        Some(params) => Some(super::cooc::build_map(
+            params,
+            &reference_files,
+            &query_files,
+        )?),
+        None => None,
+    };
+    if let Some((map, query_images)) = &cooc_map {
+        let queries = CoocQueries::new(map, query_images)?;
         if methods
             .iter()
-            .any(|m| matches!(m, Method::CoocSeq | Method::CoocFlow))
+            .any(|m| m.cooc().is_some_and(CoocMethod::needs_scores))
         {
-            run.scores();
-            similarity_seconds += run.score_seconds;
+            queries.scores();
+            similarity_seconds += queries.score_seconds();
         }
         if !needs_descriptors {
-            shapes = json!({"descriptor": "cooc", "vocabulary_words": run.map.vocabulary().len()});
+            shapes = json!({"descriptor": "cooc", "vocabulary_words": map.vocabulary().len()});
         }
-        inputs.cooc = Some(run);
+        inputs.cooc = Some(queries);
     }
     let features_seconds = t.elapsed().as_secs_f64() - similarity_seconds;
 
@@ -232,10 +249,14 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         normalization: args.normalization.into(),
         ..LocalizeOptions::default()
     };
+    let cooc_options = CoocOptions {
+        sequence,
+        flow: options.clone(),
+    };
     let mut scored = Vec::new();
     for method in methods {
         let t = Instant::now();
-        let (predictions, extra) = run_method(method, &mut inputs, &options, &sequence)?;
+        let (predictions, extra) = run_method(method, &inputs, &options, &cooc_options)?;
         let solve_seconds = t.elapsed().as_secs_f64();
         let metrics = evaluate(
             &predictions,
@@ -310,13 +331,12 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
 
 fn run_method(
     method: Method,
-    inputs: &mut Inputs,
+    inputs: &Inputs,
     options: &LocalizeOptions,
-    sequence: &SequenceParams,
+    cooc_options: &CoocOptions,
 ) -> Result<(Vec<Prediction>, Value)> {
-    let flow = |chat: &Matrix| -> Result<(Vec<Prediction>, Value)> {
-        let (solution, predictions) = solve_with_confidence(chat, options)?;
-        let extra = json!({
+    let flow_params = |solution: &crate::solver::Solution| {
+        json!({
             "hidden_cost": solution.hidden_cost,
             "fan_out": options.solver.fan_out,
             "flows": options.solver.flows,
@@ -324,40 +344,26 @@ fn run_method(
             "horizontal": options.solver.horizontal,
             "hypotheses": solution.hypotheses.len(),
             "total_cost": solution.total_cost(),
-        });
-        Ok((predictions, extra))
+        })
     };
-    if method.is_cooc() {
-        let run = inputs
+    if let Some(cooc) = method.cooc() {
+        let queries = inputs
             .cooc
-            .as_mut()
+            .as_ref()
             .context("the co-occurrence map is built for every cooc method")?;
-        let words = run.map.vocabulary().len();
-        return Ok(match method {
-            Method::Cooc => (
-                run.single(),
-                json!({"words": words, "schedule": "best-first"}),
-            ),
-            Method::CoocSeq => {
-                let p = match_sequences(run.scores(), sequence)?;
-                let extra = json!({
-                    "words": words,
-                    "length": sequence.length,
-                    "max_step": sequence.max_step,
-                    "exclusion": sequence.exclusion,
-                });
-                (p, extra)
+        let result = queries.localize(cooc, cooc_options)?;
+        let mut extra = match cooc {
+            CoocMethod::Single => json!({"schedule": "best-first"}),
+            CoocMethod::Sequence => {
+                let s = &cooc_options.sequence;
+                json!({"length": s.length, "max_step": s.max_step, "exclusion": s.exclusion})
             }
-            _ => {
-                let chat =
-                    Normalization::apply(options.normalization, &flow_similarity(run.scores()))?;
-                let (p, mut extra) = flow(&chat)?;
-                if let Some(obj) = extra.as_object_mut() {
-                    obj.insert("words".into(), json!(words));
-                }
-                (p, extra)
-            }
-        });
+            CoocMethod::Flow => flow_params(&result.solution),
+        };
+        if let Some(obj) = extra.as_object_mut() {
+            obj.insert("words".into(), json!(queries.map().vocabulary().len()));
+        }
+        return Ok((result.predictions, extra));
     }
     let (c, chat) = inputs
         .descriptors
@@ -369,7 +375,10 @@ fn run_method(
             let params = SeqSlamParams::default();
             (seqslam(c, &params)?, json!({}))
         }
-        _ => flow(chat)?,
+        _ => {
+            let (solution, predictions) = solve_with_confidence(chat, options)?;
+            (predictions, flow_params(&solution))
+        }
     })
 }
 

@@ -1,7 +1,8 @@
 //! [`CoocMap`]: the user-facing co-occurrence map — vocabulary, feature settings and location
 //! models of one route — built from one or more mapping [`Drive`]s, extended by further drives,
-//! and queried with single images ([`recognize`]), sequences ([`sequence_match`]) or as a score
-//! matrix for the network-flow graph ([`CoocMap::score_matrix`]).
+//! and scored against queries: one location per query ([`CoocMap::recognize_words`]) or the
+//! whole score matrix ([`CoocMap::score_matrix`]). The methods built on these are run by
+//! [`super::localize()`].
 //!
 //! The vocabulary is learned from the drives given to [`CoocMap::build`] (the paper trains it on
 //! separate urban images; a route's own images are what a deployed map has). Drives added later
@@ -16,10 +17,8 @@ use rayon::prelude::*;
 use super::keypoints::{self, DESCRIPTOR_DIM};
 use super::model::{DriveRecord, LocationMap, Word, MAX_LOCATIONS};
 use super::recognition::{self, Recognition, Schedule};
-use super::sequence::{match_sequences, SequenceParams};
 use super::vocabulary::{TreeSpec, Vocabulary};
 use super::CoocParams;
-use crate::eval::Prediction;
 use crate::{Error, Matrix, Result};
 
 /// One mapping drive of the route: images, the location index of each, and a time key that
@@ -180,7 +179,7 @@ impl CoocMap {
     }
 
     /// `Q x L` co-occurrence scores (the consistent-group size of every query against every
-    /// location, 0 without candidates): the input of [`sequence_match`] and, as a similarity
+    /// location, 0 without candidates): the input of the sequence matching and, as a similarity
     /// matrix, of the network-flow graph.
     pub fn score_matrix(&self, queries: &[GrayImage]) -> Result<Matrix> {
         let words = self.quantize_all(queries)?;
@@ -259,43 +258,32 @@ pub fn flow_similarity(scores: &Matrix) -> Matrix {
     c
 }
 
-/// Single-image recognition (Sections II-C, II-D): for each query the best location, with the
-/// size of its spatially consistent group as confidence; no prediction for a query that shares
-/// no visual word with the map.
-pub fn recognize(
-    map: &CoocMap,
-    queries: &[GrayImage],
-    schedule: Schedule,
-) -> Result<Vec<Prediction>> {
-    let words = map.quantize_all(queries)?;
-    Ok(words
-        .par_iter()
-        .enumerate()
-        .filter_map(|(i, q)| {
-            map.recognize_words(q, schedule).map(|r| Prediction {
-                query: i,
-                reference: r.location,
-                confidence: r.score as f64,
-            })
-        })
-        .collect())
-}
-
-/// Forward-only, variable-speed sequence matching (Section II-F) on the co-occurrence scores of
-/// `queries` (in driving order); one prediction per query.
-pub fn sequence_match(
-    map: &CoocMap,
-    queries: &[GrayImage],
-    params: &SequenceParams,
-) -> Result<Vec<Prediction>> {
-    let scores = map.score_matrix(queries)?;
-    match_sequences(&scores, params)
-}
-
 #[cfg(test)]
 pub(crate) mod tests {
     use super::super::keypoints::tests::squares;
+    use super::super::{localize, CoocMethod, CoocOptions, SequenceParams};
     use super::*;
+    use crate::eval::Prediction;
+
+    fn recognize(map: &CoocMap, queries: &[GrayImage]) -> Vec<Prediction> {
+        localize(map, queries, CoocMethod::Single, &CoocOptions::default())
+            .unwrap()
+            .predictions
+    }
+
+    fn sequence_match(
+        map: &CoocMap,
+        queries: &[GrayImage],
+        sequence: &SequenceParams,
+    ) -> Vec<Prediction> {
+        let options = CoocOptions {
+            sequence: *sequence,
+            ..CoocOptions::default()
+        };
+        localize(map, queries, CoocMethod::Sequence, &options)
+            .unwrap()
+            .predictions
+    }
     use image::Luma;
 
     /// A scene: bright squares and dark bars at seeded positions; `night` inverts the contrast
@@ -327,7 +315,7 @@ pub(crate) mod tests {
         img
     }
 
-    fn params() -> CoocParams {
+    pub(crate) fn params() -> CoocParams {
         CoocParams {
             vocabulary_branching: 8,
             vocabulary_depth: 2,
@@ -342,7 +330,7 @@ pub(crate) mod tests {
         let map =
             CoocMap::build(&params(), &[Drive::sequential(12.0, refs.clone()).unwrap()]).unwrap();
         assert_eq!(map.location_count(), 12);
-        let p = recognize(&map, &refs, Schedule::BestFirst).unwrap();
+        let p = recognize(&map, &refs);
         let correct = p.iter().filter(|x| x.reference == x.query).count();
         assert_eq!(correct, 12, "{p:?}");
         let s = map.score_matrix(&refs).unwrap();
@@ -369,8 +357,7 @@ pub(crate) mod tests {
         )
         .unwrap();
         let hits = |m: &CoocMap, q: &[GrayImage]| {
-            recognize(m, q, Schedule::BestFirst)
-                .unwrap()
+            recognize(m, q)
                 .iter()
                 .filter(|x| x.reference == x.query)
                 .count()
@@ -409,13 +396,13 @@ pub(crate) mod tests {
             max_step: 2,
             exclusion: 2,
         };
-        let p = sequence_match(&map, &queries, &seq).unwrap();
+        let p = sequence_match(&map, &queries, &seq);
         assert_eq!(p.len(), path.len());
         for (pred, &truth) in p.iter().zip(&path) {
             assert_eq!(pred.reference, truth, "query {}", pred.query);
         }
         let back = CoocMap::from_bytes(&map.to_bytes()).unwrap();
-        assert_eq!(sequence_match(&back, &queries, &seq).unwrap(), p);
+        assert_eq!(sequence_match(&back, &queries, &seq), p);
     }
 
     #[test]

@@ -11,6 +11,8 @@
 //! elimination to a globally consistent group (II-C), and the maximum potential score bounds the
 //! search (II-D). [`sequence`] adds the forward-only, variable-speed sequence matching (II-F);
 //! [`CoocMap::score_matrix`] feeds the co-occurrence scores to the network-flow graph instead.
+//! [`localize()`] (with [`CoocMethod`]) is the one entry point that runs any of the three methods,
+//! shared by the CLI and the service.
 //!
 //! Invariants: a built [`CoocMap`] has a vocabulary, one model per location (possibly empty) and
 //! an inverted index consistent with the models; every stage is deterministic for a given
@@ -19,16 +21,16 @@
 
 mod codec;
 pub mod keypoints;
+mod localize;
 mod map;
 pub mod model;
-#[cfg(test)]
-mod nordland;
 pub mod recognition;
 pub mod sequence;
 pub mod spatial;
 pub mod vocabulary;
 
-pub use map::{flow_similarity, recognize, sequence_match, CoocMap, Drive};
+pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
+pub use map::{flow_similarity, CoocMap, Drive};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;

@@ -2,9 +2,11 @@
 //! (in-process for most tests; the built binary for restart, SIGKILL, configuration and the
 //! Dockerfile's runtime assumptions).
 
+mod browser;
 mod cnn;
 mod common;
 mod cooc;
+mod dashboard;
 mod docker;
 mod durability;
 mod errors;

@@ -1,0 +1,315 @@
+//! The one entry point of the three co-occurrence localization methods, shared by
+//! `seasonloc eval` and the service: [`CoocMethod`] names the method, [`CoocQueries`] holds a
+//! quantised query sequence (and its score matrix, computed once and shared by the methods that
+//! need it), and [`CoocQueries::localize`] / [`localize`] return the same
+//! [`Localization`] as the descriptor methods.
+//!
+//! * [`CoocMethod::Single`] (`cooc`) — single-image recognition (Sections II-C, II-D): per
+//!   query the best location found by the bounded simultaneous search, confidence = the size
+//!   of its spatially consistent group; no prediction for a query sharing no visual word with
+//!   the map; no hypotheses.
+//! * [`CoocMethod::Sequence`] (`cooc-seq`) — the paper's forward-only, variable-speed sequence
+//!   matching (II-F) on the score matrix; one prediction per query; no hypotheses.
+//! * [`CoocMethod::Flow`] (`cooc-flow`) — the score matrix as the similarity matrix of the
+//!   flow paper's graph ([`flow_similarity`], then the options' normalisation), solved with the
+//!   same solver and confidence as HOG/CNN maps.
+//!
+//! Why one place: the CLI and the service used to choose between the methods separately, with
+//! two enums for one concept; now both call this module, so the same map, queries and options
+//! give the same predictions everywhere.
+
+use std::str::FromStr;
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use image::GrayImage;
+use rayon::prelude::*;
+
+use super::map::{flow_similarity, CoocMap};
+use super::model::Word;
+use super::recognition::Schedule;
+use super::sequence::{match_sequences, SequenceParams};
+use crate::eval::Prediction;
+use crate::localize::{solve_with_confidence, Localization, LocalizeOptions, StageTimings};
+use crate::solver::Solution;
+use crate::{Error, Matrix, Result};
+
+/// The co-occurrence localization methods.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum CoocMethod {
+    /// Single-image recognition (`cooc`).
+    Single,
+    /// The paper's sequence matching (`cooc-seq`).
+    Sequence,
+    /// The co-occurrence scores in the flow graph (`cooc-flow`; the service's default).
+    #[default]
+    Flow,
+}
+
+impl CoocMethod {
+    /// Every method, in the order of their names above.
+    pub const ALL: [CoocMethod; 3] = [CoocMethod::Single, CoocMethod::Sequence, CoocMethod::Flow];
+
+    /// The method's name in `seasonloc eval --method` (`cooc`, `cooc-seq`, `cooc-flow`).
+    pub fn name(self) -> &'static str {
+        match self {
+            CoocMethod::Single => "cooc",
+            CoocMethod::Sequence => "cooc-seq",
+            CoocMethod::Flow => "cooc-flow",
+        }
+    }
+
+    /// Whether the method works on the `Q x L` score matrix (sequence and flow do; single-image
+    /// recognition prunes locations instead of scoring them all).
+    pub fn needs_scores(self) -> bool {
+        !matches!(self, CoocMethod::Single)
+    }
+}
+
+impl std::fmt::Display for CoocMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for CoocMethod {
+    type Err = Error;
+
+    /// Parses a name given by [`CoocMethod::name`].
+    fn from_str(s: &str) -> Result<Self> {
+        CoocMethod::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                Error::param(
+                    "method",
+                    format!("unknown co-occurrence method `{s}`; use cooc, cooc-seq or cooc-flow"),
+                )
+            })
+    }
+}
+
+/// Settings of the methods that need them (each method reads only its own).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CoocOptions {
+    /// Sequence matching (`cooc-seq`).
+    pub sequence: SequenceParams,
+    /// Graph, solver, normalisation and confidence (`cooc-flow`).
+    pub flow: LocalizeOptions,
+}
+
+/// A quantised query sequence on one map, with its score matrix computed on first use.
+pub struct CoocQueries<'m> {
+    map: &'m CoocMap,
+    words: Vec<Vec<Word>>,
+    scores: OnceLock<(Matrix, f64)>,
+}
+
+impl<'m> CoocQueries<'m> {
+    /// Extracts and quantises the query images (in parallel, in order).
+    pub fn new(map: &'m CoocMap, images: &[GrayImage]) -> Result<Self> {
+        Ok(Self::from_words(map, map.quantize_all(images)?))
+    }
+
+    /// Queries already quantised with `map`'s vocabulary.
+    pub fn from_words(map: &'m CoocMap, words: Vec<Vec<Word>>) -> Self {
+        CoocQueries {
+            map,
+            words,
+            scores: OnceLock::new(),
+        }
+    }
+
+    /// The map the queries were quantised with.
+    pub fn map(&self) -> &'m CoocMap {
+        self.map
+    }
+
+    /// Number of queries.
+    pub fn len(&self) -> usize {
+        self.words.len()
+    }
+
+    /// True without queries.
+    pub fn is_empty(&self) -> bool {
+        self.words.is_empty()
+    }
+
+    /// The quantised features of every query, in order.
+    pub fn words(&self) -> &[Vec<Word>] {
+        &self.words
+    }
+
+    /// The `Q x L` score matrix (consistent-group sizes), computed once.
+    pub fn scores(&self) -> &Matrix {
+        &self.scored().0
+    }
+
+    /// Seconds the score matrix took (0 before it is computed).
+    pub fn score_seconds(&self) -> f64 {
+        self.scores.get().map_or(0.0, |s| s.1)
+    }
+
+    fn scored(&self) -> &(Matrix, f64) {
+        self.scores.get_or_init(|| {
+            let t = Instant::now();
+            let s = self.map.score_matrix_words(&self.words);
+            (s, t.elapsed().as_secs_f64())
+        })
+    }
+
+    /// Localizes the sequence with `method`. `timings.similarity` is the score matrix (when this
+    /// call computed it) and, for `cooc-flow`, the normalisation; `timings.solve` the method.
+    pub fn localize(&self, method: CoocMethod, options: &CoocOptions) -> Result<Localization> {
+        let empty = Solution {
+            hidden_cost: 0.0,
+            hypotheses: Vec::new(),
+        };
+        if self.words.is_empty() {
+            return Err(Error::Empty("no query images to localize".into()));
+        }
+        let started = Instant::now();
+        match method {
+            CoocMethod::Single => {
+                let predictions = self.single();
+                Ok(Localization {
+                    solution: empty,
+                    predictions,
+                    timings: StageTimings {
+                        similarity: 0.0,
+                        solve: started.elapsed().as_secs_f64(),
+                    },
+                })
+            }
+            CoocMethod::Sequence => {
+                options.sequence.validate()?;
+                let scores = self.scores();
+                let similarity = started.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let predictions = match_sequences(scores, &options.sequence)?;
+                Ok(Localization {
+                    solution: empty,
+                    predictions,
+                    timings: StageTimings {
+                        similarity,
+                        solve: t.elapsed().as_secs_f64(),
+                    },
+                })
+            }
+            CoocMethod::Flow => {
+                options.flow.solver.validate()?;
+                let chat = options
+                    .flow
+                    .normalization
+                    .apply(&flow_similarity(self.scores()))?;
+                let similarity = started.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let (solution, predictions) = solve_with_confidence(&chat, &options.flow)?;
+                Ok(Localization {
+                    solution,
+                    predictions,
+                    timings: StageTimings {
+                        similarity,
+                        solve: t.elapsed().as_secs_f64(),
+                    },
+                })
+            }
+        }
+    }
+
+    /// Best-first single-image recognition of every query, in parallel.
+    fn single(&self) -> Vec<Prediction> {
+        self.words
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, q)| {
+                self.map
+                    .recognize_words(q, Schedule::BestFirst)
+                    .map(|r| Prediction {
+                        query: i,
+                        reference: r.location,
+                        confidence: r.score as f64,
+                    })
+            })
+            .collect()
+    }
+}
+
+/// Localizes the query images (in driving order) on `map` with `method`: the one call for a
+/// single method. To score several methods on the same queries, build [`CoocQueries`] once.
+pub fn localize(
+    map: &CoocMap,
+    queries: &[GrayImage],
+    method: CoocMethod,
+    options: &CoocOptions,
+) -> Result<Localization> {
+    CoocQueries::new(map, queries)?.localize(method, options)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::map::tests::{params, scene};
+    use super::super::Drive;
+    use super::*;
+
+    #[test]
+    fn names_round_trip_and_unknown_names_are_refused() {
+        for m in CoocMethod::ALL {
+            assert_eq!(m.name().parse::<CoocMethod>().unwrap(), m);
+        }
+        let err = "flow".parse::<CoocMethod>().unwrap_err().to_string();
+        assert!(err.contains("cooc-flow"), "{err}");
+    }
+
+    #[test]
+    fn every_method_localizes_generated_scenes_and_shares_one_score_matrix() {
+        let refs: Vec<GrayImage> = (0..14).map(|s| scene(s, false)).collect();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(0.0, refs.clone()).unwrap()]).unwrap();
+        let queries = CoocQueries::new(&map, &refs).unwrap();
+        let options = CoocOptions {
+            sequence: SequenceParams {
+                length: 3,
+                max_step: 2,
+                exclusion: 2,
+            },
+            ..CoocOptions::default()
+        };
+        for method in CoocMethod::ALL {
+            let out = queries.localize(method, &options).unwrap();
+            let correct = out
+                .predictions
+                .iter()
+                .filter(|p| p.reference == p.query)
+                .count();
+            assert!(correct >= 12, "{method}: {correct} of 14 correct");
+            assert_eq!(
+                out.solution.hypotheses.is_empty(),
+                method != CoocMethod::Flow
+            );
+            // The single-function entry point gives the same answer.
+            let again = localize(&map, &refs, method, &options).unwrap();
+            assert_eq!(again.predictions, out.predictions, "{method}");
+        }
+        assert_eq!(queries.scores().rows(), 14);
+    }
+
+    #[test]
+    fn bad_options_and_empty_queries_are_errors() {
+        let refs: Vec<GrayImage> = (0..4).map(|s| scene(s, false)).collect();
+        let map =
+            CoocMap::build(&params(), &[Drive::sequential(0.0, refs.clone()).unwrap()]).unwrap();
+        let bad = CoocOptions {
+            sequence: SequenceParams {
+                length: 0,
+                ..SequenceParams::default()
+            },
+            ..CoocOptions::default()
+        };
+        let err = localize(&map, &refs, CoocMethod::Sequence, &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("length"), "{err}");
+        assert!(localize(&map, &[], CoocMethod::Single, &CoocOptions::default()).is_err());
+    }
+}
