@@ -39,7 +39,7 @@ pub(super) enum RowSource {
     /// Reference descriptors of a HOG/CNN map.
     Descriptors(Arc<Matrix>),
     /// The decoded co-occurrence map.
-    Cooc(CoocMap),
+    Cooc(Box<CoocMap>),
 }
 
 impl RowSource {

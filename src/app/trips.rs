@@ -153,7 +153,7 @@ impl App {
         }
         let map = self.get_map(record.map_id).await?;
         let source = match kind(&map) {
-            Kind::Cooc(_) => RowSource::Cooc(self.load_cooc(&map).await?.1),
+            Kind::Cooc(_) => RowSource::Cooc(Box::new(self.load_cooc(&map).await?.1)),
             Kind::Descriptors(_) => RowSource::Descriptors(
                 self.references
                     .get(
