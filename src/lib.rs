@@ -26,6 +26,7 @@ pub mod features;
 pub mod localize;
 pub mod matrix;
 pub mod online;
+pub mod picture;
 pub mod service;
 pub mod similarity;
 pub mod solver;
