@@ -1,12 +1,14 @@
 //! HOG extraction benches: the paper's 1024x768 / 32 px grid single-threaded (HOG alone on a
-//! gray image, and decode + gray + resize alone), a 64x32 Nordland frame with 8 px cells, and
-//! batch throughput across all cores (`extract_batch` on decoded frames, `extract_files` with
-//! PNG decoding). Compare with `benches/opencv_hog.py`.
+//! gray image, and camera-image preparation alone: JPEG decode + gray + resize, with the shipped
+//! path and, for a back-to-back before/after, the `image` crate's `to_luma8` + `imageops::resize`
+//! it replaced), a 64x32 Nordland frame with 8 px cells, and batch throughput across all cores
+//! (`extract_batch` on decoded frames, `extract_files` with PNG decoding). Compare with
+//! `benches/opencv_hog.py`.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use image::DynamicImage;
 use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{extract_batch, extract_files, load_image_file, Extractor};
+use seasonloc::features::{extract_batch, extract_files, load_image_file, prepare_gray, Extractor};
 
 mod fixture;
 
@@ -38,15 +40,32 @@ fn single(c: &mut Criterion) {
                     .expect("extracts")
             })
         });
+        // The shipped preparation path (what HOG's `extract` with `resize` runs).
         let prepare = || {
+            let img = load_image_file(&path).expect("decodes");
+            prepare_gray(&img, Some((1024, 768)))
+                .expect("resizes")
+                .into_owned()
+        };
+        // The path it replaced, kept for back-to-back comparisons.
+        let prepare_image_crate = || {
             let img = load_image_file(&path).expect("decodes").to_luma8();
             image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
         };
+        let decode_only = || load_image_file(&path).expect("decodes");
         g.bench_function("jpeg_decode_gray_resize_1024x768", |b| b.iter(prepare));
+        g.bench_function("jpeg_decode_gray_resize_1024x768_image_crate", |b| {
+            b.iter(prepare_image_crate)
+        });
+        g.bench_function("jpeg_decode_only_768x576", |b| b.iter(decode_only));
         if fixture::thread_cpu_time().is_some() {
             g.bench_function("jpeg_decode_gray_resize_1024x768_thread_cpu_time", |b| {
                 b.iter_custom(|n| fixture::cpu_time_of(n, prepare))
             });
+            g.bench_function(
+                "jpeg_decode_gray_resize_1024x768_image_crate_thread_cpu_time",
+                |b| b.iter_custom(|n| fixture::cpu_time_of(n, prepare_image_crate)),
+            );
         }
     }
     if let Some(frames) = fixture::nordland_images("summer", 600) {

@@ -5,7 +5,6 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use image::imageops::{self, FilterType};
 use image::{DynamicImage, GrayImage};
 
 /// `../shared/<rel>` relative to the crate root (or `$SEASONLOC_SHARED_DIR/<rel>` when that
@@ -25,16 +24,15 @@ pub fn shared(rel: &str) -> Option<PathBuf> {
 }
 
 /// A sample photo (`shared/models/samples/<name>.jpg`) as luma, resized (triangle filter) to
-/// `width x height`.
+/// `width x height` by the product's preparation path.
 pub fn sample_gray(name: &str, width: u32, height: u32) -> Option<GrayImage> {
     let path = shared(&format!("models/samples/{name}.jpg"))?;
     let image = seasonloc::features::load_image_file(&path).expect("sample photo decodes");
-    Some(imageops::resize(
-        &image.to_luma8(),
-        width,
-        height,
-        FilterType::Triangle,
-    ))
+    Some(
+        seasonloc::features::prepare_gray(&image, Some((width, height)))
+            .expect("resizes")
+            .into_owned(),
+    )
 }
 
 /// The first `n` frames of one Nordland season (`summer` or `winter`), in route order.

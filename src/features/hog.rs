@@ -4,7 +4,8 @@
 //! Layout, as OpenCV's `HOGDescriptor` with one window covering the whole image:
 //!
 //! * the image is converted to 8-bit luma (Rec. 709 weights, as `image`'s `to_luma8`) and, when
-//!   [`HogOptions::resize`] asks for it, resized with a triangle (bilinear) filter;
+//!   [`HogOptions::resize`] asks for it, resized with a triangle (bilinear) filter, both by the
+//!   shared preparation path ([`super::prepare_gray`]);
 //! * gradients are centred `[-1, 0, 1]` differences in x and y, with replicated border pixels;
 //!   the magnitude is `sqrt(gx² + gy²)`, the orientation is unsigned (`0..180°`, `gy` pointing
 //!   down the image);
@@ -31,10 +32,8 @@
 //! magnitude and orientation loops have no branches and vectorise; only the histogram votes are
 //! scalar.
 
-use std::borrow::Cow;
 use std::f32::consts::{FRAC_PI_2, PI};
 
-use image::imageops::{self, FilterType};
 use image::{DynamicImage, GrayImage};
 
 use super::Extractor;
@@ -186,16 +185,7 @@ impl Extractor for HogSpec {
     fn extract(&self, image: &DynamicImage) -> Result<Vec<f32>> {
         // Fail on unusable sizes before spending time on conversion and resizing.
         self.dim_for(image.width(), image.height())?;
-        let gray: Cow<'_, GrayImage> = match image {
-            DynamicImage::ImageLuma8(g) => Cow::Borrowed(g),
-            other => Cow::Owned(other.to_luma8()),
-        };
-        match self.options.resize {
-            Some((w, h)) if (w, h) != gray.dimensions() => {
-                self.compute(&imageops::resize(&*gray, w, h, FilterType::Triangle))
-            }
-            _ => self.compute(&gray),
-        }
+        self.compute(&*super::prepare_gray(image, self.options.resize)?)
     }
 }
 
@@ -634,7 +624,9 @@ mod tests {
             resize: Some((64, 32)),
         })
         .unwrap();
-        let small = imageops::resize(&luma, 64, 32, FilterType::Triangle);
+        let small = crate::features::resize_gray(&luma, 64, 32)
+            .unwrap()
+            .into_owned();
         assert_eq!(
             r.extract(&DynamicImage::ImageRgb8(rgb)).unwrap(),
             s.extract(&DynamicImage::ImageLuma8(small)).unwrap()

@@ -1,13 +1,30 @@
-//! Image input: decoding JPEG/PNG bytes with a pixel limit, loading files, listing a folder.
+//! Image input and preparation: decoding JPEG/PNG bytes with a pixel limit, loading files,
+//! listing a folder, and the one colour-conversion and resize path that HOG, CNN and
+//! co-occurrence extraction share (CLI and service alike).
 //!
 //! The pixel limit is checked from the image header *before* any pixel is decoded, so a small
 //! upload that claims a huge size (a decompression bomb) costs nothing. Formats are detected by
 //! content, never by file name. Every error names the image (file path or multipart part name).
+//!
+//! Preparation, and why it is fast (BENCHMARKS.md, "Image preparation"):
+//! * decoding is `image`'s, which decodes JPEG with `zune-jpeg` (SIMD IDCT and colour
+//!   conversion) and PNG with `png`/`fdeflate`;
+//! * [`to_gray`] is `image`'s `to_luma8` (Rec. 709 weights, `round(255 (kr R + kg G + kb B))`
+//!   on channels scaled to `0..=1` in `f32`) bit for bit, but computed in one branch-free loop
+//!   over RGB8 instead of `image`'s generic per-pixel conversion with a libm `roundf`;
+//! * [`resize_gray`] / [`resize_rgb`] use `fast_image_resize`'s bilinear convolution (the
+//!   triangle filter, widened when shrinking so that it antialiases: the same filter as `image`'s
+//!   `FilterType::Triangle`, Pillow's and torchvision's antialiased bilinear), in 16-bit fixed
+//!   point with AVX2/SSE4.1 kernels picked at run time: ~15x faster than `image`'s `f32`
+//!   `imageops::resize`, whose output it matches within one grey level (documented tolerance:
+//!   every pixel within +-1, checked by a test).
 
+use std::borrow::Cow;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
-use image::{DynamicImage, ImageFormat, ImageReader};
+use fast_image_resize as fir;
+use image::{DynamicImage, GrayImage, ImageFormat, ImageReader, RgbImage};
 
 use crate::{Error, Result};
 
@@ -63,6 +80,141 @@ pub fn load_image_file(path: &Path) -> Result<DynamicImage> {
         source,
     })?;
     decode_image(&path.display().to_string(), &bytes, DEFAULT_MAX_PIXELS)
+}
+
+/// 8-bit luma of any decoded image: Rec. 709 weights, exactly `image`'s `to_luma8`; borrowed
+/// when the image is already 8-bit gray.
+pub fn to_gray(image: &DynamicImage) -> Cow<'_, GrayImage> {
+    match image {
+        DynamicImage::ImageLuma8(gray) => Cow::Borrowed(gray),
+        DynamicImage::ImageRgb8(rgb) => Cow::Owned(rgb_to_luma(rgb)),
+        // Rare layouts (alpha, 16 bit, float) keep the generic conversion.
+        other => Cow::Owned(other.to_luma8()),
+    }
+}
+
+/// 8-bit RGB of any decoded image (gray replicated, alpha dropped); borrowed when the image is
+/// already RGB8.
+pub fn to_rgb(image: &DynamicImage) -> Cow<'_, RgbImage> {
+    match image.as_rgb8() {
+        Some(rgb) => Cow::Borrowed(rgb),
+        None => Cow::Owned(image.to_rgb8()),
+    }
+}
+
+/// Rec. 709 luma weights as `image` 0.25 derives them (the Y row of the BT.709 RGB -> XYZ
+/// matrix for D65, computed by `moxcms`), bit for bit.
+const LUMA_WEIGHTS: [f32; 3] = [
+    f32::from_bits(0x3e59_c05b), // 0.21264784
+    f32::from_bits(0x3f37_15fc), // 0.7151792
+    f32::from_bits(0x3d93_cf75), // 0.07217304
+];
+
+/// `image`'s 8-bit luma (`to_luma8`) of an RGB8 image, bit for bit: each channel scaled to
+/// `0..=1` in `f32`, weighted and summed in the same order, then `round(255 * y)` (half away
+/// from zero). `image` runs this through a generic per-pixel path with a libm `roundf` call;
+/// here it is one branch-free loop (the rounding is done with selects, which SSE2 has).
+/// A test compares all 2^24 RGB values with `to_luma8`.
+fn rgb_to_luma(rgb: &RgbImage) -> GrayImage {
+    const SCALE: f32 = 1.0 / 255.0;
+    let [kr, kg, kb] = LUMA_WEIGHTS;
+    let (w, h) = rgb.dimensions();
+    let mut gray = GrayImage::new(w, h);
+    for (out, px) in gray.iter_mut().zip(rgb.as_raw().chunks_exact(3)) {
+        let y = f32::from(px[0]) * SCALE * kr
+            + f32::from(px[1]) * SCALE * kg
+            + f32::from(px[2]) * SCALE * kb;
+        *out = round_half_away_to_u8(y * 255.0);
+    }
+    gray
+}
+
+/// `x.round() as u8` for `0 <= x < 2^22`, without a libm call: `2^23` added and removed rounds
+/// to nearest-even, the compare turns that into `floor`, and the fraction decides the half.
+#[inline(always)]
+fn round_half_away_to_u8(x: f32) -> u8 {
+    const MAGIC: f32 = 8_388_608.0; // 2^23
+    let nearest = (x + MAGIC) - MAGIC;
+    let floor = if nearest > x { nearest - 1.0 } else { nearest };
+    let rounded = if x - floor >= 0.5 { floor + 1.0 } else { floor };
+    // Saturating: the weights sum to 1.0000002, so white can give 255.00005 -> 255.
+    rounded as u8
+}
+
+/// Resizes a gray image to `width x height` with the triangle (bilinear, antialiased when
+/// shrinking) filter; see the module doc for the tolerance against `image`'s resize. An image
+/// of the requested size is returned as is (borrowed).
+pub fn resize_gray(image: &GrayImage, width: u32, height: u32) -> Result<Cow<'_, GrayImage>> {
+    if image.dimensions() == (width, height) {
+        return Ok(Cow::Borrowed(image));
+    }
+    let (w, h) = image.dimensions();
+    let out = resize_u8(image.as_raw(), (w, h), (width, height), fir::PixelType::U8)?;
+    GrayImage::from_raw(width, height, out)
+        .map(Cow::Owned)
+        .ok_or_else(|| buffer_error(width, height))
+}
+
+/// [`resize_gray`] for 8-bit RGB images.
+pub fn resize_rgb(image: &RgbImage, width: u32, height: u32) -> Result<Cow<'_, RgbImage>> {
+    if image.dimensions() == (width, height) {
+        return Ok(Cow::Borrowed(image));
+    }
+    let (w, h) = image.dimensions();
+    let out = resize_u8(
+        image.as_raw(),
+        (w, h),
+        (width, height),
+        fir::PixelType::U8x3,
+    )?;
+    RgbImage::from_raw(width, height, out)
+        .map(Cow::Owned)
+        .ok_or_else(|| buffer_error(width, height))
+}
+
+/// Gray, then resized when `size` is given: the preparation of every gray descriptor (HOG,
+/// co-occurrence). Errors name the image `image` (batch helpers rename them).
+pub fn prepare_gray(image: &DynamicImage, size: Option<(u32, u32)>) -> Result<Cow<'_, GrayImage>> {
+    let gray = to_gray(image);
+    match size {
+        Some((w, h)) if (w, h) != gray.dimensions() => {
+            Ok(Cow::Owned(resize_gray(&gray, w, h)?.into_owned()))
+        }
+        _ => Ok(gray),
+    }
+}
+
+fn buffer_error(width: u32, height: u32) -> Error {
+    Error::Image {
+        name: "image".into(),
+        reason: format!("the resizer returned a buffer too small for {width}x{height}"),
+    }
+}
+
+fn resize_u8(
+    pixels: &[u8],
+    (w, h): (u32, u32),
+    (out_w, out_h): (u32, u32),
+    pixel_type: fir::PixelType,
+) -> Result<Vec<u8>> {
+    let fail = |reason: String| Error::Image {
+        name: "image".into(),
+        reason,
+    };
+    if w == 0 || h == 0 || out_w == 0 || out_h == 0 {
+        return Err(fail(format!(
+            "cannot resize a {w}x{h} image to {out_w}x{out_h}: both need pixels"
+        )));
+    }
+    let src = fir::images::ImageRef::new(w, h, pixels, pixel_type)
+        .map_err(|e| fail(format!("{w}x{h} pixel buffer: {e}")))?;
+    let mut dst = fir::images::Image::new(out_w, out_h, pixel_type);
+    let options = fir::ResizeOptions::new()
+        .resize_alg(fir::ResizeAlg::Convolution(fir::FilterType::Bilinear));
+    fir::Resizer::new()
+        .resize(&src, &mut dst, &options)
+        .map_err(|e| fail(format!("cannot resize {w}x{h} to {out_w}x{out_h}: {e}")))?;
+    Ok(dst.into_vec())
 }
 
 /// The PNG/JPEG files of `dir` (extensions in [`IMAGE_EXTENSIONS`], any case; not recursive),
@@ -185,6 +337,130 @@ mod tests {
         assert!(why.contains("exceeds the limit"), "{why}");
         let (_, why) = reason(decode_image("hdr.png", head, 5000).unwrap_err());
         assert!(why.contains("cannot decode"), "{why}");
+    }
+
+    fn noisy_rgb(w: u32, h: u32, seed: u32) -> RgbImage {
+        let mut state = seed.wrapping_mul(2_654_435_761).wrapping_add(1);
+        ImageBuffer::from_fn(w, h, |x, y| {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let n = (state >> 24) as u8;
+            // Smooth gradients plus noise: both flat areas and sharp edges.
+            Rgb([
+                n,
+                ((x * 255) / w.max(1)) as u8 ^ (n & 0x0f),
+                ((y * 5 + x * 3) % 256) as u8,
+            ])
+        })
+    }
+
+    #[test]
+    fn to_gray_is_image_to_luma8_for_every_rgb_value() {
+        // All 2^24 colours, as a 4096x4096 image.
+        let all = RgbImage::from_fn(4096, 4096, |x, y| {
+            let v = y * 4096 + x;
+            Rgb([(v >> 16) as u8, (v >> 8) as u8, v as u8])
+        });
+        let all = DynamicImage::ImageRgb8(all);
+        let want = all.to_luma8();
+        let got = to_gray(&all);
+        if let Some(i) = got
+            .as_raw()
+            .iter()
+            .zip(want.as_raw())
+            .position(|(a, b)| a != b)
+        {
+            panic!(
+                "colour {:#08x}: to_gray {} != to_luma8 {}",
+                i,
+                got.as_raw()[i],
+                want.as_raw()[i]
+            );
+        }
+    }
+
+    #[test]
+    fn to_gray_is_image_to_luma8_bit_for_bit() {
+        let rgb = noisy_rgb(97, 41, 3);
+        let dynamic = DynamicImage::ImageRgb8(rgb.clone());
+        assert_eq!(*to_gray(&dynamic), dynamic.to_luma8());
+        // Every extreme of the weights: pure channels and white.
+        let corners = RgbImage::from_fn(4, 1, |x, _| match x {
+            0 => Rgb([255, 0, 0]),
+            1 => Rgb([0, 255, 0]),
+            2 => Rgb([0, 0, 255]),
+            _ => Rgb([255, 255, 255]),
+        });
+        let corners = DynamicImage::ImageRgb8(corners);
+        assert_eq!(*to_gray(&corners), corners.to_luma8());
+        // Gray input is borrowed, other layouts use the generic conversion.
+        let gray = DynamicImage::ImageLuma8(dynamic.to_luma8());
+        assert!(matches!(to_gray(&gray), Cow::Borrowed(_)));
+        let rgba = DynamicImage::ImageRgba8(dynamic.to_rgba8());
+        assert_eq!(*to_gray(&rgba), dynamic.to_luma8());
+    }
+
+    /// The documented tolerance: the SIMD resize is within one grey level of `image`'s
+    /// triangle-filter resize at every pixel, when enlarging (HOG's 768x576 -> 1024x768 camera
+    /// case, Nordland's 64x32 -> 224x224 CNN stretch) and when shrinking (antialiased).
+    #[test]
+    fn resize_is_within_one_level_of_image_triangle_filter() {
+        use image::imageops::{self, FilterType};
+        let cases = [
+            ((96, 72), (128, 96)),
+            ((64, 32), (224, 224)),
+            ((300, 200), (64, 32)),
+            ((77, 51), (40, 90)),
+            ((5, 3), (1, 1)),
+        ];
+        for (i, ((w, h), (ow, oh))) in cases.into_iter().enumerate() {
+            let rgb = noisy_rgb(w, h, i as u32);
+            let gray = DynamicImage::ImageRgb8(rgb.clone()).to_luma8();
+            let want_gray = imageops::resize(&gray, ow, oh, FilterType::Triangle);
+            let got_gray = resize_gray(&gray, ow, oh).unwrap();
+            let want_rgb = imageops::resize(&rgb, ow, oh, FilterType::Triangle);
+            let got_rgb = resize_rgb(&rgb, ow, oh).unwrap();
+            assert_eq!(got_gray.dimensions(), (ow, oh));
+            assert_eq!(got_rgb.dimensions(), (ow, oh));
+            for (got, want) in [
+                (got_gray.as_raw(), want_gray.as_raw()),
+                (got_rgb.as_raw(), want_rgb.as_raw()),
+            ] {
+                let worst = got
+                    .iter()
+                    .zip(want)
+                    .map(|(a, b)| a.abs_diff(*b))
+                    .max()
+                    .unwrap();
+                assert!(worst <= 1, "{w}x{h} -> {ow}x{oh}: off by {worst} levels");
+            }
+        }
+    }
+
+    #[test]
+    fn resize_keeps_images_of_the_right_size_and_rejects_empty_sizes() {
+        let gray = DynamicImage::ImageRgb8(noisy_rgb(20, 10, 1)).to_luma8();
+        assert!(matches!(
+            resize_gray(&gray, 20, 10).unwrap(),
+            Cow::Borrowed(_)
+        ));
+        let (name, why) = reason(resize_gray(&gray, 0, 10).unwrap_err());
+        assert_eq!(name, "image");
+        assert!(why.contains("20x10 image to 0x10"), "{why}");
+        let empty = RgbImage::new(0, 4);
+        let (_, why) = reason(resize_rgb(&empty, 8, 8).unwrap_err());
+        assert!(why.contains("0x4"), "{why}");
+    }
+
+    #[test]
+    fn prepare_gray_converts_then_resizes() {
+        let rgb = DynamicImage::ImageRgb8(noisy_rgb(50, 30, 9));
+        let luma = rgb.to_luma8();
+        assert_eq!(*prepare_gray(&rgb, None).unwrap(), luma);
+        assert_eq!(*prepare_gray(&rgb, Some((50, 30))).unwrap(), luma);
+        assert_eq!(
+            *prepare_gray(&rgb, Some((25, 60))).unwrap(),
+            *resize_gray(&luma, 25, 60).unwrap()
+        );
     }
 
     #[test]

@@ -22,7 +22,8 @@ pub mod hog;
 mod image_io;
 
 pub use image_io::{
-    decode_image, list_images, load_image_file, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
+    decode_image, list_images, load_image_file, prepare_gray, resize_gray, resize_rgb, to_gray,
+    to_rgb, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
 };
 
 /// Turns one image into one global descriptor.

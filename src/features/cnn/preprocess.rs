@@ -8,14 +8,15 @@
 //! `input_size` of the options), channel planes in R, G, B order; any non-empty image of any
 //! size and colour type is accepted (grey is replicated to three channels, alpha is dropped).
 //! Resizing uses a triangle (bilinear) filter whose support widens when shrinking, i.e. the
-//! antialiased bilinear resize of torchvision that ImageNet models are usually exported with.
+//! antialiased bilinear resize of torchvision that ImageNet models are usually exported with;
+//! colour conversion and resizing are the shared preparation path of `features` (`to_rgb`,
+//! `resize_rgb`).
 
-use std::borrow::Cow;
-
-use image::imageops::{self, FilterType};
+use image::imageops;
 use image::{DynamicImage, RgbImage};
 
 use super::{CnnOptions, CnnResize};
+use crate::features::{resize_rgb, to_rgb};
 use crate::{Error, Result};
 
 /// The network input of one image: `3 * h * w` values, planar R, G, B (one batch item of NCHW).
@@ -27,21 +28,21 @@ pub(crate) fn preprocess(options: &CnnOptions, image: &DynamicImage) -> Result<V
             reason: format!("a {width}x{height} image has no pixels"),
         });
     }
-    let rgb: Cow<'_, RgbImage> = match image.as_rgb8() {
-        Some(rgb) => Cow::Borrowed(rgb),
-        None => Cow::Owned(image.to_rgb8()),
-    };
+    let rgb = to_rgb(image);
     let (out_w, out_h) = options.input_size;
-    let sized = match options.resize {
-        CnnResize::Stretch => resize_if_needed(rgb, out_w, out_h),
+    match options.resize {
+        CnnResize::Stretch => {
+            let sized = resize_rgb(&rgb, out_w, out_h)?;
+            Ok(to_planar(&sized, options.mean, options.scale))
+        }
         CnnResize::ShortSideCrop { short_side } => {
             let (rw, rh) = short_side_size(width, height, short_side);
-            let resized = resize_if_needed(rgb, rw, rh);
+            let resized = resize_rgb(&rgb, rw, rh)?;
             let (x0, y0) = (centre_offset(rw, out_w), centre_offset(rh, out_h));
-            Cow::Owned(imageops::crop_imm(resized.as_ref(), x0, y0, out_w, out_h).to_image())
+            let crop = imageops::crop_imm(resized.as_ref(), x0, y0, out_w, out_h).to_image();
+            Ok(to_planar(&crop, options.mean, options.scale))
         }
-    };
-    Ok(to_planar(&sized, options.mean, options.scale))
+    }
 }
 
 /// Size after scaling the short side to `short_side`, keeping the aspect ratio; the long side
@@ -62,19 +63,6 @@ pub(crate) fn short_side_size(width: u32, height: u32, short_side: u32) -> (u32,
 /// rounded like torchvision's `CenterCrop`.
 fn centre_offset(outer: u32, inner: u32) -> u32 {
     outer.saturating_sub(inner).div_ceil(2)
-}
-
-fn resize_if_needed(rgb: Cow<'_, RgbImage>, width: u32, height: u32) -> Cow<'_, RgbImage> {
-    if rgb.dimensions() == (width, height) {
-        rgb
-    } else {
-        Cow::Owned(imageops::resize(
-            rgb.as_ref(),
-            width,
-            height,
-            FilterType::Triangle,
-        ))
-    }
 }
 
 fn to_planar(rgb: &RgbImage, mean: [f32; 3], scale: [f32; 3]) -> Vec<f32> {
