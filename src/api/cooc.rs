@@ -12,7 +12,8 @@ use super::error::ApiError;
 use super::maps::map_id;
 use super::state::AppState;
 use super::upload;
-use crate::app::{CoocMethod, DriveInput};
+use crate::app::DriveInput;
+use crate::cooc::CoocMethod;
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -38,8 +39,8 @@ impl From<CoocMethodDto> for CoocMethod {
     fn from(m: CoocMethodDto) -> Self {
         match m {
             CoocMethodDto::Flow => CoocMethod::Flow,
-            CoocMethodDto::Cooc => CoocMethod::Cooc,
-            CoocMethodDto::CoocSeq => CoocMethod::CoocSeq,
+            CoocMethodDto::Cooc => CoocMethod::Single,
+            CoocMethodDto::CoocSeq => CoocMethod::Sequence,
         }
     }
 }

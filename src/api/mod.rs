@@ -5,8 +5,8 @@
 //! request, call one use case of [`crate::app::App`] (which runs CPU work on its pool and owns
 //! every store access), and convert its answer to wire types ([`dto`]) at the edge. One file
 //! per resource: `maps` (maps and their reference images), `cooc` (drives), `localize`
-//! (localizations), [`trips`] (online trips), [`ops`] (health, metrics, OpenAPI), `dashboard`
-//! (the embedded web dashboard for people).
+//! (localizations), [`trips`] (online trips), [`ops`] (health, metrics, OpenAPI),
+//! `dashboard` (the embedded web dashboard for people).
 
 mod cooc;
 mod dashboard;

@@ -13,45 +13,14 @@
 
 use std::time::Instant;
 
-use rayon::prelude::*;
-
 use super::error::{AppError, AppResult};
 use super::images::{decode_gray, ImageInput};
 use super::kind::{kind, Kind};
 use super::maps::AppendOutcome;
 use super::App;
-use crate::cooc::sequence::match_sequences;
-use crate::cooc::{flow_similarity, CoocMap, CoocParams, Drive, Schedule, SequenceParams};
-use crate::eval::Prediction;
-use crate::localize::{solve_with_confidence, Localization, LocalizeOptions, StageTimings};
-use crate::similarity::Normalization;
-use crate::solver::Solution;
+use crate::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
+use crate::localize::{Localization, LocalizeOptions};
 use crate::store::{CoocWrite, ImageMeta, MapRecord};
-
-/// How a `cooc` map localizes a query sequence.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum CoocMethod {
-    /// The co-occurrence scores (`s + 1`, column-normalised) as the flow graph's similarity
-    /// matrix; the solver parameters apply (default).
-    #[default]
-    Flow,
-    /// Single-image recognition: the best location per query, confidence = the size of its
-    /// spatially consistent group; no hypotheses.
-    Cooc,
-    /// The paper's forward-only sequence matching (ds = 10); no hypotheses.
-    CoocSeq,
-}
-
-impl CoocMethod {
-    /// The method's name (`flow`, `cooc`, `cooc-seq`).
-    pub fn name(self) -> &'static str {
-        match self {
-            CoocMethod::Flow => "flow",
-            CoocMethod::Cooc => "cooc",
-            CoocMethod::CoocSeq => "cooc-seq",
-        }
-    }
-}
 
 /// A further drive of a co-occurrence map's route.
 #[derive(Clone, Debug)]
@@ -206,8 +175,10 @@ impl App {
         Ok(DriveOutcome { drives, images })
     }
 
-    /// Quantises the query images and localizes them on a `cooc` map with `method`. Returns
-    /// the result and the seconds spent loading the map and describing the queries.
+    /// Quantises the query images and localizes them on a `cooc` map with `method` (the one
+    /// entry point of the co-occurrence methods, [`CoocQueries::localize`]; `options` are the
+    /// flow graph's). Returns the result and the seconds spent loading the map and describing
+    /// the queries.
     pub(super) async fn localize_cooc(
         &self,
         map: &MapRecord,
@@ -222,78 +193,15 @@ impl App {
         self.pool
             .run(move || {
                 let started = Instant::now();
-                let words = cooc.quantize_all(&decode_gray(&parts, max_pixels)?)?;
+                let queries = CoocQueries::new(&cooc, &decode_gray(&parts, max_pixels)?)?;
                 let features = started.elapsed().as_secs_f64();
-                let result = run_method(&cooc, &words, method, &options)?;
+                let options = CoocOptions {
+                    flow: options,
+                    ..CoocOptions::default()
+                };
+                let result = queries.localize(method, &options)?;
                 Ok((result, load_seconds, features))
             })
             .await
     }
-}
-
-/// Localizes quantised queries with one of the co-occurrence methods (blocking).
-fn run_method(
-    cooc: &CoocMap,
-    words: &[Vec<crate::cooc::Word>],
-    method: CoocMethod,
-    options: &LocalizeOptions,
-) -> AppResult<Localization> {
-    let empty = |hidden_cost: f64| Solution {
-        hidden_cost,
-        hypotheses: Vec::new(),
-    };
-    let started = Instant::now();
-    Ok(match method {
-        CoocMethod::Cooc => {
-            let predictions: Vec<Prediction> = words
-                .par_iter()
-                .enumerate()
-                .filter_map(|(i, q)| {
-                    cooc.recognize_words(q, Schedule::BestFirst)
-                        .map(|r| Prediction {
-                            query: i,
-                            reference: r.location,
-                            confidence: r.score as f64,
-                        })
-                })
-                .collect();
-            Localization {
-                solution: empty(0.0),
-                predictions,
-                timings: StageTimings {
-                    similarity: 0.0,
-                    solve: started.elapsed().as_secs_f64(),
-                },
-            }
-        }
-        CoocMethod::CoocSeq => {
-            let scores = cooc.score_matrix_words(words);
-            let similarity = started.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let predictions = match_sequences(&scores, &SequenceParams::default())?;
-            Localization {
-                solution: empty(0.0),
-                predictions,
-                timings: StageTimings {
-                    similarity,
-                    solve: t.elapsed().as_secs_f64(),
-                },
-            }
-        }
-        CoocMethod::Flow => {
-            let scores = cooc.score_matrix_words(words);
-            let chat = Normalization::apply(options.normalization, &flow_similarity(&scores))?;
-            let similarity = started.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let (solution, predictions) = solve_with_confidence(&chat, options)?;
-            Localization {
-                solution,
-                predictions,
-                timings: StageTimings {
-                    similarity,
-                    solve: t.elapsed().as_secs_f64(),
-                },
-            }
-        }
-    })
 }

@@ -7,11 +7,11 @@
 
 use std::time::Instant;
 
-use super::cooc::CoocMethod;
 use super::error::{AppError, AppResult};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{map_extractor, App};
+use crate::cooc::CoocMethod;
 use crate::localize::{localize, Localization, LocalizeOptions};
 use crate::store::document::{StoredMethod, StoredParams, StoredTimings};
 use crate::store::{LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest};
@@ -41,8 +41,18 @@ pub struct LocalizeInput {
 fn stored_method(m: CoocMethod) -> StoredMethod {
     match m {
         CoocMethod::Flow => StoredMethod::Flow,
-        CoocMethod::Cooc => StoredMethod::Cooc,
-        CoocMethod::CoocSeq => StoredMethod::CoocSeq,
+        CoocMethod::Single => StoredMethod::Cooc,
+        CoocMethod::Sequence => StoredMethod::CoocSeq,
+    }
+}
+
+/// The name the service's clients use for a method (`params.method`): `flow`, `cooc`,
+/// `cooc-seq` (the CLI says `cooc-flow` for the first).
+pub fn service_name(m: CoocMethod) -> &'static str {
+    match m {
+        CoocMethod::Flow => "flow",
+        CoocMethod::Single => "cooc",
+        CoocMethod::Sequence => "cooc-seq",
     }
 }
 
@@ -87,7 +97,7 @@ impl App {
                             format!(
                                 "`{}` applies to co-occurrence maps only; map `{id:016x}` uses \
                                  the flow graph",
-                                m.name()
+                                service_name(m)
                             ),
                         ));
                     }

@@ -29,7 +29,7 @@ use std::sync::Arc;
 
 use crate::store::Store;
 
-pub use cooc::{CoocMethod, DriveInput, DriveOutcome};
+pub use cooc::{DriveInput, DriveOutcome};
 pub use descriptors::map_extractor;
 pub use error::{AppError, AppResult};
 pub use images::ImageInput;
