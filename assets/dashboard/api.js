@@ -82,8 +82,10 @@ async function send(path, accept) {
   const headers = { Accept: accept };
   const key = currentKey();
   if (key) headers.Authorization = `Bearer ${key}`;
+  // JSON is live data (never from the cache); pictures never change and may be cached.
+  const cache = accept === "application/json" ? "no-store" : "default";
   try {
-    return await fetch(path, { headers, cache: "no-store", credentials: "omit" });
+    return await fetch(path, { headers, cache, credentials: "omit" });
   } catch (e) {
     throw new ApiError(0, "unreachable", `the server did not answer (${e.message})`);
   }
