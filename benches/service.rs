@@ -168,7 +168,7 @@ fn main() {
     // The same plus the store's atomic, flushed append of each batch: what the service does
     // besides HTTP.
     let store_dir = tempfile::tempdir().expect("tempdir");
-    let store = seasonloc::store::Store::open(store_dir.path()).expect("store");
+    let store = seasonloc::store::SledStore::open(store_dir.path()).expect("store");
     let t = Instant::now();
     let mut n = 0;
     for _ in 0..rounds {
@@ -183,9 +183,12 @@ fn main() {
             .expect("map");
         for b in &ingest_batches {
             let m = pool.install(|| extract(b));
-            let metas = vec![seasonloc::store::ImageMeta::default(); m.rows()];
-            store.append_images(map.id, &m, &metas).expect("append");
-            n += m.rows();
+            let rows = m.rows();
+            let metas = vec![seasonloc::store::ImageMeta::default(); rows];
+            let batch =
+                seasonloc::store::ImageBatch::new(map.id, m, metas).expect("one meta per row");
+            store.append_images(&batch).expect("append");
+            n += rows;
         }
     }
     let lib_store_ingest = n as f64 / t.elapsed().as_secs_f64();

@@ -6,8 +6,12 @@
 //!   algorithms on images, descriptor matrices and similarity matrices. They know nothing of
 //!   HTTP, JSON or the store, and report failures as [`Error`].
 //! * **cli** — the `seasonloc solve` / `seasonloc eval` front end (`src/cli`).
-//! * **store** and **api** — the HTTP service on the embedded store ([`store`], [`api`],
-//!   [`config`], [`service`]): only `store` knows sled, only `api` knows axum and JSON.
+//! * **app** — the use cases of the service ([`app`]): the only caller of the store, the only
+//!   dispatch on a map's kind, CPU work on its own pool.
+//! * **store** — the [`store::Store`] trait and its engines (sled, embedded): only `store`
+//!   knows a database.
+//! * **api** — the HTTP edge ([`api`], [`config`], [`service`]): only `api` knows axum and the
+//!   JSON wire types.
 //!
 //! The method is Naseer, Burgard & Stachniss, *Robust Visual Localization Across Seasons*:
 //! global descriptors -> cosine similarity matrix (Eq. 1) -> column normalisation (Eq. 2)
@@ -15,6 +19,7 @@
 #![warn(missing_docs)]
 
 pub mod api;
+pub mod app;
 pub mod baselines;
 pub mod cli;
 pub mod confidence;

@@ -12,8 +12,9 @@ use anyhow::Context;
 use tokio::net::TcpListener;
 
 use crate::api::{self, AppState};
+use crate::app::{App, AppConfig};
 use crate::config::{ServeArgs, Settings};
-use crate::store::Store;
+use crate::store::{SledStore, Store};
 
 /// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
 /// `info`), and serves until SIGTERM or Ctrl-C.
@@ -51,18 +52,26 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let dir = settings.data_dir.clone();
-    let store = tokio::task::spawn_blocking(move || -> anyhow::Result<Store> {
+    let store = tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create the data folder {}", dir.display()))?;
-        Ok(Store::open(&dir)?)
+        Ok(SledStore::open(&dir)?)
     })
     .await??;
-    let store = Arc::new(store);
+    let store: Arc<dyn Store> = Arc::new(store);
     let drain = settings.shutdown_timeout;
-    let state = AppState::new(Arc::clone(&store), settings)?;
+    let use_cases = Arc::new(App::new(
+        store,
+        AppConfig {
+            worker_threads: settings.worker_threads,
+            max_image_pixels: settings.max_image_pixels,
+            default_cnn_model: settings.default_cnn_model.clone(),
+        },
+    )?);
+    let state = AppState::new(Arc::clone(&use_cases), settings)?;
     let app = api::app(state);
     let addr = listener.local_addr()?;
-    tracing::info!(data_dir = %store.path().display(), "seasonloc serve listening on http://{addr}");
+    tracing::info!(data_dir = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
 
     let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
     let signal = async move {
@@ -81,8 +90,7 @@ pub async fn serve(
         result = server => result.context("serving HTTP")?,
         () = deadline => tracing::warn!("drain timeout elapsed; exiting with requests in flight"),
     }
-    let flushed = Arc::clone(&store);
-    tokio::task::spawn_blocking(move || flushed.flush()).await??;
+    use_cases.flush().await?;
     tracing::info!("store flushed; stopped");
     Ok(())
 }

@@ -1,17 +1,21 @@
 //! Wire types of the API (JSON request and response bodies) and their conversions from and to
-//! store and core types. Only this layer knows the wire format: core and store types can change
-//! without changing it.
+//! the use cases' types (store records, core types). Only this layer knows the wire format:
+//! core types and stored documents can change without changing it, and the reverse.
 //!
 //! Ids are 16 lowercase hex digits (the store's `u64`, so they sort by creation time).
 
 use serde::{Deserialize, Serialize};
 
+use super::cooc::CoocMethodDto;
 use super::error::ApiError;
 use crate::features::cnn::CnnResize;
-use crate::localize::{LocalizeOptions, StageTimings};
+use crate::localize::LocalizeOptions;
 use crate::similarity::Normalization;
-use crate::solver::{HiddenCost, Hypothesis, Match, RowAssignment, SolverParams};
-use crate::store::{DescriptorSettings, ImageMeta, MapRecord};
+use crate::solver::{HiddenCost, SolverParams};
+use crate::store::document::{
+    HiddenCostMode, StoredHypothesis, StoredMethod, StoredParams, StoredPrediction, StoredTimings,
+};
+use crate::store::{DescriptorSettings, ImageMeta, LocalizationDocument, MapRecord};
 
 /// Formats a store id for the wire.
 pub fn format_id(id: u64) -> String {
@@ -332,7 +336,7 @@ pub struct LocalizeParams {
     /// Stop adding flows once a path's hidden fraction exceeds this (default none).
     pub stop_hidden_fraction: Option<f64>,
     /// `cooc` maps only: `flow` (default), `cooc` or `cooc-seq`.
-    pub method: Option<super::cooc::CoocMethod>,
+    pub method: Option<CoocMethodDto>,
 }
 
 impl LocalizeParams {
@@ -419,25 +423,28 @@ pub struct ParamsUsed {
     pub stop_hidden_fraction: Option<f64>,
     /// The method of a `cooc` map (absent for other maps).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub method: Option<super::cooc::CoocMethod>,
+    pub method: Option<CoocMethodDto>,
 }
 
-impl ParamsUsed {
-    /// The options plus the resolved hidden cost.
-    pub fn new(o: &LocalizeOptions, resolved_hidden_cost: f64) -> Self {
+impl From<&StoredParams> for ParamsUsed {
+    fn from(p: &StoredParams) -> Self {
         ParamsUsed {
-            fan_out: o.solver.fan_out,
-            hidden_cost_mode: match o.solver.hidden_cost {
-                HiddenCost::Auto => "auto".into(),
-                HiddenCost::Fixed(_) => "fixed".into(),
+            fan_out: p.fan_out,
+            hidden_cost_mode: match p.hidden_cost_mode {
+                HiddenCostMode::Auto => "auto".into(),
+                HiddenCostMode::Fixed => "fixed".into(),
             },
-            hidden_cost: resolved_hidden_cost,
-            flows: o.solver.flows,
-            exact: o.solver.exact,
-            horizontal: o.solver.horizontal,
-            normalize: o.normalization != Normalization::None,
-            stop_hidden_fraction: o.solver.stop_hidden_fraction,
-            method: None,
+            hidden_cost: p.hidden_cost,
+            flows: p.flows,
+            exact: p.exact,
+            horizontal: p.horizontal,
+            normalize: p.normalize,
+            stop_hidden_fraction: p.stop_hidden_fraction,
+            method: p.method.map(|m| match m {
+                StoredMethod::Flow => CoocMethodDto::Flow,
+                StoredMethod::Cooc => CoocMethodDto::Cooc,
+                StoredMethod::CoocSeq => CoocMethodDto::CoocSeq,
+            }),
         }
     }
 }
@@ -452,15 +459,6 @@ pub struct MatchDto {
     pub similarity: f32,
 }
 
-impl From<&Match> for MatchDto {
-    fn from(m: &Match) -> Self {
-        MatchDto {
-            reference: m.reference,
-            similarity: m.similarity,
-        }
-    }
-}
-
 /// One row of a hypothesis.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct RowDto {
@@ -468,15 +466,6 @@ pub struct RowDto {
     pub query: usize,
     /// Matches (empty = hidden).
     pub matches: Vec<MatchDto>,
-}
-
-impl From<&RowAssignment> for RowDto {
-    fn from(r: &RowAssignment) -> Self {
-        RowDto {
-            query: r.query,
-            matches: r.matches.iter().map(MatchDto::from).collect(),
-        }
-    }
 }
 
 /// A route hypothesis.
@@ -490,12 +479,26 @@ pub struct HypothesisDto {
     pub rows: Vec<RowDto>,
 }
 
-impl From<&Hypothesis> for HypothesisDto {
-    fn from(h: &Hypothesis) -> Self {
+impl From<&StoredHypothesis> for HypothesisDto {
+    fn from(h: &StoredHypothesis) -> Self {
         HypothesisDto {
             rank: h.rank,
             cost: h.cost,
-            rows: h.rows.iter().map(RowDto::from).collect(),
+            rows: h
+                .rows
+                .iter()
+                .map(|r| RowDto {
+                    query: r.query,
+                    matches: r
+                        .matches
+                        .iter()
+                        .map(|m| MatchDto {
+                            reference: m.reference,
+                            similarity: m.similarity,
+                        })
+                        .collect(),
+                })
+                .collect(),
         }
     }
 }
@@ -512,8 +515,8 @@ pub struct PredictionDto {
     pub confidence: f64,
 }
 
-impl From<&crate::eval::Prediction> for PredictionDto {
-    fn from(p: &crate::eval::Prediction) -> Self {
+impl From<&StoredPrediction> for PredictionDto {
+    fn from(p: &StoredPrediction) -> Self {
         PredictionDto {
             query: p.query,
             reference: p.reference,
@@ -535,14 +538,13 @@ pub struct TimingsDto {
     pub solve: f64,
 }
 
-impl TimingsDto {
-    /// Combines the service's own stages with the core's.
-    pub fn new(load_references: f64, features: f64, core: StageTimings) -> Self {
+impl From<&StoredTimings> for TimingsDto {
+    fn from(t: &StoredTimings) -> Self {
         TimingsDto {
-            load_references,
-            features,
-            similarity: core.similarity,
-            solve: core.solve,
+            load_references: t.load_references,
+            features: t.features,
+            similarity: t.similarity,
+            solve: t.solve,
         }
     }
 }
@@ -570,6 +572,24 @@ pub struct LocalizationResponse {
     pub predictions: Vec<PredictionDto>,
     /// Seconds per stage.
     pub timings: TimingsDto,
+}
+
+impl From<&LocalizationDocument> for LocalizationResponse {
+    fn from(d: &LocalizationDocument) -> Self {
+        let r = &d.result;
+        LocalizationResponse {
+            id: format_id(d.id),
+            map_id: format_id(d.map_id),
+            created_at_ms: d.created_at_ms,
+            query_count: r.query_count,
+            reference_count: r.reference_count,
+            params: ParamsUsed::from(&r.params),
+            total_cost: r.total_cost,
+            hypotheses: r.hypotheses.iter().map(HypothesisDto::from).collect(),
+            predictions: r.predictions.iter().map(PredictionDto::from).collect(),
+            timings: TimingsDto::from(&r.timings),
+        }
+    }
 }
 
 /// `GET /v1/localizations` body.
@@ -675,5 +695,31 @@ mod tests {
         };
         let err = m.validate(3).unwrap_err();
         assert!(err.to_string().contains("metadata[3].latitude"), "{err}");
+    }
+
+    /// Every localization in the golden store (written by the pre-refactor code, whose API
+    /// answered with the stored bytes) is answered today with exactly those bytes.
+    #[test]
+    fn stored_localizations_are_answered_byte_for_byte() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/store-layout4.golden");
+        let text = std::fs::read_to_string(path).unwrap();
+        let unhex = |h: &str| -> Vec<u8> {
+            (0..h.len())
+                .step_by(2)
+                .map(|k| u8::from_str_radix(&h[k..k + 2], 16).unwrap())
+                .collect()
+        };
+        let mut seen = 0;
+        for line in text.lines().filter(|l| l.starts_with("4c")) {
+            let (k, v) = line.split_once(' ').unwrap();
+            let (k, v) = (unhex(k), unhex(v));
+            let record = crate::store::sled::codec::decode_localization(&k, &v).unwrap();
+            let wire = serde_json::to_vec(&LocalizationResponse::from(&record.document)).unwrap();
+            // format byte, id, map id, created, length prefix, then the stored JSON
+            assert_eq!(wire, &v[1 + 8 + 8 + 8 + 4..]);
+            seen += 1;
+        }
+        assert_eq!(seen, 2);
     }
 }

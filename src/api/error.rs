@@ -8,7 +8,7 @@
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 
-use crate::store::StoreError;
+use crate::app::AppError;
 
 /// Seconds a client is asked to wait after a 503.
 pub const RETRY_AFTER_SECS: u64 = 1;
@@ -127,7 +127,7 @@ pub enum ApiError {
     /// 503 `timeout`: the request took longer than the configured timeout.
     #[error("the request took longer than the configured timeout")]
     Timeout,
-    /// 503 `not_ready`: the store is not usable.
+    /// 503 `not_ready` with `Retry-After`: the store is not usable (it cannot be reached).
     #[error("the store is not ready")]
     NotReady(String),
     /// 500 `internal`: the message is logged, never sent.
@@ -222,23 +222,44 @@ impl From<crate::Error> for ApiError {
     }
 }
 
-impl From<StoreError> for ApiError {
-    fn from(e: StoreError) -> Self {
+impl From<AppError> for ApiError {
+    fn from(e: AppError) -> Self {
+        use super::dto::format_id as id;
         match e {
-            StoreError::MapNotFound(id) => ApiError::MapNotFound(super::dto::format_id(id)),
-            StoreError::LocalizationNotFound(id) => {
-                ApiError::LocalizationNotFound(super::dto::format_id(id))
+            AppError::MapNotFound(m) => ApiError::MapNotFound(id(m)),
+            AppError::LocalizationNotFound(l) => ApiError::LocalizationNotFound(id(l)),
+            AppError::TripNotFound(t) => ApiError::TripNotFound(id(t)),
+            AppError::TripClosed(t) => ApiError::TripClosed(id(t)),
+            AppError::TripConflict(m) => ApiError::TripConflict(m),
+            AppError::InvalidParameter { name, reason } => {
+                ApiError::InvalidParameter { name, reason }
             }
-            StoreError::DimensionMismatch { .. } => ApiError::DescriptorLength(e.to_string()),
-            StoreError::MapFull(id) => ApiError::MapFull(super::dto::format_id(id)),
-            StoreError::Conflict(_) => ApiError::MapChanged(e.to_string()),
-            StoreError::TripNotFound(id) => ApiError::TripNotFound(super::dto::format_id(id)),
-            StoreError::TripClosed(id) => ApiError::TripClosed(super::dto::format_id(id)),
-            StoreError::TripConflict { .. } => ApiError::TripConflict(e.to_string()),
-            StoreError::Open { .. }
-            | StoreError::Sled(_)
-            | StoreError::Corrupt { .. }
-            | StoreError::UnsupportedSchema { .. } => ApiError::Internal(e.to_string()),
+            AppError::InvalidInput(m) => ApiError::BadRequest(m),
+            AppError::EmptyBatch(m) => ApiError::EmptyBatch(m),
+            AppError::MapEmpty(m) => ApiError::MapEmpty(id(m)),
+            AppError::ModelMismatch(m) => ApiError::ModelMismatch(m),
+            AppError::MapKind(m) => ApiError::MapKind(m),
+            AppError::MapChanged(m) => ApiError::MapChanged(m),
+            AppError::MapFull(m) => ApiError::MapFull(id(m)),
+            AppError::ImageTooLarge {
+                part,
+                width,
+                height,
+                pixels,
+                limit,
+            } => ApiError::ImageTooLarge {
+                part,
+                width,
+                height,
+                pixels,
+                limit,
+            },
+            AppError::InvalidImage { part, reason } => ApiError::InvalidImage { part, reason },
+            AppError::DescriptorLength(m) => ApiError::DescriptorLength(m),
+            AppError::NonFinite(m) => ApiError::NonFinite(m),
+            AppError::ShapeMismatch(m) => ApiError::ShapeMismatch(m),
+            AppError::Unavailable(cause) => ApiError::NotReady(cause),
+            AppError::Internal(cause) => ApiError::Internal(cause),
         }
     }
 }
@@ -286,7 +307,20 @@ mod tests {
         }
         .into();
         assert_eq!(e.parts().0, StatusCode::UNPROCESSABLE_ENTITY);
-        let e: ApiError = StoreError::MapNotFound(255).into();
+        let e: ApiError = AppError::from(crate::store::StoreError::MapNotFound(255)).into();
         assert_eq!(e.to_string(), "map `00000000000000ff` does not exist");
+    }
+
+    #[tokio::test]
+    async fn an_unavailable_store_is_503_with_retry_after() {
+        let e: ApiError = AppError::from(crate::store::StoreError::Unavailable(
+            "connection refused by db.internal".into(),
+        ))
+        .into();
+        let (status, body, retry) = body_of(e).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(body["error"]["code"], "not_ready");
+        assert!(retry.is_some());
+        assert!(!body.to_string().contains("db.internal"), "{body}");
     }
 }

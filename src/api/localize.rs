@@ -1,13 +1,11 @@
 //! `POST /v1/maps/{id}/localize` and the stored results under `/v1/localizations`.
 //!
-//! A localization takes a query sequence (multipart `image` parts, or JSON descriptors), runs
-//! [`crate::localize::localize`] against the map's reference descriptors on the CPU pool, stores
-//! the result with the parameters it used, and returns it. Admission is bounded: when
-//! `localize_queue` requests are already running or waiting, the answer is 503 `queue_full`
-//! with `Retry-After`.
+//! A localization takes a query sequence (multipart `image` parts, or JSON descriptors) and
+//! its parameters; the use case ([`crate::app::App::localize`]) runs it against the map and
+//! stores the result, which is returned. Admission is bounded: when `localize_queue` requests
+//! are already running or waiting, the answer is 503 `queue_full` with `Retry-After`.
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use axum::body::Body;
 use axum::extract::multipart::Multipart;
@@ -18,18 +16,16 @@ use axum::routing::{get, post};
 use axum::Router;
 use serde::Deserialize;
 
-use super::cooc::CoocMethod;
 use super::dto::{
-    format_id, parse_id, HypothesisDto, LocalizationListResponse, LocalizationResponse,
-    LocalizeDescriptorsRequest, LocalizeParams, ParamsUsed, PredictionDto, TimingsDto,
+    format_id, parse_id, LocalizationListResponse, LocalizationResponse,
+    LocalizeDescriptorsRequest, LocalizeParams,
 };
 use super::error::ApiError;
-use super::maps::{extract_for_map, map_id};
-use super::state::{blocking, AppState};
-use super::upload::{self, ImagePart};
-use crate::localize::{localize, LocalizeOptions};
-use crate::store::DescriptorSettings;
-use crate::Matrix;
+use super::maps::map_id;
+use super::state::AppState;
+use super::upload;
+use crate::app::{LocalizeInput, Queries};
+use crate::store::{LocalizationRecord, PageRequest};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -44,14 +40,7 @@ pub const DEFAULT_PAGE: usize = 20;
 /// Largest page size.
 pub const MAX_PAGE: usize = 100;
 
-enum Queries {
-    Images(Vec<ImagePart>),
-    Descriptors(Matrix),
-}
-
-type Parsed = (Queries, LocalizeOptions, Option<CoocMethod>);
-
-async fn parse(state: &AppState, req: Request) -> Result<Parsed, ApiError> {
+async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError> {
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -64,10 +53,14 @@ async fn parse(state: &AppState, req: Request) -> Result<Parsed, ApiError> {
             .await
             .map_err(|r| super::extract::bytes_rejection(r, s.max_body_bytes))?;
         let body: LocalizeDescriptorsRequest = super::extract::parse_json(&bytes, None)?;
-        let method = body.params.method;
+        let method = body.params.method.map(Into::into);
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;
-        Ok((Queries::Descriptors(m), options, method))
+        Ok(LocalizeInput {
+            queries: Queries::Descriptors(m),
+            options,
+            method,
+        })
     } else {
         let multipart = Multipart::from_request(req, state)
             .await
@@ -77,12 +70,12 @@ async fn parse(state: &AppState, req: Request) -> Result<Parsed, ApiError> {
             Some(json) => LocalizeParams::from_json(json)?,
             None => LocalizeParams::default(),
         };
-        let method = params.method;
-        Ok((
-            Queries::Images(batch.images),
-            params.into_options()?,
+        let method = params.method.map(Into::into);
+        Ok(LocalizeInput {
+            queries: Queries::Images(batch.images),
+            options: params.into_options()?,
             method,
-        ))
+        })
     }
 }
 
@@ -92,136 +85,38 @@ async fn run(
     req: Request,
 ) -> Result<Response, ApiError> {
     let map = map_id(&id)?;
-    let (queries, options, method) = parse(&state, req).await?;
+    let input = parse(&state, req).await?;
     let Ok(_permit) = Arc::clone(&state.localize_slots).try_acquire_owned() else {
         state.metrics.add_queue_rejection();
         return Err(ApiError::QueueFull);
     };
-    let store = Arc::clone(&state.store);
-    let max_pixels = state.settings.max_image_pixels;
-    let job_options = options.clone();
-    let (result, timings, query_count, reference_count, used_method) = state
-        .pool
-        .run(move || {
-            let record = store.get_map(map)?;
-            if let DescriptorSettings::Cooc(_) = record.descriptor {
-                let Queries::Images(parts) = queries else {
-                    return Err(ApiError::BadRequest(format!(
-                        "co-occurrence map `{}` localizes images (multipart), not descriptors",
-                        format_id(map)
-                    )));
-                };
-                let method = method.unwrap_or_default();
-                let (result, load, features) = super::cooc::localize(
-                    &store,
-                    &record,
-                    &parts,
-                    max_pixels,
-                    method,
-                    &job_options,
-                )?;
-                let timings = TimingsDto::new(load, features, result.timings);
-                return Ok((
-                    result,
-                    timings,
-                    parts.len(),
-                    record.image_count as usize,
-                    Some(method),
-                ));
-            }
-            if let Some(m) = method {
-                return Err(ApiError::param(
-                    "method",
-                    format!(
-                        "`{}` applies to co-occurrence maps only; map `{}` uses the flow graph",
-                        m.name(),
-                        format_id(map)
-                    ),
-                ));
-            }
-            let started = Instant::now();
-            let (record, references) = store.references(map)?;
-            if record.image_count == 0 {
-                return Err(ApiError::MapEmpty(format_id(map)));
-            }
-            let load = started.elapsed().as_secs_f64();
-            let started = Instant::now();
-            let queries = match queries {
-                Queries::Descriptors(m) => {
-                    if m.cols() != references.cols() {
-                        return Err(ApiError::DescriptorLength(format!(
-                            "query descriptors have length {}, map `{}` stores length {}",
-                            m.cols(),
-                            format_id(map),
-                            references.cols()
-                        )));
-                    }
-                    m
-                }
-                Queries::Images(parts) => extract_for_map(&record, &parts, max_pixels)?,
-            };
-            let features = started.elapsed().as_secs_f64();
-            let result = localize(&queries, &references, &job_options)?;
-            let timings = TimingsDto::new(load, features, result.timings);
-            Ok((result, timings, queries.rows(), references.rows(), None))
-        })
-        .await?;
+    let record = state.app.localize(map, input).await?;
+    let r = &record.document.result;
     let m = &state.metrics;
-    m.observe_stage("load_references", timings.load_references);
-    m.observe_stage("features", timings.features);
-    m.observe_stage("similarity", timings.similarity);
-    m.observe_stage("solve", timings.solve);
-    m.add_queries_localized(query_count as u64);
-
-    let store = Arc::clone(&state.store);
-    let (id, doc) = blocking(move || {
-        let id = store.new_localization_id()?;
-        let doc = LocalizationResponse {
-            id: format_id(id),
-            map_id: format_id(map),
-            created_at_ms: crate::store::now_ms(),
-            query_count,
-            reference_count,
-            params: ParamsUsed {
-                method: used_method,
-                ..ParamsUsed::new(&options, result.solution.hidden_cost)
-            },
-            total_cost: result.solution.total_cost(),
-            hypotheses: result
-                .solution
-                .hypotheses
-                .iter()
-                .map(HypothesisDto::from)
-                .collect(),
-            predictions: result.predictions.iter().map(PredictionDto::from).collect(),
-            timings,
-        };
-        let bytes = serde_json::to_vec(&doc)
-            .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
-        // The answer is the stored document byte for byte, so a read-back equals it (the
-        // store's own record time may differ from `created_at_ms` by a millisecond).
-        store.put_localization(id, map, bytes.clone())?;
-        Ok((id, bytes))
-    })
-    .await?;
-    tracing::info!(map = %format_id(map), localization = %format_id(id), queries = query_count, "localized");
-    Ok(json_bytes(doc))
+    m.observe_stage("load_references", r.timings.load_references);
+    m.observe_stage("features", r.timings.features);
+    m.observe_stage("similarity", r.timings.similarity);
+    m.observe_stage("solve", r.timings.solve);
+    m.add_queries_localized(r.query_count as u64);
+    json_document(&record)
 }
 
-fn json_bytes(bytes: Vec<u8>) -> Response {
+/// The wire form of a stored result: the stored document's fields, byte for byte the JSON the
+/// store keeps (a test checks it on the golden store).
+fn json_document(record: &LocalizationRecord) -> Result<Response, ApiError> {
+    let bytes = serde_json::to_vec(&LocalizationResponse::from(&record.document))
+        .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
     let mut r = Body::from(bytes).into_response();
     r.headers_mut().insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static("application/json"),
     );
-    r
+    Ok(r)
 }
 
 async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let lid = parse_id(&id).ok_or(ApiError::LocalizationNotFound(id))?;
-    let store = Arc::clone(&state.store);
-    let record = blocking(move || Ok(store.get_localization(lid)?)).await?;
-    Ok(json_bytes(record.document))
+    json_document(&state.app.get_localization(lid).await?)
 }
 
 /// Query of `GET /v1/localizations`.
@@ -253,22 +148,16 @@ async fn list(
                 ApiError::param("before", format!("`{b}` is not a localization id"))
             })?),
         };
-    let store = Arc::clone(&state.store);
-    let page = blocking(move || Ok(store.list_localizations(map, before, limit)?)).await?;
-    let items = page
-        .items
-        .iter()
-        .map(|r| {
-            serde_json::from_slice::<LocalizationResponse>(&r.document).map_err(|e| {
-                ApiError::Internal(format!(
-                    "stored localization {:016x} is unreadable: {e}",
-                    r.id
-                ))
-            })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let page = state
+        .app
+        .list_localizations(map, PageRequest { before, limit })
+        .await?;
     Ok(axum::Json(LocalizationListResponse {
-        items,
+        items: page
+            .items
+            .iter()
+            .map(|r| LocalizationResponse::from(&r.document))
+            .collect(),
         next: page.next.map(format_id),
     }))
 }

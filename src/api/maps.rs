@@ -1,11 +1,11 @@
 //! `/v1/maps`: create, list, get, delete, and append reference images (multipart) or
 //! precomputed descriptors (JSON or raw `f32`).
 //!
-//! An append is all-or-nothing: every part is decoded and extracted first, then the batch is
-//! written in one atomic, flushed store write; any error before that writes nothing.
+//! Handlers decode and validate the wire input (errors name the request's fields), call the
+//! use cases ([`crate::app::App`]) and encode the answer. An append is all-or-nothing (see
+//! `app::maps`).
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use axum::body::Bytes;
 use axum::extract::multipart::{Multipart, MultipartRejection};
@@ -17,19 +17,18 @@ use axum::{Json, Router};
 use serde::Deserialize;
 
 use super::dto::{
-    format_id, parse_id, AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest,
+    parse_id, AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest,
     DescriptorDto, ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
 };
 use super::error::ApiError;
 use super::extract::ApiJson;
-use super::state::{blocking, AppState};
-use super::upload::{self, ImagePart};
+use super::state::AppState;
+use super::upload;
+use crate::app::{AppendOutcome, DescriptorSpec, NewMapSpec};
 use crate::cooc::CoocParams;
-use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use crate::features::cnn::{CnnOptions, CnnResize};
 use crate::features::hog::{HogOptions, HogSpec};
-use crate::features::Extractor;
-use crate::store::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord, NewMap};
-use crate::Matrix;
+use crate::store::{DescriptorSettings, ImageMeta};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -43,66 +42,6 @@ pub fn router() -> Router<AppState> {
 /// Parses a map id from a path or query; ids that cannot exist are 404.
 pub fn map_id(s: &str) -> Result<u64, ApiError> {
     parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
-}
-
-/// The extractor of a map's images (references and queries): `None` for precomputed maps.
-///
-/// For a CNN map the model at the recorded path is loaded (from the shared cache when its
-/// content is unchanged) and checked against the identity recorded at creation: a model file
-/// that changed, no longer loads or is gone is 409 `model_mismatch`, never silently used.
-/// This is the one place that turns a map's descriptor settings into an extractor; call it on
-/// the CPU pool (it hashes the model file).
-pub fn map_extractor(map: &MapRecord) -> Result<Option<Box<dyn Extractor>>, ApiError> {
-    match &map.descriptor {
-        DescriptorSettings::Hog { cell_size, resize } => {
-            Ok(Some(Box::new(HogSpec::new(HogOptions {
-                cell_size: *cell_size,
-                resize: *resize,
-            })?)))
-        }
-        DescriptorSettings::Precomputed { .. } => Ok(None),
-        DescriptorSettings::Cnn(c) => {
-            let path = c.options.model.display();
-            let id = format_id(map.id);
-            let spec = CnnSpec::new(c.options.clone()).map_err(|e| {
-                ApiError::ModelMismatch(format!(
-                    "map `{id}` was created with the model at {path} (sha256 {}), which no \
-                     longer loads: {e}",
-                    c.identity.sha256
-                ))
-            })?;
-            if let Some(diff) = c.identity.mismatch(&spec.identity()) {
-                return Err(ApiError::ModelMismatch(format!(
-                    "map `{id}`: the model at {path} is not the one the map was created with \
-                     ({diff}); restore that file or create a new map"
-                )));
-            }
-            Ok(Some(Box::new(spec)))
-        }
-        DescriptorSettings::Cooc(_) => Err(ApiError::MapKind(format!(
-            "map `{}` is a co-occurrence map: it has no global descriptors (localize it with \
-             POST /v1/maps/{}/localize, add drives with /drives)",
-            format_id(map.id),
-            format_id(map.id)
-        ))),
-    }
-}
-
-/// The descriptors of uploaded images for `map` (one row per part, in order): the single
-/// dispatch from a map's descriptor settings to extraction, used by appends and localize.
-/// Precomputed maps are 400 (they take descriptors, not images). Blocking: run on the CPU pool.
-pub fn extract_for_map(
-    map: &MapRecord,
-    parts: &[ImagePart],
-    max_pixels: u64,
-) -> Result<Matrix, ApiError> {
-    let Some(extractor) = map_extractor(map)? else {
-        return Err(ApiError::BadRequest(format!(
-            "map `{}` stores precomputed descriptors; send descriptors, not images",
-            format_id(map.id)
-        )));
-    };
-    upload::extract(extractor.as_ref(), parts, max_pixels, map.dim)
 }
 
 /// Turns the CNN fields of a create request into validated options; the model is `model` or
@@ -170,49 +109,12 @@ struct CnnRequest {
     identity: Option<super::dto::ModelIdentityDto>,
 }
 
-/// A CNN settings error at creation as a 400 naming the request's field.
-fn cnn_error(e: crate::Error) -> ApiError {
-    let field = |name: &str| -> &'static str {
-        match name {
-            "cnn_layer" => "descriptor.layer",
-            "cnn_input_size" => "descriptor.input_size",
-            "cnn_short_side" => "descriptor.short_side",
-            "cnn_mean" => "descriptor.mean",
-            "cnn_scale" => "descriptor.scale",
-            _ => "descriptor.model",
-        }
-    };
-    match e {
-        crate::Error::InvalidParameter { name, reason } => ApiError::param(field(name), reason),
-        crate::Error::Io { path, source } => ApiError::param(
-            "descriptor.model",
-            format!("cannot read {}: {source}", path.display()),
-        ),
-        other => ApiError::param("descriptor.model", other.to_string()),
-    }
-}
-
-/// Loads and checks a CNN model for a new map (blocking): every failure is a 400 naming the
-/// descriptor field (missing file, not ONNX, unknown layer with the available ones, input size).
-fn check_cnn(options: CnnOptions) -> Result<CnnSettings, ApiError> {
-    let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
-    Ok(CnnSettings {
-        identity: spec.identity(),
-        options,
-    })
-}
-
-/// A create request checked for everything that needs no file: either a finished map, or
-/// CNN options still to be checked against the model (blocking, see [`check_cnn`]).
-enum Validated {
-    Ready(NewMap),
-    Cnn { name: String, options: CnnOptions },
-}
-
+/// Checks a create request for everything that needs no file (a CNN model is loaded and
+/// checked by the use case).
 fn validate(
     req: CreateMapRequest,
     default_model: Option<&std::path::Path>,
-) -> Result<Validated, ApiError> {
+) -> Result<NewMapSpec, ApiError> {
     let name = req.name.trim().to_string();
     if name.is_empty() || name.len() > MAX_NAME_BYTES {
         return Err(ApiError::param(
@@ -300,62 +202,46 @@ fn validate(
                 identity,
             };
             let options = cnn_options(request, default_model)?;
-            options.validate().map_err(cnn_error)?;
-            return Ok(Validated::Cnn { name, options });
+            return Ok(NewMapSpec {
+                name,
+                descriptor: DescriptorSpec::Cnn(options),
+            });
         }
     };
-    Ok(Validated::Ready(NewMap { name, descriptor }))
+    Ok(NewMapSpec {
+        name,
+        descriptor: DescriptorSpec::Settings(descriptor),
+    })
 }
 
 async fn create(
     State(state): State<AppState>,
     ApiJson(req): ApiJson<CreateMapRequest>,
 ) -> Result<(StatusCode, Json<MapResponse>), ApiError> {
-    let validated = validate(req, state.settings.default_cnn_model.as_deref())?;
-    let new = match validated {
-        Validated::Ready(new) => new,
-        Validated::Cnn { name, options } => {
-            let settings = state.pool.run(move || check_cnn(options)).await?;
-            NewMap {
-                name,
-                descriptor: DescriptorSettings::Cnn(Box::new(settings)),
-            }
-        }
-    };
-    let store = Arc::clone(&state.store);
-    let map = blocking(move || Ok(store.create_map(new)?)).await?;
-    tracing::info!(map = %format_id(map.id), name = %map.name, "map created");
+    let spec = validate(req, state.settings.default_cnn_model.as_deref())?;
+    let map = state.app.create_map(spec).await?;
     Ok((StatusCode::CREATED, Json(map.into())))
 }
 
 async fn list(State(state): State<AppState>) -> Result<Json<MapListResponse>, ApiError> {
-    let store = Arc::clone(&state.store);
-    let maps = blocking(move || Ok(store.list_maps()?)).await?;
+    let maps = state.app.list_maps().await?;
     Ok(Json(MapListResponse {
         maps: maps.into_iter().map(MapResponse::from).collect(),
     }))
-}
-
-async fn get_map(state: &AppState, id: u64) -> Result<MapRecord, ApiError> {
-    let store = Arc::clone(&state.store);
-    blocking(move || Ok(store.get_map(id)?)).await
 }
 
 async fn read(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<MapResponse>, ApiError> {
-    Ok(Json(get_map(&state, map_id(&id)?).await?.into()))
+    Ok(Json(state.app.get_map(map_id(&id)?).await?.into()))
 }
 
 async fn remove(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    let id = map_id(&id)?;
-    let store = Arc::clone(&state.store);
-    blocking(move || Ok(store.delete_map(id)?)).await?;
-    tracing::info!(map = %format_id(id), "map deleted");
+    state.app.delete_map(map_id(&id)?).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -380,24 +266,20 @@ fn metadata(json: Option<&[u8]>, count: usize) -> Result<Vec<ImageMeta>, ApiErro
         .collect()
 }
 
-async fn store_batch(
-    state: &AppState,
-    id: u64,
-    descriptors: Matrix,
-    metas: Vec<ImageMeta>,
-) -> Result<AppendResponse, ApiError> {
-    let store = Arc::clone(&state.store);
-    let started = std::time::Instant::now();
-    let range = blocking(move || Ok(store.append_images(id, &descriptors, &metas)?)).await?;
-    state
-        .metrics
-        .observe_stage("store", started.elapsed().as_secs_f64());
-    state.metrics.add_images_ingested(range.len() as u64);
-    tracing::info!(map = %format_id(id), first = range.start, count = range.len(), "batch stored");
-    Ok(AppendResponse {
-        indices: range.clone().collect(),
-        image_count: range.end,
-    })
+/// Records an append's stages and answers with its indices.
+fn appended(state: &AppState, outcome: &AppendOutcome) -> AppendResponse {
+    let m = &state.metrics;
+    if let Some(s) = outcome.features_seconds {
+        m.observe_stage("features", s);
+    }
+    if let Some(s) = outcome.store_seconds {
+        m.observe_stage("store", s);
+    }
+    m.add_images_ingested(outcome.indices.len() as u64);
+    AppendResponse {
+        indices: outcome.indices.clone().collect(),
+        image_count: outcome.indices.end,
+    }
 }
 
 async fn append_images(
@@ -405,15 +287,7 @@ async fn append_images(
     Path(id): Path<String>,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<Json<AppendResponse>, ApiError> {
-    let id = map_id(&id)?;
-    let map = get_map(&state, id).await?;
-    if let DescriptorSettings::Precomputed { .. } = map.descriptor {
-        return Err(ApiError::BadRequest(format!(
-            "map `{}` stores precomputed descriptors; post them to /v1/maps/{}/descriptors",
-            format_id(id),
-            format_id(id)
-        )));
-    }
+    let map = state.app.map_for_images(map_id(&id)?).await?;
     let s = &state.settings;
     let batch = upload::read(
         multipart.map_err(upload::rejection)?,
@@ -423,35 +297,8 @@ async fn append_images(
     )
     .await?;
     let metas = metadata(batch.json.as_deref(), batch.images.len())?;
-    let max_pixels = s.max_image_pixels;
-    if let DescriptorSettings::Cooc(_) = map.descriptor {
-        let store = Arc::clone(&state.store);
-        let started = std::time::Instant::now();
-        let range = state
-            .pool
-            .run(move || {
-                super::cooc::build_from_images(&store, &map, &batch.images, &metas, max_pixels)
-            })
-            .await?;
-        state
-            .metrics
-            .observe_stage("features", started.elapsed().as_secs_f64());
-        state.metrics.add_images_ingested(range.len() as u64);
-        tracing::info!(map = %format_id(id), images = range.len(), "co-occurrence map built");
-        return Ok(Json(AppendResponse {
-            indices: range.clone().collect(),
-            image_count: range.end,
-        }));
-    }
-    let started = std::time::Instant::now();
-    let descriptors = state
-        .pool
-        .run(move || extract_for_map(&map, &batch.images, max_pixels))
-        .await?;
-    state
-        .metrics
-        .observe_stage("features", started.elapsed().as_secs_f64());
-    Ok(Json(store_batch(&state, id, descriptors, metas).await?))
+    let outcome = state.app.append_images(map, batch.images, metas).await?;
+    Ok(Json(appended(&state, &outcome)))
 }
 
 /// Query of the raw-float form of `/descriptors`.
@@ -471,14 +318,7 @@ async fn append_descriptors(
     let id = map_id(&id)?;
     let body =
         body.map_err(|r| super::extract::bytes_rejection(r, state.settings.max_body_bytes))?;
-    let map = get_map(&state, id).await?;
-    if let DescriptorSettings::Cooc(_) = map.descriptor {
-        return Err(ApiError::MapKind(format!(
-            "co-occurrence map `{}` is built from images; post them to /v1/maps/{}/images",
-            format_id(id),
-            format_id(id)
-        )));
-    }
+    let map = state.app.map_for_descriptors(id).await?;
     let max = state.settings.max_batch_images;
     let content_type = headers
         .get(header::CONTENT_TYPE)
@@ -522,5 +362,6 @@ async fn append_descriptors(
             "descriptors must be sent as application/json or application/octet-stream, got `{content_type}`"
         )));
     };
-    Ok(Json(store_batch(&state, id, descriptors, metas).await?))
+    let outcome = state.app.append_descriptors(id, descriptors, metas).await?;
+    Ok(Json(appended(&state, &outcome)))
 }

@@ -1,10 +1,11 @@
 //! The HTTP edge of the service (axum): routes of `spec.md` §6, JSON wire types, the error type
 //! that maps every failure to a status and `{"error": {"code", "message"}}`, limits, metrics.
 //!
-//! Only this module knows axum and JSON. Handlers parse and validate input, run CPU work on the
-//! rayon pool and store I/O on blocking threads ([`state`]), and convert store and core types
-//! to wire types ([`dto`]) at the edge. One file per resource: [`maps`](self) (maps and their
-//! reference images), `localize` (localizations), [`trips`] (online trips), `ops` (health, metrics, OpenAPI),
+//! Only this module knows axum and the JSON wire types. Handlers decode and validate the
+//! request, call one use case of [`crate::app::App`] (which runs CPU work on its pool and owns
+//! every store access), and convert its answer to wire types ([`dto`]) at the edge. One file
+//! per resource: `maps` (maps and their reference images), `cooc` (drives), `localize`
+//! (localizations), [`trips`] (online trips), [`ops`] (health, metrics, OpenAPI),
 //! `dashboard` (the embedded web dashboard for people).
 
 mod cooc;

@@ -1,8 +1,6 @@
 //! Operations routes: `/healthz` (the process answers), `/readyz` (the store answers reads),
 //! `/metrics` (Prometheus text) and `/openapi.json` (the shipped `openapi/openapi.yaml` as JSON).
 
-use std::sync::Arc;
-
 use axum::extract::State;
 use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
@@ -11,7 +9,7 @@ use axum::{Json, Router};
 
 use super::dto::StatusResponse;
 use super::error::ApiError;
-use super::state::{blocking, AppState};
+use super::state::AppState;
 
 /// The OpenAPI document as shipped.
 pub const OPENAPI_YAML: &str = include_str!("../../openapi/openapi.yaml");
@@ -36,8 +34,11 @@ async fn healthz() -> Json<StatusResponse> {
 }
 
 async fn readyz(State(state): State<AppState>) -> Result<Json<StatusResponse>, ApiError> {
-    let store = Arc::clone(&state.store);
-    blocking(move || store.check().map_err(|e| ApiError::NotReady(e.to_string()))).await?;
+    state
+        .app
+        .ready()
+        .await
+        .map_err(|e| ApiError::NotReady(e.to_string()))?;
     Ok(Json(StatusResponse { status: "ready" }))
 }
 

@@ -1,24 +1,13 @@
 //! Trips over HTTP (spec §6): a vehicle opens a trip on a map, posts its frames in small
 //! multipart batches as it drives, and gets its current position back with every batch.
 //!
-//! * `POST /v1/maps/{id}/trips` opens a trip (optional JSON body of [`TripParamsDto`]) and pins
-//!   the map's current image count: the trip localizes against those references, even if
-//!   images are appended to the map later (its column prior and solver state have that width).
-//! * `POST /v1/trips/{id}/frames` extends it: the images are described with the map's
-//!   settings ([`super::descriptors`]), compared with the references and pushed through
-//!   [`crate::trip::Trip`], whose state is restored from the store, advanced, and written back
-//!   with the batch's estimates in one atomic, flushed store write before the answer.
+//! * `POST /v1/maps/{id}/trips` opens a trip (optional JSON body of [`TripParamsDto`]);
+//! * `POST /v1/trips/{id}/frames` extends it with a batch of `image` parts;
 //! * `GET /v1/trips/{id}`, `GET /v1/maps/{id}/trips` (newest first, paginated),
 //!   `POST /v1/trips/{id}/close` (later frames are 409 `trip_closed`).
 //!
-//! Concurrency: the batches of one trip run one at a time, in arrival order (a per-trip
-//! `tokio::sync::Mutex`); different trips only share the store's brief write lock and the CPU
-//! pool. A batch that fails (bad image, closed trip) writes nothing, so the trip's state is
-//! unchanged.
-
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
+//! What a trip does with its frames, and how batches of one trip are ordered, is the use
+//! case's (`app::trips`); this module decodes, calls it, and encodes.
 
 use axum::body::Bytes;
 use axum::extract::multipart::{Multipart, MultipartRejection};
@@ -32,12 +21,11 @@ use serde::{Deserialize, Serialize};
 use super::dto::{format_id, parse_id};
 use super::error::ApiError;
 use super::localize::{DEFAULT_PAGE, MAX_PAGE};
-use super::maps::{map_extractor, map_id};
-use super::state::{blocking, AppState};
+use super::maps::map_id;
+use super::state::AppState;
 use super::upload;
-use crate::store::{BatchWrite, FrameRecord, TripRecord};
-use crate::trip::{column_prior, FrameEstimate, Trip, TripParams, TripStatus};
-use crate::{similarity, Matrix};
+use crate::store::{FrameRecord, PageRequest, TripParamsDocument, TripRecord};
+use crate::trip::{FrameEstimate, Trip, TripParams, TripStatus};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -46,42 +34,6 @@ pub fn router() -> Router<AppState> {
         .route("/v1/trips/{id}", get(read))
         .route("/v1/trips/{id}/frames", post(frames))
         .route("/v1/trips/{id}/close", post(close))
-}
-
-/// A map's column prior with the image count it was computed for.
-type CachedPrior = (u32, Arc<Vec<f32>>);
-
-/// Per-trip locks and the column priors of maps with trips.
-#[derive(Default)]
-pub struct TripShared {
-    locks: Mutex<HashMap<u64, Arc<tokio::sync::Mutex<()>>>>,
-    /// Map id -> (image count the prior was computed for, prior).
-    priors: Mutex<HashMap<u64, CachedPrior>>,
-}
-
-impl TripShared {
-    /// The lock that orders `trip`'s batches.
-    fn lock_of(&self, trip: u64) -> Arc<tokio::sync::Mutex<()>> {
-        let mut locks = self.locks.lock().unwrap_or_else(|p| p.into_inner());
-        if locks.len() > 1024 {
-            // Forget locks nobody holds or waits for.
-            locks.retain(|_, l| Arc::strong_count(l) > 1);
-        }
-        Arc::clone(locks.entry(trip).or_default())
-    }
-
-    fn prior(&self, map: u64, count: u32) -> Option<Arc<Vec<f32>>> {
-        let priors = self.priors.lock().unwrap_or_else(|p| p.into_inner());
-        priors
-            .get(&map)
-            .filter(|(n, _)| *n == count)
-            .map(|(_, p)| Arc::clone(p))
-    }
-
-    fn keep_prior(&self, map: u64, count: u32, prior: Arc<Vec<f32>>) {
-        let mut priors = self.priors.lock().unwrap_or_else(|p| p.into_inner());
-        priors.insert(map, (count, prior));
-    }
 }
 
 /// Optional parameters of a trip (JSON body of `POST /v1/maps/{id}/trips`).
@@ -180,14 +132,14 @@ pub struct TripParamsUsed {
     pub normalize: bool,
 }
 
-impl From<&TripParams> for TripParamsUsed {
-    fn from(p: &TripParams) -> Self {
+impl From<&TripParamsDocument> for TripParamsUsed {
+    fn from(p: &TripParamsDocument) -> Self {
         TripParamsUsed {
             fan_out: p.fan_out,
             hidden_cost: p.hidden_cost,
             horizontal: p.horizontal,
             lag: p.lag,
-            relocalization_cost: p.relocalization,
+            relocalization_cost: p.relocalization_cost,
             prior_weight: p.prior_weight,
             normalize: p.normalize,
         }
@@ -291,63 +243,31 @@ pub struct FramesResponse {
     pub timings: BatchTimings,
 }
 
-fn status_code(s: TripStatus) -> u8 {
+fn status_name(s: TripStatus) -> String {
     match s {
-        TripStatus::Localized => 1,
-        TripStatus::Lost => 2,
-        TripStatus::Relocalized => 3,
+        TripStatus::Localized => "localized",
+        TripStatus::Lost => "lost",
+        TripStatus::Relocalized => "relocalized",
     }
-}
-
-fn status_name(code: u8) -> Option<String> {
-    match code {
-        1 => Some("localized".into()),
-        2 => Some("lost".into()),
-        3 => Some("relocalized".into()),
-        _ => None,
-    }
+    .into()
 }
 
 fn trip_id(s: &str) -> Result<u64, ApiError> {
     parse_id(s).ok_or_else(|| ApiError::TripNotFound(s.to_string()))
 }
 
-fn response(r: &TripRecord) -> Result<TripResponse, ApiError> {
-    let params: TripParamsUsed = serde_json::from_slice(&r.params).map_err(|e| {
-        ApiError::Internal(format!("trip {:016x} has unreadable parameters: {e}", r.id))
-    })?;
-    Ok(TripResponse {
+fn response(r: &TripRecord) -> TripResponse {
+    TripResponse {
         id: format_id(r.id),
         map_id: format_id(r.map_id),
         created_at_ms: r.created_ms,
         closed_at_ms: r.closed_ms,
         frame_count: r.frame_count,
         reference_count: r.reference_count,
-        status: status_name(r.status),
-        params,
+        status: r.status.map(status_name),
+        params: TripParamsUsed::from(&r.params),
         estimates: None,
-    })
-}
-
-/// The first `count` references (all of them unless images were appended after the trip
-/// opened).
-fn pinned(references: Arc<Matrix>, count: u32) -> Result<Arc<Matrix>, ApiError> {
-    let count = count as usize;
-    if references.rows() == count {
-        return Ok(references);
     }
-    if references.rows() < count {
-        return Err(ApiError::Internal(format!(
-            "the map has {} images, fewer than the trip's {count}",
-            references.rows()
-        )));
-    }
-    let d = references.cols();
-    Ok(Arc::new(Matrix::from_vec(
-        count,
-        d,
-        references.as_slice()[..count * d].to_vec(),
-    )?))
 }
 
 async fn open(
@@ -374,41 +294,8 @@ async fn open(
         super::extract::parse_json(&body, None)?
     };
     let params = dto.into_params()?;
-    let store = Arc::clone(&state.store);
-    let shared = Arc::clone(&state.trips);
-    let record = state
-        .pool
-        .run(move || {
-            let record = store.get_map(map)?;
-            if map_extractor(&record)?.is_none() {
-                return Err(ApiError::MapKind(format!(
-                    "map `{}` stores client-computed descriptors; trips need a map that can \
-                     describe images (e.g. `hog`)",
-                    format_id(map)
-                )));
-            }
-            if record.image_count == 0 {
-                return Err(ApiError::MapEmpty(format_id(map)));
-            }
-            let count = record.image_count;
-            let prior = match shared.prior(map, count) {
-                Some(p) => p,
-                None => {
-                    let (_, references) = store.references(map)?;
-                    let pinned = pinned(references, count)?;
-                    let prior = Arc::new(column_prior(&pinned)?);
-                    shared.keep_prior(map, count, Arc::clone(&prior));
-                    prior
-                }
-            };
-            let trip = Trip::new(prior.as_ref().clone(), params)?;
-            let doc = serde_json::to_vec(&TripParamsUsed::from(&params))
-                .map_err(|e| ApiError::Internal(format!("serializing parameters: {e}")))?;
-            Ok(store.create_trip(map, count, doc, trip.to_bytes())?)
-        })
-        .await?;
-    tracing::info!(map = %format_id(map), trip = %format_id(record.id), "trip opened");
-    Ok((StatusCode::CREATED, Json(response(&record)?)))
+    let record = state.app.open_trip(map, params).await?;
+    Ok((StatusCode::CREATED, Json(response(&record))))
 }
 
 async fn frames(
@@ -430,99 +317,29 @@ async fn frames(
             "frames take no `params` part: a trip's parameters are fixed when it is opened".into(),
         ));
     }
-    let lock = state.trips.lock_of(trip);
-    let _order = lock.lock().await;
-
-    let started = Instant::now();
-    let store = Arc::clone(&state.store);
-    let (record, bytes, map) = blocking(move || {
-        let (record, bytes) = store.trip_state(trip)?;
-        if record.closed_ms.is_some() {
-            return Err(ApiError::TripClosed(format_id(trip)));
-        }
-        let map = store.get_map(record.map_id)?;
-        Ok((record, bytes, map))
-    })
-    .await?;
-    let store = Arc::clone(&state.store);
-    let max_pixels = s.max_image_pixels;
-    let (update, new_state, hidden_cost, load, features, solve) = state
-        .pool
-        .run(move || {
-            let (_, references) = store.references(map.id)?;
-            let references = pinned(references, record.reference_count)?;
-            let mut trip_state = Trip::from_bytes(&bytes)?;
-            let load = started.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let Some(extractor) = map_extractor(&map)? else {
-                return Err(ApiError::MapKind(format!(
-                    "map `{}` cannot describe images",
-                    format_id(map.id)
-                )));
-            };
-            let queries = upload::extract(extractor.as_ref(), &batch.images, max_pixels, map.dim)?;
-            let features = t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let c = similarity::cosine_matrix(&queries, &references)?;
-            let update = trip_state.push_batch(&c)?;
-            let hidden_cost = trip_state
-                .hidden_cost()
-                .expect("the first batch resolves the hidden cost");
-            let solve = t.elapsed().as_secs_f64();
-            Ok((
-                update,
-                trip_state.to_bytes(),
-                hidden_cost,
-                load,
-                features,
-                solve,
-            ))
-        })
-        .await?;
-    let revised: Vec<FrameRecord> = update
-        .window
-        .iter()
-        .chain(&update.estimates)
-        .map(|e| FrameRecord {
-            frame: e.frame as u32,
-            reference: e.reference.map(|j| j as u32),
-            confidence: e.confidence,
-        })
-        .collect();
-    let frame_count = record.frame_count + update.estimates.len() as u64;
-    let write = BatchWrite {
-        expected_frames: record.frame_count,
-        frame_count,
-        status: status_code(update.status),
-        state: new_state,
-        estimates: revised,
-    };
-    let t = Instant::now();
-    let store = Arc::clone(&state.store);
-    blocking(move || Ok(store.put_trip_batch(trip, write)?)).await?;
-    let store_secs = t.elapsed().as_secs_f64();
+    let outcome = state.app.post_frames(trip, batch.images).await?;
+    let t = &outcome.timings;
     let m = &state.metrics;
-    m.observe_stage("features", features);
-    m.observe_stage("solve", solve);
-    m.observe_stage("store", store_secs);
-    let status = status_name(status_code(update.status)).expect("every status has a name");
-    tracing::debug!(trip = %format_id(trip), frames = frame_count, %status, "batch applied");
+    m.observe_stage("features", t.features);
+    m.observe_stage("solve", t.solve);
+    m.observe_stage("store", t.store);
+    let update = &outcome.update;
     Ok(Json(FramesResponse {
         trip_id: format_id(trip),
-        frame_count,
+        frame_count: outcome.trip.frame_count,
         estimates: update
             .estimates
             .iter()
             .map(FrameEstimateDto::from)
             .collect(),
-        status,
+        status: status_name(update.status),
         window: update.window.iter().map(FrameEstimateDto::from).collect(),
-        hidden_cost,
+        hidden_cost: outcome.hidden_cost,
         timings: BatchTimings {
-            load,
-            features,
-            solve,
-            store: store_secs,
+            load: t.load,
+            features: t.features,
+            solve: t.solve,
+            store: t.store,
         },
     }))
 }
@@ -531,15 +348,8 @@ async fn read(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<TripResponse>, ApiError> {
-    let trip = trip_id(&id)?;
-    let store = Arc::clone(&state.store);
-    let (record, estimates) = blocking(move || {
-        let record = store.get_trip(trip)?;
-        let estimates = store.trip_estimates(trip)?;
-        Ok((record, estimates))
-    })
-    .await?;
-    let mut r = response(&record)?;
+    let (record, estimates) = state.app.get_trip(trip_id(&id)?).await?;
+    let mut r = response(&record);
     r.estimates = Some(estimates.iter().map(FrameEstimateDto::from).collect());
     Ok(Json(r))
 }
@@ -548,14 +358,8 @@ async fn close(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<TripResponse>, ApiError> {
-    let trip = trip_id(&id)?;
-    // Wait for a batch in flight, so the close lands after it.
-    let lock = state.trips.lock_of(trip);
-    let _order = lock.lock().await;
-    let store = Arc::clone(&state.store);
-    let record = blocking(move || Ok(store.close_trip(trip)?)).await?;
-    tracing::info!(trip = %format_id(trip), "trip closed");
-    Ok(Json(response(&record)?))
+    let record = state.app.close_trip(trip_id(&id)?).await?;
+    Ok(Json(response(&record)))
 }
 
 /// Query of `GET /v1/maps/{id}/trips`.
@@ -587,10 +391,12 @@ async fn list(
                 .ok_or_else(|| ApiError::param("before", format!("`{b}` is not a trip id")))?,
         ),
     };
-    let store = Arc::clone(&state.store);
-    let page = blocking(move || Ok(store.list_trips(map, before, limit)?)).await?;
+    let page = state
+        .app
+        .list_trips(map, PageRequest { before, limit })
+        .await?;
     Ok(Json(TripListResponse {
-        items: page.items.iter().map(response).collect::<Result<_, _>>()?,
+        items: page.items.iter().map(response).collect(),
         next: page.next.map(format_id),
     }))
 }

@@ -1,28 +1,21 @@
-//! Reading multipart batches (parts `image`, plus `metadata` or `params`) and turning image
-//! parts into descriptors on the CPU pool.
+//! Reading request bodies into the use cases' input: multipart batches (parts `image`, plus
+//! one JSON part such as `metadata` or `params`) and precomputed descriptors (JSON rows or raw
+//! little-endian `f32`).
 //!
-//! Every image error names its part as `image[k] ("file name")`, `k` counting the batch's image
-//! parts from 0. Limits (count, pixels, body size) are checked as early as possible: the count
-//! while streaming, the pixel count from the image header before decoding.
-
-use std::io::Cursor;
+//! Every image part is named `image[k] ("file name")`, `k` counting the batch's image parts
+//! from 0, so later errors about it name it the same way. Limits are checked as early as
+//! possible: the image count and body size while streaming (the pixel count is checked by the
+//! use case from each image's header, before decoding).
 
 use axum::body::Bytes;
 use axum::extract::multipart::{Multipart, MultipartError, MultipartRejection};
-use rayon::prelude::*;
 
 use super::error::ApiError;
-use crate::features::{self, Extractor};
+use crate::app::ImageInput;
 use crate::Matrix;
 
-/// One uploaded image.
-#[derive(Clone, Debug)]
-pub struct ImagePart {
-    /// `image[k]` or `image[k] ("file.png")`.
-    pub name: String,
-    /// Encoded bytes.
-    pub bytes: Bytes,
-}
+/// One uploaded image part.
+pub type ImagePart = ImageInput;
 
 /// A parsed multipart batch.
 #[derive(Debug, Default)]
@@ -96,93 +89,6 @@ pub async fn read(
         ));
     }
     Ok(upload)
-}
-
-/// Width and height from the header, without decoding the pixels.
-fn dimensions(part: &ImagePart) -> Result<(u32, u32), ApiError> {
-    let reader = image::ImageReader::new(Cursor::new(&part.bytes[..]))
-        .with_guessed_format()
-        .map_err(|e| invalid(part, e.to_string()))?;
-    match reader.format() {
-        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
-        Some(other) => {
-            return Err(invalid(
-                part,
-                format!("{other:?} is not supported; send JPEG or PNG"),
-            ))
-        }
-        None => return Err(invalid(part, "not a JPEG or PNG image".into())),
-    }
-    reader
-        .into_dimensions()
-        .map_err(|e| invalid(part, format!("unreadable image header: {e}")))
-}
-
-fn invalid(part: &ImagePart, reason: String) -> ApiError {
-    ApiError::InvalidImage {
-        part: part.name.clone(),
-        reason,
-    }
-}
-
-/// Decodes the parts and extracts one descriptor row per image, in order, on the current rayon
-/// pool. All images must give descriptors of one length, equal to `expected_dim` when given
-/// (the map's); violations name the first offending part.
-pub fn extract(
-    extractor: &dyn Extractor,
-    parts: &[ImagePart],
-    max_pixels: u64,
-    expected_dim: Option<u32>,
-) -> Result<Matrix, ApiError> {
-    let dims = parts
-        .par_iter()
-        .map(|p| {
-            let (w, h) = dimensions(p)?;
-            let pixels = u64::from(w) * u64::from(h);
-            if pixels > max_pixels {
-                return Err(ApiError::ImageTooLarge {
-                    part: p.name.clone(),
-                    width: w,
-                    height: h,
-                    pixels,
-                    limit: max_pixels,
-                });
-            }
-            let dim = extractor
-                .dim_for(w, h)
-                .map_err(|e| invalid(p, e.to_string()))?;
-            Ok((w, h, dim))
-        })
-        .collect::<Vec<_>>();
-    let mut first: Option<(u32, u32, usize)> = None;
-    for (p, d) in parts.iter().zip(dims) {
-        let (w, h, dim) = d?;
-        if let Some(expected) = expected_dim {
-            if dim != expected as usize {
-                return Err(ApiError::DescriptorLength(format!(
-                    "{} is {w}x{h} and gives descriptors of length {dim}; this map's descriptors \
-                     have length {expected} (send images of the map's size)",
-                    p.name
-                )));
-            }
-        }
-        match first {
-            None => first = Some((w, h, dim)),
-            Some((w0, h0, d0)) if d0 != dim => {
-                return Err(ApiError::DescriptorLength(format!(
-                    "{} is {w}x{h} (descriptor length {dim}) but image[0] is {w0}x{h0} \
-                     (length {d0}); a batch must give descriptors of one length",
-                    p.name
-                )))
-            }
-            Some(_) => {}
-        }
-    }
-    let images = parts
-        .par_iter()
-        .map(|p| features::decode_image(&p.name, &p.bytes, max_pixels).map_err(ApiError::from))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(features::extract_batch(extractor, &images)?)
 }
 
 /// Checks client descriptors (`what` is "descriptors" or "query descriptors") and packs them
@@ -304,40 +210,5 @@ mod tests {
             raw_descriptor_matrix(&bytes[..6], 2, 10),
             Err(ApiError::DescriptorLength(_))
         ));
-    }
-
-    #[test]
-    fn corrupt_images_are_named_before_decoding() {
-        struct Never;
-        impl Extractor for Never {
-            fn dim_for(&self, _: u32, _: u32) -> crate::Result<usize> {
-                Ok(1)
-            }
-            fn extract(&self, _: &image::DynamicImage) -> crate::Result<Vec<f32>> {
-                unreachable!("the batch is rejected before extraction")
-            }
-        }
-        let parts = vec![ImagePart {
-            name: "image[0] (\"x.png\")".into(),
-            bytes: Bytes::from_static(b"not an image"),
-        }];
-        let e = extract(&Never, &parts, 100, None).unwrap_err();
-        assert!(
-            matches!(&e, ApiError::InvalidImage { part, .. } if part.contains("x.png")),
-            "{e}"
-        );
-        let mut png = Vec::new();
-        image::DynamicImage::new_luma8(20, 10)
-            .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
-            .unwrap();
-        let parts = vec![ImagePart {
-            name: "image[0]".into(),
-            bytes: Bytes::from(png),
-        }];
-        let e = extract(&Never, &parts, 100, None).unwrap_err();
-        assert!(
-            matches!(e, ApiError::ImageTooLarge { pixels: 200, .. }),
-            "{e}"
-        );
     }
 }

@@ -1,54 +1,72 @@
-//! The embedded store of the service: maps, their reference descriptors in route order, and
-//! stored localization results, in one sled database.
+//! The service's storage seam: the [`Store`] trait, the records it reads and writes, and its one
+//! error type. Engines live in submodules ([`sled`], the embedded default); the use-case layer
+//! (`crate::app`) holds an `Arc<dyn Store>` and is the only caller.
 //!
-//! Only this module knows sled. It owns the key layout ([`codec`]), the layout version and its
-//! upgrades ([`migrate`]), and the write rules:
+//! The trait is shaped for engines shared by many processes at once (a PostgreSQL database
+//! behind several replicas), not only for the embedded one:
 //!
-//! * every change that spans several keys (a batch of images plus the map's `image_count`, a
-//!   localization plus its index entry, a map and everything under it) is one `sled::Batch`,
-//!   applied atomically, so a crash leaves either all of it or none of it;
-//! * every write is flushed to disk before the call returns, so whatever the API acknowledged
-//!   survives a crash;
-//! * writes go through one mutex, so `image_count` read-modify-write cycles never interleave.
+//! * **Every write that spans several records is atomic** (a batch of images and the map's new
+//!   `image_count`; a localization and its index entry; a trip batch's state, record and
+//!   estimates; a map and everything under it), and **durable before the call returns**.
+//! * **Writes that depend on what was read are conditional**: a trip batch names the frame
+//!   count it was computed after ([`TripBatch::expected_frames`]), a co-occurrence map the bytes
+//!   it replaces ([`CoocWrite::previous`]); a stale write fails with
+//!   [`StoreError::TripConflict`] / [`StoreError::Conflict`] and changes nothing, so two
+//!   replicas can never both apply a batch computed from one state.
+//! * **Ids are allocated by the engine** (`create_*`), increasing with creation time.
+//! * **A map's descriptors are versioned by its `image_count`**: images are append-only, rows
+//!   `0..image_count` never change, so a reader that caches a map's matrix checks the map's
+//!   current count ([`Store::get_map`]) and reads only the new rows ([`Store::descriptors`]).
+//! * **Listings are cursor-paginated** ([`PageRequest`] / [`Page`]: newest first, `before` an
+//!   exclusive id).
+//! * **No engine type appears in a signature**; failures are [`StoreError`], whose
+//!   [`StoreError::Unavailable`] means "the engine cannot be reached now" (the API answers 503)
+//!   and every other engine failure is [`StoreError::Backend`] or [`StoreError::Corrupt`].
 //!
-//! Localization results are stored as opaque documents (bytes) chosen by the caller: the store
-//! does not know the wire format.
+//! Stored documents (a localization's result, a trip's parameters) have their own types in
+//! [`document`], separate from the API's wire DTOs, so a wire change cannot silently change
+//! stored data.
 
-pub mod codec;
-mod cooc;
-mod localizations;
-mod maps;
-pub mod migrate;
-mod trips;
+pub mod document;
+pub mod sled;
 
-use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::ops::Range;
 
+use async_trait::async_trait;
+
+use crate::trip::TripStatus;
 use crate::Matrix;
 
-pub use maps::NewMap;
-pub use trips::{BatchWrite, TripPage};
+pub use self::sled::SledStore;
+pub use document::{LocalizationDocument, LocalizationResult, TripParamsDocument};
 
-/// Errors of the store layer.
+/// A boxed engine error, kept as the source of [`StoreError::Backend`] and
+/// [`StoreError::Open`] without naming the engine's type.
+pub type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
+
+/// Errors of the store layer (every engine).
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
-    /// The database could not be opened (e.g. locked by another process).
-    #[error("cannot open the store at {path}: {source}")]
+    /// The store could not be opened (e.g. a data folder locked by another process).
+    #[error("cannot open the store at {location}: {source}")]
     Open {
-        /// The data folder.
-        path: PathBuf,
-        /// The underlying sled error.
+        /// Where the store is (a folder, or a database address without credentials).
+        location: String,
+        /// The engine's error.
         #[source]
-        source: sled::Error,
+        source: BoxError,
     },
-    /// A read or write failed.
+    /// The engine cannot be reached right now (connection refused, pool exhausted, shutting
+    /// down); retrying later may succeed. The API answers 503.
+    #[error("the store is unavailable: {0}")]
+    Unavailable(String),
+    /// A read or write failed inside the engine.
     #[error("store I/O: {0}")]
-    Sled(#[from] sled::Error),
+    Backend(#[source] BoxError),
     /// A stored value could not be decoded.
     #[error("corrupt record at key {key}: {reason}")]
     Corrupt {
-        /// The key, hex-encoded.
+        /// The record's key, hex-encoded.
         key: String,
         /// What is wrong with the value.
         reason: String,
@@ -104,7 +122,8 @@ pub enum StoreError {
 }
 
 impl StoreError {
-    pub(crate) fn corrupt(key: &[u8], reason: impl Into<String>) -> Self {
+    /// [`StoreError::Corrupt`] for the record under `key`.
+    pub fn corrupt(key: &[u8], reason: impl Into<String>) -> Self {
         StoreError::Corrupt {
             key: key.iter().map(|b| format!("{b:02x}")).collect(),
             reason: reason.into(),
@@ -134,7 +153,7 @@ pub enum DescriptorSettings {
     /// was created with (layout >= 3).
     Cnn(Box<CnnSettings>),
     /// A feature co-occurrence map (`cooc`) with these parameters (layout >= 3). Its images
-    /// have no descriptor rows; the encoded `CoocMap` is stored under its own key.
+    /// have no descriptor rows; the encoded `CoocMap` is stored beside the map.
     Cooc(Box<crate::cooc::CoocParams>),
 }
 
@@ -148,6 +167,15 @@ pub struct CnnSettings {
     pub identity: crate::features::cnn::ModelIdentity,
 }
 
+/// What a client gives to create a map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewMap {
+    /// User-given name.
+    pub name: String,
+    /// Validated descriptor settings.
+    pub descriptor: DescriptorSettings,
+}
+
 /// A stored map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MapRecord {
@@ -159,7 +187,8 @@ pub struct MapRecord {
     pub descriptor: DescriptorSettings,
     /// Descriptor length, fixed by the first stored batch (or at creation for precomputed).
     pub dim: Option<u32>,
-    /// Number of reference images; their indices are `0..image_count`.
+    /// Number of reference images; their indices are `0..image_count`. Images are
+    /// append-only, so this is also the version of the map's descriptor matrix.
     pub image_count: u32,
     /// Creation time, milliseconds since the Unix epoch.
     pub created_ms: u64,
@@ -178,6 +207,63 @@ pub struct ImageMeta {
     pub label: Option<String>,
 }
 
+/// A batch of reference images for [`Store::append_images`]: one metadata entry per
+/// descriptor row (checked by [`ImageBatch::new`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageBatch {
+    map: u64,
+    descriptors: Matrix,
+    metas: Vec<ImageMeta>,
+}
+
+impl ImageBatch {
+    /// A batch for `map`: one descriptor row per image in route order, one metadata entry per
+    /// row ([`crate::Error::Shape`] otherwise).
+    pub fn new(map: u64, descriptors: Matrix, metas: Vec<ImageMeta>) -> crate::Result<Self> {
+        if descriptors.rows() != metas.len() {
+            return Err(crate::Error::Shape(format!(
+                "{} metadata entries for {} descriptor rows",
+                metas.len(),
+                descriptors.rows()
+            )));
+        }
+        Ok(ImageBatch {
+            map,
+            descriptors,
+            metas,
+        })
+    }
+
+    /// The map.
+    pub fn map(&self) -> u64 {
+        self.map
+    }
+
+    /// The descriptor rows.
+    pub fn descriptors(&self) -> &Matrix {
+        &self.descriptors
+    }
+
+    /// The metadata, one entry per row.
+    pub fn metas(&self) -> &[ImageMeta] {
+        &self.metas
+    }
+}
+
+/// A replacement of a co-occurrence map for [`Store::put_cooc_map`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct CoocWrite {
+    /// The map.
+    pub map: u64,
+    /// The encoded map this one was computed from (`None`: there was none yet). The write
+    /// fails with [`StoreError::Conflict`] when the stored bytes differ.
+    pub previous: Option<Vec<u8>>,
+    /// The new encoded map (`CoocMap::to_bytes`), opaque to the store.
+    pub encoded: Vec<u8>,
+    /// Metadata of the reference images the write adds (no descriptor rows).
+    pub new_images: Vec<ImageMeta>,
+}
+
 /// A stored localization result.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LocalizationRecord {
@@ -185,10 +271,19 @@ pub struct LocalizationRecord {
     pub id: u64,
     /// The map it was computed against.
     pub map_id: u64,
-    /// Creation time, milliseconds since the Unix epoch.
+    /// Creation time of the record, milliseconds since the Unix epoch.
     pub created_ms: u64,
-    /// The caller's serialized result.
-    pub document: Vec<u8>,
+    /// The stored result document.
+    pub document: LocalizationDocument,
+}
+
+/// A result to store with [`Store::create_localization`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewLocalization {
+    /// The map it was computed against (must exist).
+    pub map_id: u64,
+    /// The result; the engine adds the id, map id and creation time to its document.
+    pub result: LocalizationResult,
 }
 
 /// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
@@ -202,14 +297,43 @@ pub struct TripRecord {
     pub created_ms: u64,
     /// When it was closed, if it was.
     pub closed_ms: Option<u64>,
-    /// Frames consumed so far.
+    /// Frames consumed so far: also the version of the trip's state (see [`TripBatch`]).
     pub frame_count: u64,
     /// The map's image count when the trip was opened: the trip localizes against those.
     pub reference_count: u32,
-    /// The caller's status code after the last batch (0 before the first).
-    pub status: u8,
-    /// The caller's serialized parameters.
-    pub params: Vec<u8>,
+    /// Status after the last batch (`None` before the first).
+    pub status: Option<TripStatus>,
+    /// The parameters the trip uses.
+    pub params: TripParamsDocument,
+}
+
+/// A trip to open with [`Store::create_trip`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewTrip {
+    /// The map (must exist).
+    pub map_id: u64,
+    /// The map's image count the trip localizes against.
+    pub reference_count: u32,
+    /// Its parameters.
+    pub params: TripParamsDocument,
+    /// Its initial solver state (opaque bytes owned by `crate::trip`).
+    pub state: Vec<u8>,
+}
+
+/// What one batch of frames changes, written with [`Store::put_trip_batch`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct TripBatch {
+    /// Frames the batch was computed after: the write applies only if the stored
+    /// `frame_count` still equals it (compare-and-swap on the state's version).
+    pub expected_frames: u64,
+    /// Frames after the batch.
+    pub frame_count: u64,
+    /// Status after the batch.
+    pub status: TripStatus,
+    /// The new solver state.
+    pub state: Vec<u8>,
+    /// New or revised estimates (the batch's frames and the re-traced lag window).
+    pub estimates: Vec<FrameRecord>,
 }
 
 /// The latest estimate of one frame of a trip.
@@ -223,15 +347,14 @@ pub struct FrameRecord {
     pub confidence: f64,
 }
 
-/// The store. Cheap to share behind an `Arc`; all methods are blocking (call them off the
-/// async workers).
-pub struct Store {
-    db: sled::Db,
-    path: PathBuf,
-    write: Mutex<()>,
-    /// Reference matrices by map id, valid while their row count equals the map's
-    /// `image_count`; filled and invalidated under the write lock.
-    cache: Mutex<HashMap<u64, Arc<Matrix>>>,
+/// Which page of a listing to read: records with ids below `before` (all when `None`), at
+/// most `limit` of them, newest first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PageRequest {
+    /// Exclusive upper bound on ids: the previous page's [`Page::next`].
+    pub before: Option<u64>,
+    /// Most records returned (at least 1).
+    pub limit: usize,
 }
 
 /// One page of a listing, newest first.
@@ -243,103 +366,94 @@ pub struct Page<T> {
     pub next: Option<u64>,
 }
 
-impl Store {
-    /// The newest-first page of the index keys in `lo..hi` (each holding an id at
-    /// `key[at..at + 8]`): at most `limit` records read with `get`, and the `before` of the
-    /// next page. `hi` is exclusive, so an id of `u64::MAX` (never issued) is never listed.
-    fn page<T>(
-        &self,
-        lo: &[u8],
-        hi: &[u8],
-        at: usize,
-        limit: usize,
-        get: impl Fn(u64) -> StoreResult<T>,
-    ) -> StoreResult<Page<T>> {
-        let mut ids = Vec::with_capacity(limit + 1);
-        for kv in self.db.range(lo..hi).rev().take(limit + 1) {
-            ids.push(codec::id_at(&kv?.0, at)?);
-        }
-        let next = if ids.len() > limit {
-            ids.truncate(limit);
-            ids.last().copied()
-        } else {
-            None
-        };
-        let items = ids.into_iter().map(get).collect::<StoreResult<Vec<_>>>()?;
-        Ok(Page { items, next })
-    }
-
-    /// Opens (or creates) the store in `dir` and upgrades its layout to
-    /// [`migrate::CURRENT_VERSION`].
-    pub fn open(dir: &Path) -> StoreResult<Store> {
-        let db = sled::Config::new()
-            .path(dir)
-            .open()
-            .map_err(|source| StoreError::Open {
-                path: dir.to_path_buf(),
-                source,
-            })?;
-        migrate::migrate(&db)?;
-        Ok(Store {
-            db,
-            path: dir.to_path_buf(),
-            write: Mutex::new(()),
-            cache: Mutex::new(HashMap::new()),
-        })
-    }
-
-    /// The data folder.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
-    /// The layout version on disk.
-    pub fn schema_version(&self) -> StoreResult<u32> {
-        migrate::read_version(&self.db)?.ok_or_else(|| {
-            StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "schema_version is missing")
-        })
-    }
+/// A storage engine of the service. Object-safe: the use-case layer holds an
+/// `Arc<dyn Store>`. Every method is async and never blocks the calling task (an embedded
+/// engine runs its I/O on blocking threads). See the module doc for the rules every engine
+/// keeps (atomic, durable, conditional writes; engine-allocated ids; versioned descriptors).
+#[async_trait]
+pub trait Store: Send + Sync + 'static {
+    /// Where the data lives, for logs (a folder, or a database address without credentials).
+    fn location(&self) -> String;
 
     /// Checks that the store answers reads (for `/readyz`).
-    pub fn check(&self) -> StoreResult<()> {
-        self.schema_version().map(|_| ())
-    }
+    async fn check(&self) -> StoreResult<()>;
 
-    /// Flushes everything to disk (at shutdown; every write already flushes).
-    pub fn flush(&self) -> StoreResult<()> {
-        self.db.flush()?;
-        Ok(())
-    }
+    /// Makes everything durable (at shutdown; every acknowledged write already is).
+    async fn flush(&self) -> StoreResult<()>;
 
-    fn lock(&self) -> MutexGuard<'_, ()> {
-        // A panic while holding the lock cannot leave sled half-written (batches are
-        // atomic), so a poisoned lock is safe to reuse.
-        self.write.lock().unwrap_or_else(|p| p.into_inner())
-    }
+    /// Creates an empty map (a new id) and returns it.
+    async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord>;
 
-    fn cache(&self) -> MutexGuard<'_, HashMap<u64, Arc<Matrix>>> {
-        self.cache.lock().unwrap_or_else(|p| p.into_inner())
-    }
+    /// One map.
+    async fn get_map(&self, id: u64) -> StoreResult<MapRecord>;
 
-    fn next_id(&self) -> StoreResult<u64> {
-        Ok(self.db.generate_id()?)
-    }
+    /// All maps, oldest first.
+    async fn list_maps(&self) -> StoreResult<Vec<MapRecord>>;
+
+    /// Deletes a map with its images, co-occurrence map, localizations and trips, atomically.
+    async fn delete_map(&self, id: u64) -> StoreResult<()>;
+
+    /// Appends one descriptor row per image (in route order) with its metadata and raises the
+    /// map's `image_count`, atomically. Returns the indices given to the rows. Fails without
+    /// writing when the map is gone, full, or the length differs from the map's.
+    async fn append_images(&self, batch: ImageBatch) -> StoreResult<Range<u32>>;
+
+    /// Descriptor rows `rows` of a map (`rows.end` at most its `image_count`), one per image
+    /// in route order, of the map's descriptor length.
+    async fn descriptors(&self, map: u64, rows: Range<u32>) -> StoreResult<Matrix>;
+
+    /// Metadata of the images `rows` of a map, in order.
+    async fn image_metadata(&self, map: u64, rows: Range<u32>) -> StoreResult<Vec<ImageMeta>>;
+
+    /// The encoded co-occurrence map of `map`, `None` before its first images.
+    async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>>;
+
+    /// Replaces the encoded co-occurrence map if the stored one still equals
+    /// [`CoocWrite::previous`], and appends its new (descriptor-less) images, atomically.
+    /// Returns the indices of the new images.
+    async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>>;
+
+    /// Stores a localization result under a new id, atomically with its index entry. Fails
+    /// with [`StoreError::MapNotFound`] when the map is gone.
+    async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord>;
+
+    /// One stored result.
+    async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord>;
+
+    /// A page of results, newest first; only `map`'s when given (which must exist).
+    async fn list_localizations(
+        &self,
+        map: Option<u64>,
+        page: PageRequest,
+    ) -> StoreResult<Page<LocalizationRecord>>;
+
+    /// Opens a trip (a new id) with its initial state; fails when the map is gone.
+    async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord>;
+
+    /// One trip's record.
+    async fn get_trip(&self, id: u64) -> StoreResult<TripRecord>;
+
+    /// A trip's record and solver state, read consistently.
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)>;
+
+    /// Applies one batch: record, state and estimates in one atomic write, only if the trip
+    /// is open and its `frame_count` still equals [`TripBatch::expected_frames`]
+    /// ([`StoreError::TripClosed`] / [`StoreError::TripConflict`] otherwise, writing nothing).
+    async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord>;
+
+    /// Closes a trip (idempotent: closing twice keeps the first time).
+    async fn close_trip(&self, id: u64) -> StoreResult<TripRecord>;
+
+    /// Every frame's latest estimate, in frame order.
+    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>>;
+
+    /// A page of `map`'s trips, newest first (the map must exist).
+    async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>>;
 }
 
-pub(crate) fn now_ms() -> u64 {
+/// Milliseconds since the Unix epoch (0 if the clock is before it).
+pub fn now_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
-}
-
-/// A new empty map of 1-D precomputed descriptors, for the store's unit tests.
-#[cfg(test)]
-pub(crate) fn test_map(store: &Store) -> u64 {
-    store
-        .create_map(NewMap {
-            name: "m".into(),
-            descriptor: DescriptorSettings::Precomputed { dim: 1 },
-        })
-        .expect("a new map in a fresh store")
-        .id
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }

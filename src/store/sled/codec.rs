@@ -21,13 +21,14 @@
 //! order. Values are a small hand-written binary format starting with a format byte; the
 //! decoder rejects trailing or missing bytes, so corruption is reported rather than misread.
 
-use super::{
-    CnnSettings, DescriptorSettings, FrameRecord, ImageMeta, LocalizationRecord, MapRecord,
-    StoreError, TripRecord,
-};
 use crate::cooc::keypoints::KeypointParams;
 use crate::cooc::CoocParams;
 use crate::features::cnn::{CnnOptions, CnnResize, ModelIdentity};
+use crate::store::{
+    CnnSettings, DescriptorSettings, FrameRecord, ImageMeta, LocalizationDocument,
+    LocalizationRecord, MapRecord, StoreError, TripParamsDocument, TripRecord,
+};
+use crate::trip::TripStatus;
 
 /// Key of the layout version.
 pub const SCHEMA_VERSION_KEY: &[u8] = b"meta/schema_version";
@@ -509,18 +510,39 @@ pub fn decode_image_into(
     Ok(meta)
 }
 
-/// Encodes a localization record.
-pub fn encode_localization(l: &LocalizationRecord) -> Vec<u8> {
+/// Encodes a localization record: ids and time, then the document's JSON
+/// ([`LocalizationDocument::to_json`]).
+pub fn encode_localization(l: &LocalizationRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(l.id);
     w.u64(l.map_id);
     w.u64(l.created_ms);
-    w.bytes(&l.document);
-    w.0
+    w.bytes(&l.document.to_json()?);
+    Ok(w.0)
 }
 
-/// Encodes a trip record.
-pub fn encode_trip(t: &TripRecord) -> Vec<u8> {
+/// The stored code of a trip status (0: no batch yet).
+fn status_code(s: Option<TripStatus>) -> u8 {
+    match s {
+        None => 0,
+        Some(TripStatus::Localized) => 1,
+        Some(TripStatus::Lost) => 2,
+        Some(TripStatus::Relocalized) => 3,
+    }
+}
+
+fn status_of(key: &[u8], code: u8) -> Result<Option<TripStatus>, StoreError> {
+    match code {
+        0 => Ok(None),
+        1 => Ok(Some(TripStatus::Localized)),
+        2 => Ok(Some(TripStatus::Lost)),
+        3 => Ok(Some(TripStatus::Relocalized)),
+        c => Err(StoreError::corrupt(key, format!("unknown trip status {c}"))),
+    }
+}
+
+/// Encodes a trip record (its parameters as [`TripParamsDocument::to_json`]).
+pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(t.id);
     w.u64(t.map_id);
@@ -534,9 +556,9 @@ pub fn encode_trip(t: &TripRecord) -> Vec<u8> {
     }
     w.u64(t.frame_count);
     w.u32(t.reference_count);
-    w.u8(t.status);
-    w.bytes(&t.params);
-    w.0
+    w.u8(status_code(t.status));
+    w.bytes(&t.params.to_json()?);
+    Ok(w.0)
 }
 
 /// Decodes a trip record.
@@ -552,8 +574,8 @@ pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
     };
     let frame_count = r.u64()?;
     let reference_count = r.u32()?;
-    let status = r.u8()?;
-    let params = r.bytes()?.to_vec();
+    let status = status_of(key, r.u8()?)?;
+    let params = TripParamsDocument::from_json(key, r.bytes()?)?;
     r.finish()?;
     Ok(TripRecord {
         id,
@@ -603,13 +625,19 @@ pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameRecord, StoreError>
     })
 }
 
+/// The id and map id of a localization record, without decoding its document.
+pub fn decode_localization_ids(key: &[u8], value: &[u8]) -> Result<(u64, u64), StoreError> {
+    let mut r = Reader::new(key, value)?;
+    Ok((r.u64()?, r.u64()?))
+}
+
 /// Decodes a localization record.
 pub fn decode_localization(key: &[u8], value: &[u8]) -> Result<LocalizationRecord, StoreError> {
     let mut r = Reader::new(key, value)?;
     let id = r.u64()?;
     let map_id = r.u64()?;
     let created_ms = r.u64()?;
-    let document = r.bytes()?.to_vec();
+    let document = LocalizationDocument::from_json(key, r.bytes()?)?;
     r.finish()?;
     Ok(LocalizationRecord {
         id,
@@ -720,9 +748,29 @@ mod tests {
         }
 
         #[test]
-        fn localization_round_trip(doc in proptest::collection::vec(any::<u8>(), 0..200), id in any::<u64>()) {
-            let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document: doc };
-            prop_assert_eq!(decode_localization(b"L", &encode_localization(&l)).unwrap(), l);
+        fn localization_round_trip(
+            queries in 0usize..10_000,
+            cost in -1e6f64..1e6,
+            confidences in proptest::collection::vec(0.0f64..1e3, 0..20),
+            id in any::<u64>(),
+        ) {
+            use crate::store::document::{LocalizationResult, StoredParams, StoredPrediction, StoredTimings};
+            let result = LocalizationResult {
+                query_count: queries,
+                reference_count: 3,
+                params: StoredParams::new(&crate::localize::LocalizeOptions::default(), cost.abs(), None),
+                total_cost: cost,
+                hypotheses: Vec::new(),
+                predictions: confidences
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &c)| StoredPrediction { query: k, reference: k + 1, confidence: c })
+                    .collect(),
+                timings: StoredTimings::default(),
+            };
+            let document = LocalizationDocument { id, map_id: 3, created_at_ms: 4, result };
+            let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document };
+            prop_assert_eq!(decode_localization(b"L", &encode_localization(&l).unwrap()).unwrap(), l);
         }
     }
 }

@@ -7,51 +7,33 @@
 //! one atomic `sled::Batch`, flushed before the call returns. Deleting the map deletes its
 //! trips (in [`Store::delete_map`]).
 
-use super::{codec, now_ms, FrameRecord, Store, StoreError, StoreResult, TripRecord};
+use super::{codec, SledStore};
+use crate::store::{
+    now_ms, FrameRecord, NewTrip, Page, PageRequest, StoreError, StoreResult, TripBatch, TripRecord,
+};
 
-/// One page of a trip listing.
-pub type TripPage = super::Page<TripRecord>;
-
-/// What one batch changes.
-#[derive(Clone, Debug)]
-pub struct BatchWrite {
-    /// Frames the batch was computed after (must equal the stored `frame_count`).
-    pub expected_frames: u64,
-    /// Frames after the batch.
-    pub frame_count: u64,
-    /// The caller's status code.
-    pub status: u8,
-    /// The new solver state.
-    pub state: Vec<u8>,
-    /// New or revised estimates (the batch's frames and the re-traced lag window).
-    pub estimates: Vec<FrameRecord>,
-}
-
-impl Store {
-    /// Opens a trip on `map_id` with its initial state; fails when the map is gone.
-    pub fn create_trip(
-        &self,
-        map_id: u64,
-        reference_count: u32,
-        params: Vec<u8>,
-        state: Vec<u8>,
-    ) -> StoreResult<TripRecord> {
+impl SledStore {
+    /// Opens a trip on its map with its initial state; fails when the map is gone.
+    pub fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
         let _guard = self.lock();
-        self.get_map(map_id)?;
+        self.get_map(new.map_id)?;
         let record = TripRecord {
             id: self.next_id()?,
-            map_id,
+            map_id: new.map_id,
             created_ms: now_ms(),
             closed_ms: None,
             frame_count: 0,
-            reference_count,
-            status: 0,
-            params,
+            reference_count: new.reference_count,
+            status: None,
+            params: new.params,
         };
         let mut batch = sled::Batch::default();
-        batch.insert(&codec::trip_key(record.id), codec::encode_trip(&record));
-        batch.insert(&codec::trip_state_key(record.id), state);
-        batch.insert(&codec::trip_by_map_key(map_id, record.id), &[] as &[u8]);
+        batch.insert(&codec::trip_key(record.id), codec::encode_trip(&record)?);
+        batch.insert(&codec::trip_state_key(record.id), new.state);
+        batch.insert(
+            &codec::trip_by_map_key(record.map_id, record.id),
+            &[] as &[u8],
+        );
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
@@ -81,7 +63,7 @@ impl Store {
     /// Stores one batch's result: record, state and estimates in one atomic, flushed write.
     /// Fails without writing when the trip is gone, closed, or has moved on since
     /// `expected_frames`.
-    pub fn put_trip_batch(&self, id: u64, write: BatchWrite) -> StoreResult<TripRecord> {
+    pub fn put_trip_batch(&self, id: u64, write: TripBatch) -> StoreResult<TripRecord> {
         let _guard = self.lock();
         let mut record = self.get_trip(id)?;
         if record.closed_ms.is_some() {
@@ -95,9 +77,9 @@ impl Store {
             });
         }
         record.frame_count = write.frame_count;
-        record.status = write.status;
+        record.status = Some(write.status);
         let mut batch = sled::Batch::default();
-        batch.insert(&codec::trip_key(id), codec::encode_trip(&record));
+        batch.insert(&codec::trip_key(id), codec::encode_trip(&record)?);
         batch.insert(&codec::trip_state_key(id), write.state);
         for e in &write.estimates {
             batch.insert(&codec::trip_frame_key(id, e.frame), codec::encode_frame(e));
@@ -114,7 +96,7 @@ impl Store {
         if record.closed_ms.is_none() {
             record.closed_ms = Some(now_ms());
             self.db
-                .insert(codec::trip_key(id), codec::encode_trip(&record))?;
+                .insert(codec::trip_key(id), codec::encode_trip(&record)?)?;
             self.db.flush()?;
         }
         Ok(record)
@@ -132,12 +114,12 @@ impl Store {
             .collect()
     }
 
-    /// Up to `limit` trips of `map` with ids below `before`, newest first (the map must exist).
-    pub fn list_trips(&self, map: u64, before: Option<u64>, limit: usize) -> StoreResult<TripPage> {
+    /// A page of `map`'s trips, newest first (the map must exist).
+    pub fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
         self.get_map(map)?;
         let lo = codec::trip_by_map_key(map, 0);
-        let hi = codec::trip_by_map_key(map, before.unwrap_or(u64::MAX));
-        self.page(&lo, &hi, 9, limit, |id| self.get_trip(id))
+        let hi = codec::trip_by_map_key(map, page.before.unwrap_or(u64::MAX));
+        self.page(&lo, &hi, 9, page.limit, |id| self.get_trip(id))
     }
 
     /// Adds the removal of every trip of `map` (records, states, frames, index) to `batch`.
@@ -159,13 +141,28 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::test_map as map;
+    use crate::store::sled::test_map as map;
+    use crate::store::TripParamsDocument;
+    use crate::trip::{TripParams, TripStatus};
 
-    fn write(expected: u64, n: u64, state: u8) -> BatchWrite {
-        BatchWrite {
+    fn new_trip(map_id: u64, reference_count: u32, state: Vec<u8>) -> NewTrip {
+        NewTrip {
+            map_id,
+            reference_count,
+            params: TripParamsDocument::from(&TripParams::default()),
+            state,
+        }
+    }
+
+    fn page(before: Option<u64>, limit: usize) -> PageRequest {
+        PageRequest { before, limit }
+    }
+
+    fn write(expected: u64, n: u64, state: u8) -> TripBatch {
+        TripBatch {
             expected_frames: expected,
             frame_count: expected + n,
-            status: 1,
+            status: TripStatus::Localized,
             state: vec![state; 3],
             estimates: (expected..expected + n)
                 .map(|f| FrameRecord {
@@ -180,9 +177,9 @@ mod tests {
     #[test]
     fn batches_update_record_state_and_estimates_together() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let m = map(&store);
-        let t = store.create_trip(m, 7, b"{}".to_vec(), vec![0]).unwrap();
+        let t = store.create_trip(new_trip(m, 7, vec![0])).unwrap();
         assert_eq!(store.trip_state(t.id).unwrap().1, vec![0]);
         store.put_trip_batch(t.id, write(0, 3, 1)).unwrap();
         let r = store.put_trip_batch(t.id, write(3, 2, 2)).unwrap();
@@ -205,7 +202,7 @@ mod tests {
         ));
         // Reopening the store keeps everything.
         drop(store);
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         assert_eq!(store.trip_estimates(t.id).unwrap(), est);
         assert!(store.get_trip(t.id).unwrap().closed_ms.is_some());
     }
@@ -213,20 +210,20 @@ mod tests {
     #[test]
     fn lists_newest_first_and_map_deletion_removes_trips() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let (a, b) = (map(&store), map(&store));
         let mut mine = Vec::new();
         for _ in 0..5 {
-            mine.push(store.create_trip(a, 1, vec![], vec![1]).unwrap().id);
-            store.create_trip(b, 1, vec![], vec![1]).unwrap();
+            mine.push(store.create_trip(new_trip(a, 1, vec![1])).unwrap().id);
+            store.create_trip(new_trip(b, 1, vec![1])).unwrap();
         }
-        let p1 = store.list_trips(a, None, 2).unwrap();
+        let p1 = store.list_trips(a, page(None, 2)).unwrap();
         assert_eq!(
             p1.items.iter().map(|t| t.id).collect::<Vec<_>>(),
             vec![mine[4], mine[3]]
         );
-        let p2 = store.list_trips(a, p1.next, 2).unwrap();
-        let p3 = store.list_trips(a, p2.next, 2).unwrap();
+        let p2 = store.list_trips(a, page(p1.next, 2)).unwrap();
+        let p3 = store.list_trips(a, page(p2.next, 2)).unwrap();
         assert_eq!(p3.items.len(), 1);
         assert_eq!(p3.next, None);
         store.put_trip_batch(mine[0], write(0, 4, 1)).unwrap();
@@ -240,13 +237,13 @@ mod tests {
             .scan_prefix(codec::trip_frames_prefix(mine[0]))
             .next()
             .is_none());
-        assert_eq!(store.list_trips(b, None, 10).unwrap().items.len(), 5);
+        assert_eq!(store.list_trips(b, page(None, 10)).unwrap().items.len(), 5);
         assert!(matches!(
-            store.list_trips(a, None, 10),
+            store.list_trips(a, page(None, 10)),
             Err(StoreError::MapNotFound(_))
         ));
         assert!(matches!(
-            store.create_trip(a, 1, vec![], vec![]),
+            store.create_trip(new_trip(a, 1, vec![])),
             Err(StoreError::MapNotFound(_))
         ));
     }

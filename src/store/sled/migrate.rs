@@ -23,25 +23,25 @@ pub const MIGRATIONS: &[Migration] = &[
     Migration {
         version: 1,
         file: "0001_initial.md",
-        doc: include_str!("../../migrations/0001_initial.md"),
+        doc: include_str!("../../../migrations/0001_initial.md"),
         apply: initial,
     },
     Migration {
         version: 2,
         file: "0002_localizations_by_map.md",
-        doc: include_str!("../../migrations/0002_localizations_by_map.md"),
+        doc: include_str!("../../../migrations/0002_localizations_by_map.md"),
         apply: localizations_by_map,
     },
     Migration {
         version: 3,
         file: "0003_cnn_and_cooc_maps.md",
-        doc: include_str!("../../migrations/0003_cnn_and_cooc_maps.md"),
+        doc: include_str!("../../../migrations/0003_cnn_and_cooc_maps.md"),
         apply: cnn_and_cooc_maps,
     },
     Migration {
         version: 4,
         file: "0004_trips.md",
-        doc: include_str!("../../migrations/0004_trips.md"),
+        doc: include_str!("../../../migrations/0004_trips.md"),
         apply: trips,
     },
 ];
@@ -111,8 +111,8 @@ fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
 fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<()> {
     for kv in db.scan_prefix([codec::LOCALIZATION_PREFIX]) {
         let (k, v) = kv?;
-        let record = codec::decode_localization(&k, &v)?;
-        batch.insert(&codec::by_map_key(record.map_id, record.id), &[] as &[u8]);
+        let (id, map_id) = codec::decode_localization_ids(&k, &v)?;
+        batch.insert(&codec::by_map_key(map_id, id), &[] as &[u8]);
     }
     Ok(())
 }
@@ -126,7 +126,12 @@ fn cnn_and_cooc_maps(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord, Store};
+    use crate::store::document::{LocalizationResult, StoredParams, StoredTimings};
+    use crate::store::sled::SledStore;
+    use crate::store::{
+        DescriptorSettings, ImageMeta, LocalizationDocument, LocalizationRecord, MapRecord,
+        NewTrip, PageRequest, TripParamsDocument,
+    };
 
     #[test]
     fn steps_are_consecutive_and_documented() {
@@ -144,7 +149,7 @@ mod tests {
         let mut files: Vec<String> = std::fs::read_dir(dir)
             .unwrap()
             .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .filter(|n| n != "README.md")
+            .filter(|n| n != "README.md" && n.ends_with(".md"))
             .collect();
         files.sort();
         let steps: Vec<&str> = MIGRATIONS.iter().map(|m| m.file).collect();
@@ -175,15 +180,29 @@ mod tests {
             }
             let mut locs = Vec::new();
             for id in [10u64, 11, 12] {
+                let result = LocalizationResult {
+                    query_count: 1,
+                    reference_count: 2,
+                    params: StoredParams::new(&Default::default(), 1.0, None),
+                    total_cost: 1.0,
+                    hypotheses: Vec::new(),
+                    predictions: Vec::new(),
+                    timings: StoredTimings::default(),
+                };
                 let rec = LocalizationRecord {
                     id,
                     map_id: 5,
                     created_ms: id,
-                    document: vec![id as u8],
+                    document: LocalizationDocument {
+                        id,
+                        map_id: 5,
+                        created_at_ms: id,
+                        result,
+                    },
                 };
                 db.insert(
                     codec::localization_key(id),
-                    codec::encode_localization(&rec),
+                    codec::encode_localization(&rec).unwrap(),
                 )
                 .unwrap();
                 locs.push(id);
@@ -191,9 +210,17 @@ mod tests {
             db.flush().unwrap();
             (map.id, locs)
         };
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         assert_eq!(store.schema_version().unwrap(), CURRENT_VERSION);
-        let page = store.list_localizations(Some(map_id), None, 10).unwrap();
+        let page = store
+            .list_localizations(
+                Some(map_id),
+                PageRequest {
+                    before: None,
+                    limit: 10,
+                },
+            )
+            .unwrap();
         let ids: Vec<u64> = page.items.iter().map(|r| r.id).collect();
         assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
         assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
@@ -216,12 +243,21 @@ mod tests {
         assert_eq!(store.get_map(map_id).unwrap().name, "old");
         // Trips work on an upgraded store, and deleting the map still removes everything.
         let trip = store
-            .create_trip(map_id, 2, b"{}".to_vec(), vec![7])
+            .create_trip(NewTrip {
+                map_id,
+                reference_count: 2,
+                params: TripParamsDocument::from(&crate::trip::TripParams::default()),
+                state: vec![7],
+            })
             .unwrap();
-        assert_eq!(store.list_trips(map_id, None, 5).unwrap().items, vec![trip]);
+        let page = PageRequest {
+            before: None,
+            limit: 5,
+        };
+        assert_eq!(store.list_trips(map_id, page).unwrap().items, vec![trip]);
         // Opening again is a no-op: the upgrade does not run twice.
         drop(store);
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         assert_eq!(store.schema_version().unwrap(), CURRENT_VERSION);
     }
 
@@ -235,7 +271,7 @@ mod tests {
             db.flush().unwrap();
         }
         assert!(matches!(
-            Store::open(dir.path()),
+            SledStore::open(dir.path()),
             Err(StoreError::UnsupportedSchema { found: 99, .. })
         ));
         let dir = tempfile::tempdir().unwrap();
@@ -244,7 +280,7 @@ mod tests {
             db.insert(codec::map_key(1), b"x".to_vec()).unwrap();
             db.flush().unwrap();
         }
-        let err = Store::open(dir.path()).err().unwrap();
+        let err = SledStore::open(dir.path()).err().unwrap();
         assert!(err.to_string().contains("no schema_version"), "{err}");
     }
 }

@@ -1,24 +1,15 @@
-//! Maps and their reference images: create, list, get, delete, append a batch, and load the
-//! reference descriptor matrix in route order.
+//! Maps and their reference images: create, list, get, delete, append a batch, and read
+//! descriptor rows in route order.
 
 use std::ops::Range;
-use std::sync::Arc;
 
-use super::{
-    codec, now_ms, DescriptorSettings, ImageMeta, MapRecord, Store, StoreError, StoreResult,
+use super::{codec, SledStore};
+use crate::store::{
+    now_ms, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap, StoreError, StoreResult,
 };
 use crate::Matrix;
 
-/// What a client gives to create a map.
-#[derive(Clone, Debug, PartialEq)]
-pub struct NewMap {
-    /// User-given name.
-    pub name: String,
-    /// Validated descriptor settings.
-    pub descriptor: DescriptorSettings,
-}
-
-impl Store {
+impl SledStore {
     /// Creates an empty map and returns it.
     pub fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
         let _guard = self.lock();
@@ -80,7 +71,6 @@ impl Store {
         self.remove_trips(id, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
-        self.cache().remove(&id);
         Ok(())
     }
 
@@ -89,17 +79,8 @@ impl Store {
     ///
     /// Fails without writing anything when the map is gone or the descriptor length differs
     /// from the map's.
-    pub fn append_images(
-        &self,
-        map: u64,
-        descriptors: &Matrix,
-        metas: &[ImageMeta],
-    ) -> StoreResult<Range<u32>> {
-        assert_eq!(
-            descriptors.rows(),
-            metas.len(),
-            "one metadata entry per descriptor row"
-        );
+    pub fn append_images(&self, batch: &ImageBatch) -> StoreResult<Range<u32>> {
+        let (map, descriptors, metas) = (batch.map(), batch.descriptors(), batch.metas());
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
         if let Some(expected) = record.dim {
@@ -134,23 +115,33 @@ impl Store {
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
         self.db.apply_batch(batch)?;
         self.db.flush()?;
-        self.cache().remove(&map);
         Ok(start..end)
     }
 
-    /// The map and its reference descriptors, one row per image in route order.
-    pub fn references(&self, map: u64) -> StoreResult<(MapRecord, Arc<Matrix>)> {
+    /// Descriptor rows `rows` of a map, one per image in route order. Fails with
+    /// [`StoreError::MapNotFound`] when the map is gone, and reports a missing row as corrupt.
+    pub fn descriptors(&self, map: u64, rows: Range<u32>) -> StoreResult<Matrix> {
+        let record = self.get_map(map)?;
+        self.read_rows(&record, rows)
+    }
+
+    /// The map and all its reference descriptors, read consistently (under the write lock).
+    pub fn references(&self, map: u64) -> StoreResult<(MapRecord, Matrix)> {
         let _guard = self.lock();
         let record = self.get_map(map)?;
-        if let Some(m) = self.cache().get(&map) {
-            if m.rows() == record.image_count as usize {
-                return Ok((record, Arc::clone(m)));
-            }
-        }
+        let matrix = self.read_rows(&record, 0..record.image_count)?;
+        Ok((record, matrix))
+    }
+
+    fn read_rows(&self, record: &MapRecord, rows: Range<u32>) -> StoreResult<Matrix> {
+        let map = record.id;
         let dim = record.dim.unwrap_or(0) as usize;
-        let mut data = Vec::with_capacity(record.image_count as usize * dim);
-        let mut rows = 0usize;
-        for kv in self.db.scan_prefix(codec::images_prefix(map)) {
+        let want = rows.len();
+        let mut data = Vec::with_capacity(want * dim);
+        let from = codec::image_key(map, rows.start);
+        let to = codec::image_key(map, rows.end);
+        let mut got = 0usize;
+        for kv in self.db.range(from..to) {
             let (k, v) = kv?;
             let before = data.len();
             codec::decode_image_into(&k, &v, &mut data)?;
@@ -160,21 +151,20 @@ impl Store {
                     "descriptor length differs from the map's",
                 ));
             }
-            rows += 1;
+            got += 1;
         }
-        if rows != record.image_count as usize {
+        if got != want {
+            // A map deleted meanwhile has no rows left; anything else is a hole.
+            self.get_map(map)?;
             return Err(StoreError::corrupt(
                 &codec::map_key(map),
                 format!(
-                    "image_count is {} but {rows} images are stored",
-                    record.image_count
+                    "image_count is {} but only {got} of the images {}..{} are stored",
+                    record.image_count, rows.start, rows.end
                 ),
             ));
         }
-        let matrix =
-            Arc::new(Matrix::from_vec(rows, dim, data).expect("rows * dim values were collected"));
-        self.cache().insert(map, Arc::clone(&matrix));
-        Ok((record, matrix))
+        Matrix::from_vec(got, dim, data).map_err(|e| StoreError::corrupt(&from, e.to_string()))
     }
 
     /// Metadata of the images `range` of a map, in order.
@@ -208,6 +198,15 @@ mod tests {
         }
     }
 
+    fn append(
+        store: &SledStore,
+        map: u64,
+        m: &Matrix,
+        metas: &[ImageMeta],
+    ) -> StoreResult<Range<u32>> {
+        store.append_images(&ImageBatch::new(map, m.clone(), metas.to_vec()).unwrap())
+    }
+
     fn rows(n: usize, dim: usize, base: f32) -> Matrix {
         Matrix::from_vec(n, dim, (0..n * dim).map(|k| base + k as f32).collect()).unwrap()
     }
@@ -215,23 +214,27 @@ mod tests {
     #[test]
     fn appends_keep_route_order_across_batches() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let map = store.create_map(hog()).unwrap();
-        let a = store
-            .append_images(
-                map.id,
-                &rows(2, 3, 0.0),
-                &[ImageMeta::default(), ImageMeta::default()],
-            )
-            .unwrap();
+        let a = append(
+            &store,
+            map.id,
+            &rows(2, 3, 0.0),
+            &[ImageMeta::default(), ImageMeta::default()],
+        )
+        .unwrap();
         let meta = ImageMeta {
             label: Some("bridge".into()),
             latitude: Some(63.4),
             ..ImageMeta::default()
         };
-        let b = store
-            .append_images(map.id, &rows(1, 3, 100.0), std::slice::from_ref(&meta))
-            .unwrap();
+        let b = append(
+            &store,
+            map.id,
+            &rows(1, 3, 100.0),
+            std::slice::from_ref(&meta),
+        )
+        .unwrap();
         assert_eq!((a, b), (0..2, 2..3));
         let (record, refs) = store.references(map.id).unwrap();
         assert_eq!(record.image_count, 3);
@@ -244,18 +247,16 @@ mod tests {
     #[test]
     fn wrong_length_writes_nothing() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let map = store.create_map(hog()).unwrap();
-        store
-            .append_images(map.id, &rows(1, 3, 0.0), &[ImageMeta::default()])
-            .unwrap();
-        let err = store
-            .append_images(
-                map.id,
-                &rows(2, 4, 0.0),
-                &[ImageMeta::default(), ImageMeta::default()],
-            )
-            .unwrap_err();
+        append(&store, map.id, &rows(1, 3, 0.0), &[ImageMeta::default()]).unwrap();
+        let err = append(
+            &store,
+            map.id,
+            &rows(2, 4, 0.0),
+            &[ImageMeta::default(), ImageMeta::default()],
+        )
+        .unwrap_err();
         assert!(
             matches!(
                 err,
@@ -274,7 +275,7 @@ mod tests {
     #[test]
     fn precomputed_maps_fix_their_length_at_creation() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let map = store
             .create_map(NewMap {
                 name: "own".into(),
@@ -282,26 +283,24 @@ mod tests {
             })
             .unwrap();
         assert_eq!(map.dim, Some(2));
-        assert!(store
-            .append_images(map.id, &rows(1, 3, 0.0), &[ImageMeta::default()])
-            .is_err());
+        assert!(append(&store, map.id, &rows(1, 3, 0.0), &[ImageMeta::default()]).is_err());
     }
 
     #[test]
     fn delete_removes_everything_and_survives_reopen() {
         let dir = tempfile::tempdir().unwrap();
         let (kept, gone) = {
-            let store = Store::open(dir.path()).unwrap();
+            let store = SledStore::open(dir.path()).unwrap();
             let kept = store.create_map(hog()).unwrap();
             let gone = store.create_map(hog()).unwrap();
             for id in [kept.id, gone.id] {
-                store
-                    .append_images(
-                        id,
-                        &rows(2, 2, 0.0),
-                        &[ImageMeta::default(), ImageMeta::default()],
-                    )
-                    .unwrap();
+                append(
+                    &store,
+                    id,
+                    &rows(2, 2, 0.0),
+                    &[ImageMeta::default(), ImageMeta::default()],
+                )
+                .unwrap();
             }
             store.delete_map(gone.id).unwrap();
             assert!(matches!(
@@ -310,7 +309,7 @@ mod tests {
             ));
             (kept.id, gone.id)
         };
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         assert!(matches!(
             store.get_map(gone),
             Err(StoreError::MapNotFound(_))
@@ -323,7 +322,7 @@ mod tests {
     #[test]
     fn ids_increase() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let a = store.create_map(hog()).unwrap();
         let b = store.create_map(hog()).unwrap();
         assert!(b.id > a.id);

@@ -9,25 +9,28 @@
 
 use std::ops::Range;
 
-use super::{codec, ImageMeta, Store, StoreError, StoreResult};
+use super::{codec, SledStore};
+use crate::store::{CoocWrite, StoreError, StoreResult};
 
-impl Store {
+impl SledStore {
     /// The encoded co-occurrence map of `map`, `None` before its first images.
     pub fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
         self.get_map(map)?;
         Ok(self.db.get(codec::cooc_key(map))?.map(|v| v.to_vec()))
     }
 
-    /// Replaces the encoded co-occurrence map of `map` by `encoded` if the stored one still
-    /// equals `previous` (`None` = none yet), and appends one (descriptor-less) image record per
-    /// entry of `new_images`; one atomic, flushed batch. Returns the indices of the new images.
-    pub fn put_cooc_map(
-        &self,
-        map: u64,
-        previous: Option<&[u8]>,
-        encoded: &[u8],
-        new_images: &[ImageMeta],
-    ) -> StoreResult<Range<u32>> {
+    /// Replaces the encoded co-occurrence map of `write.map` by `write.encoded` if the stored
+    /// one still equals `write.previous` (`None` = none yet), and appends one (descriptor-less)
+    /// image record per entry of `write.new_images`; one atomic, flushed batch. Returns the
+    /// indices of the new images.
+    pub fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>> {
+        let CoocWrite {
+            map,
+            previous,
+            encoded,
+            new_images,
+        } = write;
+        let previous = previous.as_deref();
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
         let current = self.db.get(codec::cooc_key(map))?;
@@ -58,12 +61,22 @@ impl Store {
 
 #[cfg(test)]
 mod tests {
-    use crate::store::{DescriptorSettings, ImageMeta, NewMap, Store, StoreError};
+    use crate::store::sled::SledStore;
+    use crate::store::{CoocWrite, DescriptorSettings, ImageMeta, NewMap, StoreError};
+
+    fn write(map: u64, previous: Option<&[u8]>, encoded: &[u8], n: usize) -> CoocWrite {
+        CoocWrite {
+            map,
+            previous: previous.map(<[u8]>::to_vec),
+            encoded: encoded.to_vec(),
+            new_images: vec![ImageMeta::default(); n],
+        }
+    }
 
     #[test]
     fn cooc_maps_are_replaced_only_from_the_version_read() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         let m = store
             .create_map(NewMap {
                 name: "c".into(),
@@ -71,19 +84,23 @@ mod tests {
             })
             .unwrap();
         assert_eq!(store.cooc_map(m.id).unwrap(), None);
-        let metas = vec![ImageMeta::default(); 3];
-        assert_eq!(store.put_cooc_map(m.id, None, b"v1", &metas).unwrap(), 0..3);
+        assert_eq!(
+            store.put_cooc_map(write(m.id, None, b"v1", 3)).unwrap(),
+            0..3
+        );
         // A writer that started from "no map" lost the race: nothing is written.
         assert!(matches!(
-            store.put_cooc_map(m.id, None, b"v1'", &[]),
+            store.put_cooc_map(write(m.id, None, b"v1'", 0)),
             Err(StoreError::Conflict(_))
         ));
         assert_eq!(
-            store.put_cooc_map(m.id, Some(b"v1"), b"v2", &[]).unwrap(),
+            store
+                .put_cooc_map(write(m.id, Some(b"v1"), b"v2", 0))
+                .unwrap(),
             3..3
         );
         drop(store);
-        let store = Store::open(dir.path()).unwrap();
+        let store = SledStore::open(dir.path()).unwrap();
         assert_eq!(store.cooc_map(m.id).unwrap().as_deref(), Some(&b"v2"[..]));
         assert_eq!(store.get_map(m.id).unwrap().image_count, 3);
         store.delete_map(m.id).unwrap();

@@ -1,0 +1,162 @@
+//! Uploaded images: checking them (format and pixel count from the header, before decoding)
+//! and turning them into descriptor rows or grey images, on the current rayon pool.
+//!
+//! Every image error names its part as the front end named it (the API uses
+//! `image[k] ("file name")`, `k` counting the batch's images from 0).
+
+use std::io::Cursor;
+
+use bytes::Bytes;
+use image::GrayImage;
+use rayon::prelude::*;
+
+use super::error::{AppError, AppResult};
+use crate::features::{self, Extractor};
+use crate::Matrix;
+
+/// One uploaded image.
+#[derive(Clone, Debug)]
+pub struct ImageInput {
+    /// How errors name it, e.g. `image[2] ("a.png")`.
+    pub name: String,
+    /// Encoded bytes (JPEG or PNG).
+    pub bytes: Bytes,
+}
+
+/// Width and height from the header, without decoding the pixels.
+fn dimensions(part: &ImageInput) -> AppResult<(u32, u32)> {
+    let reader = image::ImageReader::new(Cursor::new(&part.bytes[..]))
+        .with_guessed_format()
+        .map_err(|e| invalid(part, e.to_string()))?;
+    match reader.format() {
+        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
+        Some(other) => {
+            return Err(invalid(
+                part,
+                format!("{other:?} is not supported; send JPEG or PNG"),
+            ))
+        }
+        None => return Err(invalid(part, "not a JPEG or PNG image".into())),
+    }
+    reader
+        .into_dimensions()
+        .map_err(|e| invalid(part, format!("unreadable image header: {e}")))
+}
+
+fn invalid(part: &ImageInput, reason: String) -> AppError {
+    AppError::InvalidImage {
+        part: part.name.clone(),
+        reason,
+    }
+}
+
+/// Decodes the parts and extracts one descriptor row per image, in order. All images must give
+/// descriptors of one length, equal to `expected_dim` when given (the map's); violations name
+/// the first offending part. Blocking: run on the CPU pool.
+pub fn describe(
+    extractor: &dyn Extractor,
+    parts: &[ImageInput],
+    max_pixels: u64,
+    expected_dim: Option<u32>,
+) -> AppResult<Matrix> {
+    let dims = parts
+        .par_iter()
+        .map(|p| {
+            let (w, h) = dimensions(p)?;
+            let pixels = u64::from(w) * u64::from(h);
+            if pixels > max_pixels {
+                return Err(AppError::ImageTooLarge {
+                    part: p.name.clone(),
+                    width: w,
+                    height: h,
+                    pixels,
+                    limit: max_pixels,
+                });
+            }
+            let dim = extractor
+                .dim_for(w, h)
+                .map_err(|e| invalid(p, e.to_string()))?;
+            Ok((w, h, dim))
+        })
+        .collect::<Vec<_>>();
+    let mut first: Option<(u32, u32, usize)> = None;
+    for (p, d) in parts.iter().zip(dims) {
+        let (w, h, dim) = d?;
+        if let Some(expected) = expected_dim {
+            if dim != expected as usize {
+                return Err(AppError::DescriptorLength(format!(
+                    "{} is {w}x{h} and gives descriptors of length {dim}; this map's descriptors \
+                     have length {expected} (send images of the map's size)",
+                    p.name
+                )));
+            }
+        }
+        match first {
+            None => first = Some((w, h, dim)),
+            Some((w0, h0, d0)) if d0 != dim => {
+                return Err(AppError::DescriptorLength(format!(
+                    "{} is {w}x{h} (descriptor length {dim}) but image[0] is {w0}x{h0} \
+                     (length {d0}); a batch must give descriptors of one length",
+                    p.name
+                )))
+            }
+            Some(_) => {}
+        }
+    }
+    let images = parts
+        .par_iter()
+        .map(|p| features::decode_image(&p.name, &p.bytes, max_pixels).map_err(AppError::from))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(features::extract_batch(extractor, &images)?)
+}
+
+/// Decodes the parts to grey images, in order (the co-occurrence method's input). Blocking.
+pub fn decode_gray(parts: &[ImageInput], max_pixels: u64) -> AppResult<Vec<GrayImage>> {
+    parts
+        .par_iter()
+        .map(|p| {
+            let img = features::decode_image(&p.name, &p.bytes, max_pixels)?;
+            Ok(img.to_luma8())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn corrupt_images_are_named_before_decoding() {
+        struct Never;
+        impl Extractor for Never {
+            fn dim_for(&self, _: u32, _: u32) -> crate::Result<usize> {
+                Ok(1)
+            }
+            fn extract(&self, _: &image::DynamicImage) -> crate::Result<Vec<f32>> {
+                unreachable!("the batch is rejected before extraction")
+            }
+        }
+        let parts = vec![ImageInput {
+            name: "image[0] (\"x.png\")".into(),
+            bytes: Bytes::from_static(b"not an image"),
+        }];
+        let e = describe(&Never, &parts, 100, None).unwrap_err();
+        assert!(
+            matches!(&e, AppError::InvalidImage { part, .. } if part.contains("x.png")),
+            "{e}"
+        );
+        let mut png = Vec::new();
+        image::DynamicImage::new_luma8(20, 10)
+            .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        let parts = vec![ImageInput {
+            name: "image[0]".into(),
+            bytes: Bytes::from(png),
+        }];
+        let e = describe(&Never, &parts, 100, None).unwrap_err();
+        assert!(
+            matches!(e, AppError::ImageTooLarge { pixels: 200, .. }),
+            "{e}"
+        );
+    }
+}

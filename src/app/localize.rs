@@ -1,0 +1,198 @@
+//! Localizing a query sequence against a map, storing the result, and reading stored results.
+//!
+//! A localization reads the map's record and reference descriptors (from the cache, topped up
+//! from the store), describes the queries and runs [`crate::localize::localize`] on the CPU
+//! pool, and stores the result document under a new id; a co-occurrence map runs one of its
+//! methods instead ([`super::cooc`]).
+
+use std::time::Instant;
+
+use super::error::{AppError, AppResult};
+use super::images::{self, ImageInput};
+use super::kind::{kind, Kind};
+use super::{map_extractor, App};
+use crate::cooc::CoocMethod;
+use crate::localize::{localize, Localization, LocalizeOptions};
+use crate::store::document::{StoredMethod, StoredParams, StoredTimings};
+use crate::store::{LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest};
+use crate::Matrix;
+
+/// The queries of a localization, in driving order.
+#[derive(Clone, Debug)]
+pub enum Queries {
+    /// Images, described with the map's settings.
+    Images(Vec<ImageInput>),
+    /// Precomputed descriptors, one row per query.
+    Descriptors(Matrix),
+}
+
+/// A localization to run.
+#[derive(Clone, Debug)]
+pub struct LocalizeInput {
+    /// The queries.
+    pub queries: Queries,
+    /// Solver, normalisation and confidence parameters.
+    pub options: LocalizeOptions,
+    /// For co-occurrence maps, the method (default [`CoocMethod::Flow`]); must be `None` for
+    /// other maps.
+    pub method: Option<CoocMethod>,
+}
+
+fn stored_method(m: CoocMethod) -> StoredMethod {
+    match m {
+        CoocMethod::Flow => StoredMethod::Flow,
+        CoocMethod::Single => StoredMethod::Cooc,
+        CoocMethod::Sequence => StoredMethod::CoocSeq,
+    }
+}
+
+/// The name the service's clients use for a method (`params.method`): `flow`, `cooc`,
+/// `cooc-seq` (the CLI says `cooc-flow` for the first).
+pub fn service_name(m: CoocMethod) -> &'static str {
+    match m {
+        CoocMethod::Flow => "flow",
+        CoocMethod::Single => "cooc",
+        CoocMethod::Sequence => "cooc-seq",
+    }
+}
+
+impl App {
+    /// Localizes `input` against map `id` and stores the result under a new id.
+    pub async fn localize(&self, id: u64, input: LocalizeInput) -> AppResult<LocalizationRecord> {
+        let LocalizeInput {
+            queries,
+            options,
+            method,
+        } = input;
+        let started = Instant::now();
+        let map = self.get_map(id).await?;
+        let image_count = map.image_count as usize;
+        let (result, load_references, features, query_count, reference_count, method) =
+            match kind(&map) {
+                Kind::Cooc(_) => {
+                    let Queries::Images(parts) = queries else {
+                        return Err(AppError::InvalidInput(format!(
+                            "co-occurrence map `{id:016x}` localizes images (multipart), not \
+                             descriptors"
+                        )));
+                    };
+                    let method = method.unwrap_or_default();
+                    let query_count = parts.len();
+                    let (result, load, features) = self
+                        .localize_cooc(&map, parts, method, options.clone())
+                        .await?;
+                    (
+                        result,
+                        load,
+                        features,
+                        query_count,
+                        image_count,
+                        Some(method),
+                    )
+                }
+                Kind::Descriptors(_) => {
+                    if let Some(m) = method {
+                        return Err(AppError::param(
+                            "method",
+                            format!(
+                                "`{}` applies to co-occurrence maps only; map `{id:016x}` uses \
+                                 the flow graph",
+                                service_name(m)
+                            ),
+                        ));
+                    }
+                    if map.image_count == 0 {
+                        return Err(AppError::MapEmpty(id));
+                    }
+                    let references = self
+                        .references
+                        .get(self.store.as_ref(), &self.pool, &map, map.image_count)
+                        .await?;
+                    let load = started.elapsed().as_secs_f64();
+                    let max_pixels = self.config.max_image_pixels;
+                    let job_options = options.clone();
+                    let (result, features, query_count) = self
+                        .pool
+                        .run(move || {
+                            let started = Instant::now();
+                            let queries = match queries {
+                                Queries::Descriptors(m) => {
+                                    if m.cols() != references.cols() {
+                                        return Err(AppError::DescriptorLength(format!(
+                                            "query descriptors have length {}, map `{id:016x}` \
+                                             stores length {}",
+                                            m.cols(),
+                                            references.cols()
+                                        )));
+                                    }
+                                    m
+                                }
+                                Queries::Images(parts) => {
+                                    let Some(extractor) = map_extractor(&map)? else {
+                                        return Err(AppError::InvalidInput(format!(
+                                            "map `{id:016x}` stores precomputed descriptors; \
+                                             send descriptors, not images"
+                                        )));
+                                    };
+                                    images::describe(
+                                        extractor.as_ref(),
+                                        &parts,
+                                        max_pixels,
+                                        map.dim,
+                                    )?
+                                }
+                            };
+                            let features = started.elapsed().as_secs_f64();
+                            let result: Localization =
+                                localize(&queries, &references, &job_options)?;
+                            Ok((result, features, queries.rows()))
+                        })
+                        .await?;
+                    (result, load, features, query_count, image_count, None)
+                }
+            };
+        let result = LocalizationResult {
+            query_count,
+            reference_count,
+            params: StoredParams::new(
+                &options,
+                result.solution.hidden_cost,
+                method.map(stored_method),
+            ),
+            total_cost: result.solution.total_cost(),
+            hypotheses: result.solution.hypotheses.iter().map(Into::into).collect(),
+            predictions: result.predictions.iter().map(Into::into).collect(),
+            timings: StoredTimings {
+                load_references,
+                features,
+                similarity: result.timings.similarity,
+                solve: result.timings.solve,
+            },
+        };
+        let record = self
+            .store
+            .create_localization(NewLocalization { map_id: id, result })
+            .await?;
+        tracing::info!(
+            map = %format!("{id:016x}"),
+            localization = %format!("{:016x}", record.id),
+            queries = query_count,
+            "localized"
+        );
+        Ok(record)
+    }
+
+    /// One stored result.
+    pub async fn get_localization(&self, id: u64) -> AppResult<LocalizationRecord> {
+        Ok(self.store.get_localization(id).await?)
+    }
+
+    /// A page of stored results, newest first; only `map`'s when given.
+    pub async fn list_localizations(
+        &self,
+        map: Option<u64>,
+        page: PageRequest,
+    ) -> AppResult<Page<LocalizationRecord>> {
+        Ok(self.store.list_localizations(map, page).await?)
+    }
+}

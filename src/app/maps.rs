@@ -1,0 +1,221 @@
+//! Maps and their reference images: create (a CNN map's model is checked and its identity
+//! recorded), read, list, delete, and append images or precomputed descriptors.
+//!
+//! An append is all-or-nothing: every image is decoded and described first (on the CPU pool),
+//! then the batch is one atomic store write; any error before that writes nothing.
+
+use std::ops::Range;
+use std::time::Instant;
+
+use super::error::{AppError, AppResult};
+use super::images::{self, ImageInput};
+use super::kind::{kind, Kind};
+use super::{map_extractor, App};
+use crate::features::cnn::{CnnOptions, CnnSpec};
+use crate::store::{CnnSettings, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap};
+use crate::Matrix;
+
+/// A map to create.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewMapSpec {
+    /// Its name (checked by the front end).
+    pub name: String,
+    /// How its descriptors are computed.
+    pub descriptor: DescriptorSpec,
+}
+
+/// How a new map's descriptors are computed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum DescriptorSpec {
+    /// Complete, validated settings (HOG, precomputed, co-occurrence).
+    Settings(DescriptorSettings),
+    /// A CNN layer: the model is loaded and checked at creation, and its identity recorded.
+    Cnn(CnnOptions),
+}
+
+/// The result of an append.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AppendOutcome {
+    /// Route indices given to the new images.
+    pub indices: Range<u32>,
+    /// Seconds spent decoding and describing the images (none for descriptors).
+    pub features_seconds: Option<f64>,
+    /// Seconds of the store write, when it was a separate stage.
+    pub store_seconds: Option<f64>,
+}
+
+/// A CNN settings error at creation, naming the map spec's field.
+fn cnn_error(e: crate::Error) -> AppError {
+    let field = |name: &str| -> &'static str {
+        match name {
+            "cnn_layer" => "descriptor.layer",
+            "cnn_input_size" => "descriptor.input_size",
+            "cnn_short_side" => "descriptor.short_side",
+            "cnn_mean" => "descriptor.mean",
+            "cnn_scale" => "descriptor.scale",
+            _ => "descriptor.model",
+        }
+    };
+    match e {
+        crate::Error::InvalidParameter { name, reason } => AppError::param(field(name), reason),
+        crate::Error::Io { path, source } => AppError::param(
+            "descriptor.model",
+            format!("cannot read {}: {source}", path.display()),
+        ),
+        other => AppError::param("descriptor.model", other.to_string()),
+    }
+}
+
+/// Checks CNN options and loads the model for a new map (blocking): every failure names the
+/// descriptor field (a range, a missing file, not ONNX, an unknown layer with the available
+/// ones, the input size).
+fn check_cnn(options: CnnOptions) -> AppResult<CnnSettings> {
+    options.validate().map_err(cnn_error)?;
+    let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
+    Ok(CnnSettings {
+        identity: spec.identity(),
+        options,
+    })
+}
+
+impl App {
+    /// Creates a map.
+    pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
+        let descriptor = match spec.descriptor {
+            DescriptorSpec::Settings(d) => d,
+            DescriptorSpec::Cnn(options) => {
+                let settings = self.pool.run(move || check_cnn(options)).await?;
+                DescriptorSettings::Cnn(Box::new(settings))
+            }
+        };
+        let map = self
+            .store
+            .create_map(NewMap {
+                name: spec.name,
+                descriptor,
+            })
+            .await?;
+        tracing::info!(map = %format!("{:016x}", map.id), name = %map.name, "map created");
+        Ok(map)
+    }
+
+    /// One map.
+    pub async fn get_map(&self, id: u64) -> AppResult<MapRecord> {
+        Ok(self.store.get_map(id).await?)
+    }
+
+    /// All maps, oldest first.
+    pub async fn list_maps(&self) -> AppResult<Vec<MapRecord>> {
+        Ok(self.store.list_maps().await?)
+    }
+
+    /// Deletes a map and everything under it.
+    pub async fn delete_map(&self, id: u64) -> AppResult<()> {
+        self.store.delete_map(id).await?;
+        self.references.forget(id);
+        self.priors.forget(id);
+        tracing::info!(map = %format!("{id:016x}"), "map deleted");
+        Ok(())
+    }
+
+    /// The map that a batch of reference images is about to be appended to: fails before the
+    /// images are read when the map is gone or takes descriptors, not images.
+    pub async fn map_for_images(&self, id: u64) -> AppResult<MapRecord> {
+        let map = self.get_map(id).await?;
+        if let DescriptorSettings::Precomputed { .. } = map.descriptor {
+            return Err(AppError::InvalidInput(format!(
+                "map `{id:016x}` stores precomputed descriptors; post them to \
+                 /v1/maps/{id:016x}/descriptors"
+            )));
+        }
+        Ok(map)
+    }
+
+    /// The map that precomputed descriptors are about to be appended to: fails when it is gone
+    /// or is a co-occurrence map (built from images).
+    pub async fn map_for_descriptors(&self, id: u64) -> AppResult<MapRecord> {
+        let map = self.get_map(id).await?;
+        if let Kind::Cooc(_) = kind(&map) {
+            return Err(AppError::MapKind(format!(
+                "co-occurrence map `{id:016x}` is built from images; post them to \
+                 /v1/maps/{id:016x}/images"
+            )));
+        }
+        Ok(map)
+    }
+
+    /// Appends reference images (in route order, one metadata entry each) to `map` (from
+    /// [`App::map_for_images`]): described with the map's settings and stored, or, for a
+    /// co-occurrence map, its first batch builds the map.
+    pub async fn append_images(
+        &self,
+        map: MapRecord,
+        images: Vec<ImageInput>,
+        metas: Vec<ImageMeta>,
+    ) -> AppResult<AppendOutcome> {
+        if images.len() != metas.len() {
+            return Err(AppError::ShapeMismatch(format!(
+                "{} metadata entries for {} images",
+                metas.len(),
+                images.len()
+            )));
+        }
+        if let Kind::Cooc(params) = kind(&map) {
+            let params = params.clone();
+            return self.build_cooc(map, params, images, metas).await;
+        }
+        let started = Instant::now();
+        let max_pixels = self.config.max_image_pixels;
+        let id = map.id;
+        let descriptors = self
+            .pool
+            .run(move || {
+                let Some(extractor) = map_extractor(&map)? else {
+                    return Err(AppError::InvalidInput(format!(
+                        "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
+                         images"
+                    )));
+                };
+                images::describe(extractor.as_ref(), &images, max_pixels, map.dim)
+            })
+            .await?;
+        let features_seconds = started.elapsed().as_secs_f64();
+        let mut outcome = self.store_batch(id, descriptors, metas).await?;
+        outcome.features_seconds = Some(features_seconds);
+        Ok(outcome)
+    }
+
+    /// Appends precomputed descriptors (one row per image, in route order) to a map of
+    /// global descriptors.
+    pub async fn append_descriptors(
+        &self,
+        map: u64,
+        descriptors: Matrix,
+        metas: Vec<ImageMeta>,
+    ) -> AppResult<AppendOutcome> {
+        self.store_batch(map, descriptors, metas).await
+    }
+
+    async fn store_batch(
+        &self,
+        map: u64,
+        descriptors: Matrix,
+        metas: Vec<ImageMeta>,
+    ) -> AppResult<AppendOutcome> {
+        let batch = ImageBatch::new(map, descriptors, metas)?;
+        let started = Instant::now();
+        let indices = self.store.append_images(batch).await?;
+        let store_seconds = started.elapsed().as_secs_f64();
+        tracing::info!(
+            map = %format!("{map:016x}"),
+            first = indices.start,
+            count = indices.len(),
+            "batch stored"
+        );
+        Ok(AppendOutcome {
+            indices,
+            features_seconds: None,
+            store_seconds: Some(store_seconds),
+        })
+    }
+}

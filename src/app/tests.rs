@@ -1,0 +1,300 @@
+//! Two `App`s over one real sled store: two replicas of the service sharing one database, in
+//! one process. What a shared engine must make true is checked here on the embedded one:
+//! caches follow the store's versions, and batches of one trip apply one at a time wherever
+//! they arrive.
+
+use std::io::Cursor;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use async_trait::async_trait;
+use bytes::Bytes;
+
+use super::*;
+use crate::localize::LocalizeOptions;
+use crate::store::*;
+use crate::trip::TripParams;
+use crate::Matrix;
+
+/// Frame `i` of a synthetic skyline route (64x32), `dark` for the "other season".
+fn frame(i: u32, dark: bool) -> ImageInput {
+    let mut s = 0x5eed_u64;
+    let mut next = |n: u32| {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((s >> 33) as u32) % n
+    };
+    let width = 64 + 8 * 64;
+    let mut strip = vec![0u8; (width * 32) as usize];
+    let mut x = 0;
+    while x < width {
+        let (w, roof, shade) = (2 + next(9), 4 + next(26), 40 + next(200) as u8);
+        for xx in x..(x + w).min(width) {
+            for y in 0..32u32 {
+                strip[(y * width + xx) as usize] = if y < roof { 230 - 3 * y as u8 } else { shade };
+            }
+        }
+        x += w;
+    }
+    let img = image::GrayImage::from_fn(64, 32, |x, y| {
+        let v = f32::from(strip[(y * width + i * 8 + x) as usize]);
+        image::Luma([if dark { v * 0.6 + 30.0 } else { v } as u8])
+    });
+    let mut png = Vec::new();
+    img.write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    ImageInput {
+        name: format!("image[{i}]"),
+        bytes: Bytes::from(png),
+    }
+}
+
+fn app(store: Arc<dyn Store>) -> App {
+    App::new(
+        store,
+        AppConfig {
+            worker_threads: 2,
+            max_image_pixels: 1 << 20,
+            default_cnn_model: None,
+        },
+    )
+    .unwrap()
+}
+
+async fn hog_map(app: &App, images: std::ops::Range<u32>) -> MapRecord {
+    let map = app
+        .create_map(NewMapSpec {
+            name: "route".into(),
+            descriptor: DescriptorSpec::Settings(DescriptorSettings::Hog {
+                cell_size: 8,
+                resize: None,
+            }),
+        })
+        .await
+        .unwrap();
+    append(app, map.id, images).await;
+    app.get_map(map.id).await.unwrap()
+}
+
+async fn append(app: &App, map: u64, images: std::ops::Range<u32>) {
+    let frames: Vec<ImageInput> = images.map(|i| frame(i, false)).collect();
+    let metas = vec![ImageMeta::default(); frames.len()];
+    let target = app.map_for_images(map).await.unwrap();
+    app.append_images(target, frames, metas).await.unwrap();
+}
+
+fn queries(range: std::ops::Range<u32>) -> LocalizeInput {
+    LocalizeInput {
+        queries: Queries::Images(range.map(|i| frame(i, true)).collect()),
+        options: LocalizeOptions::default(),
+        method: None,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another() {
+    let dir = tempfile::tempdir().unwrap();
+    let store: Arc<dyn Store> = Arc::new(SledStore::open(dir.path()).unwrap());
+    let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
+    let map = hog_map(&a, 0..20).await;
+    // B caches the 20-image matrix.
+    let first = b.localize(map.id, queries(5..15)).await.unwrap();
+    assert_eq!(first.document.result.reference_count, 20);
+    // A appends; B's next localization uses all 40 images, exactly as a fresh process does.
+    append(&a, map.id, 20..40).await;
+    let second = b.localize(map.id, queries(25..35)).await.unwrap();
+    assert_eq!(second.document.result.reference_count, 40);
+    let fresh = app(Arc::clone(&store))
+        .localize(map.id, queries(25..35))
+        .await
+        .unwrap();
+    assert_eq!(
+        second.document.result.hypotheses,
+        fresh.document.result.hypotheses
+    );
+    assert_eq!(
+        second.document.result.predictions,
+        fresh.document.result.predictions
+    );
+    // The queries are frames 25..35 of the route: the appended part was used.
+    let refs: Vec<usize> = second
+        .document
+        .result
+        .predictions
+        .iter()
+        .map(|p| p.reference)
+        .collect();
+    assert!(refs.iter().any(|&r| r >= 20), "{refs:?}");
+    // A map deleted on one replica is gone on the other, whatever it cached.
+    a.delete_map(map.id).await.unwrap();
+    assert!(matches!(
+        b.localize(map.id, queries(0..3)).await,
+        Err(AppError::MapNotFound(_))
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trip_alternating_between_replicas_equals_one_replica() {
+    let dir = tempfile::tempdir().unwrap();
+    let store: Arc<dyn Store> = Arc::new(SledStore::open(dir.path()).unwrap());
+    let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
+    let map = hog_map(&a, 0..40).await;
+    let params = TripParams {
+        lag: 6,
+        ..TripParams::default()
+    };
+    let shared = a.open_trip(map.id, params).await.unwrap();
+    let single = a.open_trip(map.id, params).await.unwrap();
+    for (k, start) in (0..30).step_by(5).enumerate() {
+        let batch: Vec<ImageInput> = (start..start + 5).map(|i| frame(i, true)).collect();
+        let replica = if k % 2 == 0 { &a } else { &b };
+        let x = replica.post_frames(shared.id, batch.clone()).await.unwrap();
+        let y = a.post_frames(single.id, batch).await.unwrap();
+        assert_eq!(x.update, y.update, "batch {k}");
+    }
+    let (_, s1) = store.trip_state(shared.id).await.unwrap();
+    let (_, s2) = store.trip_state(single.id).await.unwrap();
+    assert_eq!(s1, s2);
+    assert_eq!(
+        a.get_trip(shared.id).await.unwrap().1,
+        b.get_trip(single.id).await.unwrap().1
+    );
+}
+
+/// The real store, except that the first two reads of a trip's state wait for each other: two
+/// replicas then compute their batches from the same state, and one of the conditional writes
+/// must lose.
+struct BothReadFirst {
+    inner: SledStore,
+    reads: AtomicUsize,
+    barrier: tokio::sync::Barrier,
+}
+
+#[async_trait]
+impl Store for BothReadFirst {
+    fn location(&self) -> String {
+        self.inner.location()
+    }
+    async fn check(&self) -> StoreResult<()> {
+        Store::check(&self.inner).await
+    }
+    async fn flush(&self) -> StoreResult<()> {
+        Store::flush(&self.inner).await
+    }
+    async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
+        Store::create_map(&self.inner, new).await
+    }
+    async fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
+        Store::get_map(&self.inner, id).await
+    }
+    async fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
+        Store::list_maps(&self.inner).await
+    }
+    async fn delete_map(&self, id: u64) -> StoreResult<()> {
+        Store::delete_map(&self.inner, id).await
+    }
+    async fn append_images(&self, batch: ImageBatch) -> StoreResult<std::ops::Range<u32>> {
+        Store::append_images(&self.inner, batch).await
+    }
+    async fn descriptors(&self, map: u64, rows: std::ops::Range<u32>) -> StoreResult<Matrix> {
+        Store::descriptors(&self.inner, map, rows).await
+    }
+    async fn image_metadata(
+        &self,
+        map: u64,
+        rows: std::ops::Range<u32>,
+    ) -> StoreResult<Vec<ImageMeta>> {
+        Store::image_metadata(&self.inner, map, rows).await
+    }
+    async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
+        Store::cooc_map(&self.inner, map).await
+    }
+    async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<std::ops::Range<u32>> {
+        Store::put_cooc_map(&self.inner, write).await
+    }
+    async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
+        Store::create_localization(&self.inner, new).await
+    }
+    async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
+        Store::get_localization(&self.inner, id).await
+    }
+    async fn list_localizations(
+        &self,
+        map: Option<u64>,
+        page: PageRequest,
+    ) -> StoreResult<Page<LocalizationRecord>> {
+        Store::list_localizations(&self.inner, map, page).await
+    }
+    async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
+        Store::create_trip(&self.inner, new).await
+    }
+    async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        Store::get_trip(&self.inner, id).await
+    }
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
+        let state = Store::trip_state(&self.inner, id).await;
+        if self.reads.fetch_add(1, Ordering::SeqCst) < 2 {
+            self.barrier.wait().await;
+        }
+        state
+    }
+    async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
+        Store::put_trip_batch(&self.inner, id, batch).await
+    }
+    async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        Store::close_trip(&self.inner, id).await
+    }
+    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
+        Store::trip_estimates(&self.inner, id).await
+    }
+    async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
+        Store::list_trips(&self.inner, map, page).await
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let sled = SledStore::open(dir.path()).unwrap();
+    let gated: Arc<dyn Store> = Arc::new(BothReadFirst {
+        inner: sled.clone(),
+        reads: AtomicUsize::new(0),
+        barrier: tokio::sync::Barrier::new(2),
+    });
+    let plain: Arc<dyn Store> = Arc::new(sled);
+    let (a, b) = (app(Arc::clone(&gated)), app(Arc::clone(&gated)));
+    let map = hog_map(&app(Arc::clone(&plain)), 0..30).await;
+    let trip = a.open_trip(map.id, TripParams::default()).await.unwrap();
+    let first: Vec<ImageInput> = (0..4).map(|i| frame(i, true)).collect();
+    let second: Vec<ImageInput> = (4..10).map(|i| frame(i, true)).collect();
+    let (x, y) = tokio::join!(
+        a.post_frames(trip.id, first.clone()),
+        b.post_frames(trip.id, second.clone())
+    );
+    let (x, y) = (x.unwrap(), y.unwrap());
+    // Both applied, once each: one saw the other's frames already in the trip.
+    let mut counts = [x.trip.frame_count, y.trip.frame_count];
+    counts.sort_unstable();
+    assert!(counts == [4, 10] || counts == [6, 10], "{counts:?}");
+    let (record, estimates) = a.get_trip(trip.id).await.unwrap();
+    assert_eq!(record.frame_count, 10);
+    assert_eq!(estimates.len(), 10);
+    // The stored state is that of the two batches applied in the order they won.
+    let order = if x.trip.frame_count == 4 {
+        [first, second]
+    } else {
+        [second, first]
+    };
+    let single = app(Arc::clone(&plain));
+    let reference = single
+        .open_trip(map.id, TripParams::default())
+        .await
+        .unwrap();
+    for batch in order {
+        single.post_frames(reference.id, batch).await.unwrap();
+    }
+    let (_, want) = plain.trip_state(reference.id).await.unwrap();
+    let (_, got) = plain.trip_state(trip.id).await.unwrap();
+    assert_eq!(got, want);
+}

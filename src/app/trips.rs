@@ -1,0 +1,235 @@
+//! Trips: a vehicle opens a trip on a map, posts its frames in small batches as it drives,
+//! and gets its current position back with every batch.
+//!
+//! * Opening pins the map's current image count: the trip localizes against those references,
+//!   even if images are appended later (its column prior and solver state have that width).
+//! * A batch restores the trip's state ([`crate::trip::Trip::from_bytes`]), describes the
+//!   frames with the map's settings, pushes their similarities through the trip, and writes the
+//!   new state, record and estimates in one atomic store write, conditional on the frame count
+//!   the batch was computed after. When another process applied a batch of the same trip in
+//!   between (a shared store), the batch is recomputed from the new state, at most
+//!   [`CONFLICT_RETRIES`] times; so batches of one trip apply one at a time, wherever they
+//!   arrive. Within this process a per-trip lock orders them by arrival.
+//! * A batch that fails (bad image, closed trip) writes nothing: the trip is unchanged.
+
+use std::time::Instant;
+
+use super::error::{AppError, AppResult};
+use super::images::{self, ImageInput};
+use super::{map_extractor, App};
+use crate::similarity;
+use crate::store::{
+    FrameRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripParamsDocument, TripRecord,
+};
+use crate::trip::{column_prior, BatchUpdate, Trip, TripParams};
+
+/// How often a batch is recomputed when another process changed the trip meanwhile.
+pub const CONFLICT_RETRIES: usize = 4;
+
+/// Seconds per stage of a batch.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FramesTimings {
+    /// Loading state and references.
+    pub load: f64,
+    /// Decoding and describing the images.
+    pub features: f64,
+    /// Similarities and the online solve.
+    pub solve: f64,
+    /// The atomic store write.
+    pub store: f64,
+}
+
+/// The result of a batch of frames.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FramesOutcome {
+    /// The trip after the batch.
+    pub trip: TripRecord,
+    /// The trip's answer: new estimates, the lag window, the status.
+    pub update: BatchUpdate,
+    /// The hidden cost `W` in use.
+    pub hidden_cost: f64,
+    /// Seconds per stage.
+    pub timings: FramesTimings,
+}
+
+impl App {
+    /// Opens a trip on map `id` with validated parameters.
+    pub async fn open_trip(&self, id: u64, params: TripParams) -> AppResult<TripRecord> {
+        let map = self.get_map(id).await?;
+        let checked = map.clone();
+        let has_extractor = self
+            .pool
+            .run(move || Ok(map_extractor(&checked)?.is_some()))
+            .await?;
+        if !has_extractor {
+            return Err(AppError::MapKind(format!(
+                "map `{id:016x}` stores client-computed descriptors; trips need a map that can \
+                 describe images (e.g. `hog`)"
+            )));
+        }
+        if map.image_count == 0 {
+            return Err(AppError::MapEmpty(id));
+        }
+        let count = map.image_count;
+        let prior = match self.priors.get(id, count) {
+            Some(p) => p,
+            None => {
+                let references = self
+                    .references
+                    .get(self.store.as_ref(), &self.pool, &map, count)
+                    .await?;
+                let prior = self
+                    .pool
+                    .run(move || Ok(std::sync::Arc::new(column_prior(&references)?)))
+                    .await?;
+                self.priors.keep(id, count, std::sync::Arc::clone(&prior));
+                prior
+            }
+        };
+        let state = self
+            .pool
+            .run(move || Ok(Trip::new(prior.as_ref().clone(), params)?.to_bytes()))
+            .await?;
+        let record = self
+            .store
+            .create_trip(NewTrip {
+                map_id: id,
+                reference_count: count,
+                params: TripParamsDocument::from(&params),
+                state,
+            })
+            .await?;
+        tracing::info!(map = %format!("{id:016x}"), trip = %format!("{:016x}", record.id), "trip opened");
+        Ok(record)
+    }
+
+    /// Extends trip `id` by a batch of frames (in driving order).
+    pub async fn post_frames(&self, id: u64, frames: Vec<ImageInput>) -> AppResult<FramesOutcome> {
+        if frames.is_empty() {
+            return Err(AppError::EmptyBatch("the batch has no frames".into()));
+        }
+        let lock = self.trip_locks.of(id);
+        let _order = lock.lock().await;
+        let frames = std::sync::Arc::new(frames);
+        let mut attempt = 0;
+        loop {
+            match self.apply_batch(id, std::sync::Arc::clone(&frames)).await {
+                Err(AppError::TripConflict(why)) if attempt < CONFLICT_RETRIES => {
+                    attempt += 1;
+                    tracing::info!(trip = %format!("{id:016x}"), attempt, %why, "trip changed meanwhile; recomputing the batch");
+                }
+                other => return other,
+            }
+        }
+    }
+
+    async fn apply_batch(
+        &self,
+        id: u64,
+        frames: std::sync::Arc<Vec<ImageInput>>,
+    ) -> AppResult<FramesOutcome> {
+        let started = Instant::now();
+        let (record, bytes) = self.store.trip_state(id).await?;
+        if record.closed_ms.is_some() {
+            return Err(AppError::TripClosed(id));
+        }
+        let map = self.get_map(record.map_id).await?;
+        let references = self
+            .references
+            .get(
+                self.store.as_ref(),
+                &self.pool,
+                &map,
+                record.reference_count,
+            )
+            .await?;
+        let max_pixels = self.config.max_image_pixels;
+        let (update, state, hidden_cost, mut timings) = self
+            .pool
+            .run(move || {
+                let mut trip = Trip::from_bytes(&bytes)?;
+                let load = started.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let Some(extractor) = map_extractor(&map)? else {
+                    return Err(AppError::MapKind(format!(
+                        "map `{:016x}` cannot describe images",
+                        map.id
+                    )));
+                };
+                let queries = images::describe(extractor.as_ref(), &frames, max_pixels, map.dim)?;
+                let features = t.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let c = similarity::cosine_matrix(&queries, &references)?;
+                let update = trip.push_batch(&c)?;
+                let hidden_cost = trip.hidden_cost().ok_or_else(|| {
+                    AppError::Internal("the first batch did not resolve the hidden cost".into())
+                })?;
+                let solve = t.elapsed().as_secs_f64();
+                let timings = FramesTimings {
+                    load,
+                    features,
+                    solve,
+                    store: 0.0,
+                };
+                Ok((update, trip.to_bytes(), hidden_cost, timings))
+            })
+            .await?;
+        let estimates = update
+            .window
+            .iter()
+            .chain(&update.estimates)
+            .map(|e| {
+                Ok(FrameRecord {
+                    frame: u32::try_from(e.frame)
+                        .map_err(|_| AppError::Internal("frame index over 2^32".into()))?,
+                    reference: e.reference.map(|j| j as u32),
+                    confidence: e.confidence,
+                })
+            })
+            .collect::<AppResult<Vec<_>>>()?;
+        let batch = TripBatch {
+            expected_frames: record.frame_count,
+            frame_count: record.frame_count + update.estimates.len() as u64,
+            status: update.status,
+            state,
+            estimates,
+        };
+        let t = Instant::now();
+        let trip = match self.store.put_trip_batch(id, batch).await {
+            Ok(r) => r,
+            Err(e @ StoreError::TripConflict { .. }) => {
+                return Err(AppError::TripConflict(e.to_string()))
+            }
+            Err(e) => return Err(e.into()),
+        };
+        timings.store = t.elapsed().as_secs_f64();
+        tracing::debug!(trip = %format!("{id:016x}"), frames = trip.frame_count, "batch applied");
+        Ok(FramesOutcome {
+            trip,
+            update,
+            hidden_cost,
+            timings,
+        })
+    }
+
+    /// Closes trip `id` (after a batch in flight in this process); closing twice is harmless.
+    pub async fn close_trip(&self, id: u64) -> AppResult<TripRecord> {
+        let lock = self.trip_locks.of(id);
+        let _order = lock.lock().await;
+        let record = self.store.close_trip(id).await?;
+        tracing::info!(trip = %format!("{id:016x}"), "trip closed");
+        Ok(record)
+    }
+
+    /// A trip and every frame's latest estimate.
+    pub async fn get_trip(&self, id: u64) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
+        let record = self.store.get_trip(id).await?;
+        let estimates = self.store.trip_estimates(id).await?;
+        Ok((record, estimates))
+    }
+
+    /// A page of map `id`'s trips, newest first.
+    pub async fn list_trips(&self, id: u64, page: PageRequest) -> AppResult<Page<TripRecord>> {
+        Ok(self.store.list_trips(id, page).await?)
+    }
+}

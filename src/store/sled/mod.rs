@@ -1,0 +1,250 @@
+//! The embedded engine: one sled database in a data folder (the default; the README's first
+//! command needs nothing but the binary).
+//!
+//! Only this module knows sled. It owns the key layout and value encodings ([`codec`]), the
+//! layout version and its upgrades ([`migrate`]), and the write rules of [`crate::store`]:
+//!
+//! * every change that spans several keys (a batch of images plus the map's `image_count`, a
+//!   localization plus its index entry, a trip batch, a map and everything under it) is one
+//!   `sled::Batch`, applied atomically, so a crash leaves either all of it or none of it;
+//! * every write is flushed to disk before the call returns, so whatever the API acknowledged
+//!   survives a crash;
+//! * writes go through one mutex, so read-modify-write cycles (`image_count`, a trip's frame
+//!   count, a co-occurrence map) never interleave and conditional writes are checked and
+//!   applied as one step.
+//!
+//! The inherent methods of [`SledStore`] are blocking (for tools, tests and benches); the
+//! service uses the [`Store`] implementation, which runs each of them on tokio's blocking
+//! threads.
+
+pub mod codec;
+mod cooc;
+#[cfg(test)]
+mod golden;
+mod localizations;
+mod maps;
+pub mod migrate;
+mod trips;
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use async_trait::async_trait;
+
+use super::{
+    CoocWrite, FrameRecord, ImageBatch, ImageMeta, LocalizationRecord, MapRecord, NewLocalization,
+    NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult, TripBatch, TripRecord,
+};
+use crate::Matrix;
+
+impl From<sled::Error> for StoreError {
+    fn from(e: sled::Error) -> Self {
+        StoreError::Backend(Box::new(e))
+    }
+}
+
+/// The sled engine. Cheap to clone (clones share the database and its write lock).
+#[derive(Clone)]
+pub struct SledStore {
+    db: sled::Db,
+    path: Arc<PathBuf>,
+    write: Arc<Mutex<()>>,
+}
+
+impl SledStore {
+    /// Opens (or creates) the store in `dir` and upgrades its layout to
+    /// [`migrate::CURRENT_VERSION`].
+    pub fn open(dir: &Path) -> StoreResult<SledStore> {
+        let db = sled::Config::new()
+            .path(dir)
+            .open()
+            .map_err(|source| StoreError::Open {
+                location: dir.display().to_string(),
+                source: Box::new(source),
+            })?;
+        migrate::migrate(&db)?;
+        Ok(SledStore {
+            db,
+            path: Arc::new(dir.to_path_buf()),
+            write: Arc::new(Mutex::new(())),
+        })
+    }
+
+    /// The data folder.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The layout version on disk.
+    pub fn schema_version(&self) -> StoreResult<u32> {
+        migrate::read_version(&self.db)?.ok_or_else(|| {
+            StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "schema_version is missing")
+        })
+    }
+
+    /// Checks that the store answers reads.
+    pub fn check(&self) -> StoreResult<()> {
+        self.schema_version().map(|_| ())
+    }
+
+    /// Flushes everything to disk (at shutdown; every write already flushes).
+    pub fn flush(&self) -> StoreResult<()> {
+        self.db.flush()?;
+        Ok(())
+    }
+
+    fn lock(&self) -> MutexGuard<'_, ()> {
+        // A panic while holding the lock cannot leave sled half-written (batches are
+        // atomic), so a poisoned lock is safe to reuse.
+        self.write.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn next_id(&self) -> StoreResult<u64> {
+        Ok(self.db.generate_id()?)
+    }
+
+    /// The newest-first page of the index keys in `lo..hi` (each holding an id at
+    /// `key[at..at + 8]`): at most `limit` records read with `get`, and the `before` of the
+    /// next page. `hi` is exclusive, so an id of `u64::MAX` (never issued) is never listed.
+    fn page<T>(
+        &self,
+        lo: &[u8],
+        hi: &[u8],
+        at: usize,
+        limit: usize,
+        get: impl Fn(u64) -> StoreResult<T>,
+    ) -> StoreResult<Page<T>> {
+        let mut ids = Vec::with_capacity(limit + 1);
+        for kv in self.db.range(lo..hi).rev().take(limit + 1) {
+            ids.push(codec::id_at(&kv?.0, at)?);
+        }
+        let next = if ids.len() > limit {
+            ids.truncate(limit);
+            ids.last().copied()
+        } else {
+            None
+        };
+        let items = ids.into_iter().map(get).collect::<StoreResult<Vec<_>>>()?;
+        Ok(Page { items, next })
+    }
+
+    /// Runs a blocking method on tokio's blocking threads.
+    async fn run<T, F>(&self, job: F) -> StoreResult<T>
+    where
+        T: Send + 'static,
+        F: FnOnce(&SledStore) -> StoreResult<T> + Send + 'static,
+    {
+        let store = self.clone();
+        tokio::task::spawn_blocking(move || job(&store))
+            .await
+            .map_err(|e| StoreError::Backend(format!("store task failed: {e}").into()))?
+    }
+}
+
+#[async_trait]
+impl Store for SledStore {
+    fn location(&self) -> String {
+        self.path.display().to_string()
+    }
+
+    async fn check(&self) -> StoreResult<()> {
+        self.run(SledStore::check).await
+    }
+
+    async fn flush(&self) -> StoreResult<()> {
+        self.run(SledStore::flush).await
+    }
+
+    async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
+        self.run(move |s| s.create_map(new)).await
+    }
+
+    async fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
+        self.run(move |s| s.get_map(id)).await
+    }
+
+    async fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
+        self.run(SledStore::list_maps).await
+    }
+
+    async fn delete_map(&self, id: u64) -> StoreResult<()> {
+        self.run(move |s| s.delete_map(id)).await
+    }
+
+    async fn append_images(&self, batch: ImageBatch) -> StoreResult<Range<u32>> {
+        self.run(move |s| s.append_images(&batch)).await
+    }
+
+    async fn descriptors(&self, map: u64, rows: Range<u32>) -> StoreResult<Matrix> {
+        self.run(move |s| s.descriptors(map, rows)).await
+    }
+
+    async fn image_metadata(&self, map: u64, rows: Range<u32>) -> StoreResult<Vec<ImageMeta>> {
+        self.run(move |s| s.image_metadata(map, rows)).await
+    }
+
+    async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.cooc_map(map)).await
+    }
+
+    async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>> {
+        self.run(move |s| s.put_cooc_map(write)).await
+    }
+
+    async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
+        self.run(move |s| s.create_localization(new)).await
+    }
+
+    async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
+        self.run(move |s| s.get_localization(id)).await
+    }
+
+    async fn list_localizations(
+        &self,
+        map: Option<u64>,
+        page: PageRequest,
+    ) -> StoreResult<Page<LocalizationRecord>> {
+        self.run(move |s| s.list_localizations(map, page)).await
+    }
+
+    async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
+        self.run(move |s| s.create_trip(new)).await
+    }
+
+    async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        self.run(move |s| s.get_trip(id)).await
+    }
+
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
+        self.run(move |s| s.trip_state(id)).await
+    }
+
+    async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
+        self.run(move |s| s.put_trip_batch(id, batch)).await
+    }
+
+    async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        self.run(move |s| s.close_trip(id)).await
+    }
+
+    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
+        self.run(move |s| s.trip_estimates(id)).await
+    }
+
+    async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
+        self.run(move |s| s.list_trips(map, page)).await
+    }
+}
+
+/// A new empty map of 1-D precomputed descriptors, for the engine's unit tests.
+#[cfg(test)]
+pub(crate) fn test_map(store: &SledStore) -> u64 {
+    store
+        .create_map(NewMap {
+            name: "m".into(),
+            descriptor: super::DescriptorSettings::Precomputed { dim: 1 },
+        })
+        .expect("a new map in a fresh store")
+        .id
+}
