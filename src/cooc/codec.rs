@@ -24,7 +24,7 @@ use super::CoocParams;
 use crate::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"SLCOOCMP";
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 
 fn corrupt(reason: impl Into<String>) -> Error {
     Error::Format {
@@ -122,6 +122,8 @@ impl CoocMap {
         w.f32(k.min_response);
         w.u32(k.nms_radius);
         w.u32(k.cell_size);
+        w.u32(k.max_width);
+        w.u32(k.octaves);
         w.len(p.vocabulary_branching);
         w.len(p.vocabulary_depth);
         w.len(p.kmeans_iterations);
@@ -168,12 +170,12 @@ impl CoocMap {
             return Err(corrupt("not a co-occurrence map (bad magic)"));
         }
         let version = r.u16("version")?;
-        if version != VERSION {
+        if !(1..=VERSION).contains(&version) {
             return Err(corrupt(format!(
-                "unsupported version {version} (this build reads {VERSION})"
+                "unsupported version {version} (this build reads 1..={VERSION})"
             )));
         }
-        let keypoints = KeypointParams {
+        let mut keypoints = KeypointParams {
             upsample: r.u32("upsample")?,
             max_keypoints: r.u32("max_keypoints")? as usize,
             harris_k: r.f32("harris_k")?,
@@ -181,7 +183,15 @@ impl CoocMap {
             min_response: r.f32("min_response")?,
             nms_radius: r.u32("nms_radius")?,
             cell_size: r.u32("cell_size")?,
+            // Version 1 maps were extracted without a width cap, on one octave: decoding keeps
+            // that, so their queries are described exactly as their drives were.
+            max_width: 0,
+            octaves: 1,
         };
+        if version >= 2 {
+            keypoints.max_width = r.u32("max_width")?;
+            keypoints.octaves = r.u32("octaves")?;
+        }
         let params = CoocParams {
             keypoints,
             vocabulary_branching: r.u32("vocabulary_branching")? as usize,

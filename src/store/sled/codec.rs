@@ -326,6 +326,9 @@ fn decode_cooc(r: &mut Reader<'_>) -> Result<CoocParams, StoreError> {
         min_response: f32::from_bits(r.u32()?),
         nms_radius: r.u32()?,
         cell_size: r.u32()?,
+        // Not in the record layout (yet): the settings the map is built with (stored in its
+        // co-occurrence bytes once built) take the library defaults.
+        ..KeypointParams::default()
     };
     Ok(CoocParams {
         keypoints,
