@@ -112,9 +112,16 @@ impl CoocMap {
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut w = Writer(Vec::new());
         w.0.extend_from_slice(MAGIC);
-        w.u16(VERSION);
         let p = &self.params;
         let k = &p.keypoints;
+        // The oldest layout that holds the map: a map extracted the version-1 way (no width
+        // cap, one octave) is written as version 1, so stored maps re-encode byte for byte.
+        let version = if k.max_width == 0 && k.octaves == 1 {
+            1
+        } else {
+            VERSION
+        };
+        w.u16(version);
         w.u32(k.upsample);
         w.len(k.max_keypoints);
         w.f32(k.harris_k);
@@ -122,8 +129,10 @@ impl CoocMap {
         w.f32(k.min_response);
         w.u32(k.nms_radius);
         w.u32(k.cell_size);
-        w.u32(k.max_width);
-        w.u32(k.octaves);
+        if version >= 2 {
+            w.u32(k.max_width);
+            w.u32(k.octaves);
+        }
         w.len(p.vocabulary_branching);
         w.len(p.vocabulary_depth);
         w.len(p.kmeans_iterations);
