@@ -268,7 +268,12 @@ fn dashboard_pages_in_a_browser_on_generated_images() {
             .join("|"),
         "the strip spans the route from its first image to its last"
     );
-    b.eval("(() => { const s = document.querySelector('#thumb-strip'); s.scrollLeft = s.scrollWidth; return 1; })()");
+    // Scroll the strip as a person would, a few hundred pixels at a time.
+    b.eval(
+        "(async () => { const s = document.querySelector('#thumb-strip'); \
+         for (let k = 0; k < 40 && s.scrollLeft + s.clientWidth < s.scrollWidth - 1; k++) { s.scrollLeft += 300; \
+         await new Promise(r => setTimeout(r, 80)); } return 1; })()",
+    );
     b.wait_for(&format!("{loaded} === 16"), Duration::from_secs(10))
         .unwrap();
     b.wait_for(
