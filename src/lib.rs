@@ -31,6 +31,7 @@ pub mod eval;
 pub mod features;
 pub mod localize;
 pub mod matrix;
+pub mod picture;
 pub mod service;
 pub mod similarity;
 pub mod solver;

@@ -14,3 +14,4 @@ mod flow;
 mod http;
 mod spec;
 mod trips;
+mod views;
