@@ -22,6 +22,7 @@ pub mod api;
 pub mod app;
 pub mod baselines;
 pub mod cli;
+pub mod codec;
 pub mod confidence;
 pub mod config;
 pub mod cooc;

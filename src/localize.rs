@@ -7,11 +7,21 @@
 use std::time::Instant;
 
 use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
-use crate::eval::Prediction;
 use crate::picture::MatrixPicture;
 use crate::similarity::{self, Normalization};
 use crate::solver::{solve, Solution, SolverParams};
 use crate::{Matrix, Result};
+
+/// One method's answer for one query: at most one per query, higher confidence = more certain.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prediction {
+    /// Query index `i`.
+    pub query: usize,
+    /// Predicted reference index `j`.
+    pub reference: usize,
+    /// Higher = more certain. Finite.
+    pub confidence: f64,
+}
 
 /// Options of [`localize`].
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -192,6 +192,10 @@ impl ApiError {
 }
 
 impl IntoResponse for ApiError {
+    #[allow(
+        clippy::wildcard_enum_match_arm,
+        reason = "every variant but the two logged ones is a client error whose Display is its message"
+    )]
     fn into_response(self) -> Response {
         let (status, code, retry) = self.parts();
         let message = match &self {

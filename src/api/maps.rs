@@ -175,7 +175,12 @@ fn validate(
                 crate::Error::InvalidParameter { name, reason } => {
                     ApiError::param(format!("descriptor.{name}"), reason)
                 }
-                other => other.into(),
+                other @ (crate::Error::NonFinite { .. }
+                | crate::Error::Shape(_)
+                | crate::Error::Empty(_)
+                | crate::Error::Image { .. }
+                | crate::Error::Io { .. }
+                | crate::Error::Format { .. }) => other.into(),
             })?;
             DescriptorSettings::Cooc(Box::new(p))
         }

@@ -8,6 +8,10 @@
 //! (localizations), [`trips`] (online trips), [`ops`] (health, metrics, OpenAPI),
 //! `dashboard` (the embedded web dashboard for people).
 
+// Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
+// new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
+#![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
+
 mod cooc;
 mod dashboard;
 pub mod dto;

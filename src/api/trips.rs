@@ -92,7 +92,7 @@ impl TripParamsDto {
         }
         let relocalization = match self.relocalization {
             Some(false) => None,
-            _ => Some(
+            Some(true) | None => Some(
                 self.relocalization_cost
                     .unwrap_or(crate::trip::DEFAULT_RELOCALIZATION_COST),
             ),
@@ -107,8 +107,8 @@ impl TripParamsDto {
             normalize: self.normalize.unwrap_or(d.normalize),
             confidence: d.confidence,
         };
-        // Every range is checked by the core, on a one-column stand-in map.
-        Trip::new(vec![1.0], params)?;
+        // Every range is checked by the core.
+        params.validate()?;
         Ok(params)
     }
 }

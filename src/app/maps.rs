@@ -62,7 +62,11 @@ fn cnn_error(e: crate::Error) -> AppError {
             "descriptor.model",
             format!("cannot read {}: {source}", path.display()),
         ),
-        other => AppError::param("descriptor.model", other.to_string()),
+        other @ (crate::Error::NonFinite { .. }
+        | crate::Error::Shape(_)
+        | crate::Error::Empty(_)
+        | crate::Error::Image { .. }
+        | crate::Error::Format { .. }) => AppError::param("descriptor.model", other.to_string()),
     }
 }
 

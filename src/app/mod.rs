@@ -13,6 +13,10 @@
 //! * What a process caches ([`cache`]) is checked against the store's versions first, so
 //!   several processes may serve one shared store.
 
+// Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
+// new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
+#![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
+
 mod cache;
 mod cooc;
 mod descriptors;

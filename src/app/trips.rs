@@ -118,7 +118,7 @@ impl App {
                     attempt += 1;
                     tracing::info!(trip = %format!("{id:016x}"), attempt, %why, "trip changed meanwhile; recomputing the batch");
                 }
-                other => return other,
+                done @ (Ok(_) | Err(_)) => return done,
             }
         }
     }

@@ -12,8 +12,8 @@ use serde::de::Error as _;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use super::{StoreError, StoreResult};
-use crate::eval::Prediction;
 use crate::localize::LocalizeOptions;
+use crate::localize::Prediction;
 use crate::similarity::Normalization;
 use crate::solver::{HiddenCost, Hypothesis};
 use crate::trip::TripParams;

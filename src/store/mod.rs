@@ -27,6 +27,10 @@
 //! [`document`], separate from the API's wire DTOs, so a wire change cannot silently change
 //! stored data.
 
+// Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
+// new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
+#![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
+
 pub mod document;
 pub mod sled;
 

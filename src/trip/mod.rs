@@ -30,15 +30,13 @@
 use std::collections::VecDeque;
 
 use crate::confidence::{window_ratio, ConfidenceParams, GraphParams};
-use crate::solver::auto_hidden_cost;
+use crate::solver::{auto_hidden_cost, check_fan_out, check_hidden_cost};
 use crate::{Error, Matrix, Result};
 
-mod jump;
 mod normalize;
 pub mod online;
 pub mod state;
 
-pub use jump::{jump_route, relocalization_delays, JumpRoute, FOUND_RUN};
 pub use normalize::column_prior;
 use online::{OnlineParams, OnlineSolver, RowEstimate};
 use state::{corrupt_state, StateReader, StateWriter, STATE_FORMAT};
@@ -68,6 +66,37 @@ pub struct TripParams {
     pub normalize: bool,
     /// Confidence window and radius.
     pub confidence: ConfidenceParams,
+}
+
+impl TripParams {
+    /// Checks every parameter's range, without a map: the graph (fan-out cap, `W`) with the
+    /// solver's one check ([`crate::solver::check_fan_out`], [`crate::solver::check_hidden_cost`]),
+    /// the lag window and relocalization cost, the prior weight and the confidence window.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
+            return Err(Error::param(
+                "prior_weight",
+                format!("must be a finite number >= 0, got {}", self.prior_weight),
+            ));
+        }
+        check_fan_out(self.fan_out)?;
+        if let Some(w) = self.hidden_cost {
+            check_hidden_cost(w)?;
+        }
+        online::check_window(self.lag, self.relocalization)?;
+        if self.confidence.half_window > MAX_CONFIDENCE_WINDOW
+            || self.confidence.radius > MAX_CONFIDENCE_WINDOW
+        {
+            return Err(Error::param(
+                "confidence",
+                format!(
+                    "half window and radius must be at most {MAX_CONFIDENCE_WINDOW}, got {:?}",
+                    self.confidence
+                ),
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl Default for TripParams {
@@ -146,43 +175,7 @@ impl Trip {
         if prior.is_empty() {
             return Err(Error::Empty("the map has no reference images".into()));
         }
-        if !(params.prior_weight.is_finite() && params.prior_weight >= 0.0) {
-            return Err(Error::param(
-                "prior_weight",
-                format!("must be a finite number >= 0, got {}", params.prior_weight),
-            ));
-        }
-        let probe = OnlineParams {
-            graph: GraphParams {
-                fan_out: params.fan_out,
-                horizontal: params.horizontal,
-                hidden_cost: params.hidden_cost.unwrap_or(1.0),
-            },
-            lag: params.lag,
-            relocalization: params.relocalization,
-        };
-        probe.validate()?;
-        if params.confidence.half_window > MAX_CONFIDENCE_WINDOW
-            || params.confidence.radius > MAX_CONFIDENCE_WINDOW
-        {
-            return Err(Error::param(
-                "confidence",
-                format!(
-                    "half window and radius must be at most {MAX_CONFIDENCE_WINDOW}, got {:?}",
-                    params.confidence
-                ),
-            ));
-        }
-        if params.fan_out > crate::solver::MAX_FAN_OUT {
-            return Err(Error::param(
-                "fan_out",
-                format!(
-                    "must be at most {}, got {}",
-                    crate::solver::MAX_FAN_OUT,
-                    params.fan_out
-                ),
-            ));
-        }
+        params.validate()?;
         let prior_mean = prior.iter().map(|v| f64::from(*v)).sum::<f64>() / prior.len() as f64;
         Ok(Trip {
             params,

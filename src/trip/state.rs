@@ -1,8 +1,9 @@
 //! The exact byte encoding of online solver and trip state: little-endian integers, bit-exact
-//! IEEE floats, no serde (the core layer owns its state format; the store keeps it as opaque
+//! IEEE floats ([`crate::codec`]), no serde (the core layer owns its state format; the store keeps it as opaque
 //! bytes). Invariant: every read is bounds-checked, so truncated or corrupt bytes are an
 //! [`Error::Format`] naming the trip state, never a panic.
 
+use crate::codec::{ByteReader, ByteWriter, DecodeError};
 use crate::{Error, Result};
 
 /// Version byte of the state encoding written by [`StateWriter`].
@@ -16,120 +17,58 @@ pub(super) fn corrupt(reason: impl Into<String>) -> Error {
 }
 
 /// Writes the exact byte encoding of solver and trip state: little-endian integers and IEEE
-/// floats (bit-exact, so a restored state continues bit-identically). No serde: the core
-/// layer owns its state format and the store keeps it as opaque bytes.
-#[derive(Debug, Default)]
-pub struct StateWriter(Vec<u8>);
-
-impl StateWriter {
-    /// An empty buffer.
-    pub fn new() -> Self {
-        StateWriter(Vec::new())
-    }
-    /// The bytes written.
-    pub fn into_bytes(self) -> Vec<u8> {
-        self.0
-    }
-    /// Raw bytes.
-    pub fn raw(&mut self, v: &[u8]) {
-        self.0.extend_from_slice(v);
-    }
-    /// A `u8`.
-    pub fn u8(&mut self, v: u8) {
-        self.0.push(v);
-    }
-    /// A boolean as one byte.
-    pub fn bool(&mut self, v: bool) {
-        self.0.push(u8::from(v));
-    }
-    /// A `u32`.
-    pub fn u32(&mut self, v: u32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    /// A `u64`.
-    pub fn u64(&mut self, v: u64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    /// An `f64`, bit-exact.
-    pub fn f64(&mut self, v: f64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    /// An optional `f64` (tag byte 0/1).
-    pub fn opt_f64(&mut self, v: Option<f64>) {
-        match v {
-            None => self.u8(0),
-            Some(x) => {
-                self.u8(1);
-                self.f64(x);
-            }
-        }
-    }
-    /// `f64`s without a length (the reader knows it).
-    pub fn f64s(&mut self, v: &[f64]) {
-        v.iter().for_each(|x| self.f64(*x));
-    }
-    /// `f32`s without a length (the reader knows it).
-    pub fn f32s(&mut self, v: &[f32]) {
-        v.iter()
-            .for_each(|x| self.0.extend_from_slice(&x.to_le_bytes()));
-    }
-}
+/// floats (bit-exact, so a restored state continues bit-identically), with the crate's one
+/// byte codec. No serde: the core layer owns its state format and the store keeps it as
+/// opaque bytes.
+pub type StateWriter = ByteWriter;
 
 /// Reads what [`StateWriter`] wrote; truncation, bad tags and impossible values are
 /// [`Error::Format`] naming the trip state.
-pub struct StateReader<'a> {
-    buf: &'a [u8],
+pub struct StateReader<'a>(ByteReader<'a>);
+
+/// The corrupt-state error for a failed read of the byte codec.
+fn decode(e: DecodeError) -> Error {
+    match e {
+        DecodeError::Truncated { .. } => corrupt("state is truncated"),
+        DecodeError::BadTag { what, tag } => corrupt(format!("bad {what} {tag}")),
+    }
 }
 
 impl<'a> StateReader<'a> {
     /// A reader over `buf`.
     pub fn new(buf: &'a [u8]) -> Self {
-        StateReader { buf }
+        StateReader(ByteReader::new(buf))
     }
     /// Bytes not read yet.
     pub fn remaining(&self) -> usize {
-        self.buf.len()
+        self.0.remaining()
     }
     /// Fails unless every byte was read.
     pub fn finish(self) -> Result<()> {
-        if self.buf.is_empty() {
-            Ok(())
-        } else {
-            Err(corrupt(format!("{} trailing bytes", self.buf.len())))
+        match self.0.remaining() {
+            0 => Ok(()),
+            n => Err(corrupt(format!("{n} trailing bytes"))),
         }
     }
     /// `n` raw bytes.
     pub fn take(&mut self, n: usize) -> Result<&'a [u8]> {
-        if self.buf.len() < n {
-            return Err(corrupt("state is truncated"));
-        }
-        let (head, tail) = self.buf.split_at(n);
-        self.buf = tail;
-        Ok(head)
+        self.0.take(n).map_err(decode)
     }
     /// A `u8`.
     pub fn u8(&mut self) -> Result<u8> {
-        Ok(self.take(1)?[0])
+        self.0.u8().map_err(decode)
     }
     /// A boolean (byte 0 or 1).
     pub fn bool(&mut self) -> Result<bool> {
-        match self.u8()? {
-            0 => Ok(false),
-            1 => Ok(true),
-            t => Err(corrupt(format!("bad boolean {t}"))),
-        }
+        self.0.bool().map_err(decode)
     }
     /// A `u32`.
     pub fn u32(&mut self) -> Result<u32> {
-        Ok(u32::from_le_bytes(
-            self.take(4)?.try_into().expect("took 4 bytes"),
-        ))
+        self.0.u32().map_err(decode)
     }
     /// A `u64`.
     pub fn u64(&mut self) -> Result<u64> {
-        Ok(u64::from_le_bytes(
-            self.take(8)?.try_into().expect("took 8 bytes"),
-        ))
+        self.0.u64().map_err(decode)
     }
     /// A `u64` that must fit `usize` and stay below 2^40 (no state holds more elements).
     pub fn usize(&mut self) -> Result<usize> {
@@ -141,33 +80,19 @@ impl<'a> StateReader<'a> {
     }
     /// An `f64`.
     pub fn f64(&mut self) -> Result<f64> {
-        Ok(f64::from_le_bytes(
-            self.take(8)?.try_into().expect("took 8 bytes"),
-        ))
+        self.0.f64().map_err(decode)
     }
     /// An optional `f64`.
     pub fn opt_f64(&mut self) -> Result<Option<f64>> {
-        match self.u8()? {
-            0 => Ok(None),
-            1 => self.f64().map(Some),
-            t => Err(corrupt(format!("bad option tag {t}"))),
-        }
+        self.0.opt_f64().map_err(decode)
     }
     /// `n` `f64`s.
     pub fn f64s(&mut self, n: usize) -> Result<Vec<f64>> {
-        let bytes = self.take(n.checked_mul(8).ok_or_else(|| corrupt("length overflow"))?)?;
-        Ok(bytes
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("chunks of 8")))
-            .collect())
+        self.0.f64s(n).map_err(decode)
     }
     /// `n` `f32`s.
     pub fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
-        let bytes = self.take(n.checked_mul(4).ok_or_else(|| corrupt("length overflow"))?)?;
-        Ok(bytes
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().expect("chunks of 4")))
-            .collect())
+        self.0.f32s(n).map_err(decode)
     }
 }
 
