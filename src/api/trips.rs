@@ -25,7 +25,7 @@ use super::maps::map_id;
 use super::state::AppState;
 use super::upload;
 use crate::store::{FrameRecord, PageRequest, TripParamsDocument, TripRecord};
-use crate::trip::{FrameEstimate, Trip, TripParams, TripStatus};
+use crate::trip::{FrameEstimate, TripParams, TripStatus};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
