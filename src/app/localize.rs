@@ -110,6 +110,7 @@ impl App {
                         .await?;
                     let load = started.elapsed().as_secs_f64();
                     let max_pixels = self.config.max_image_pixels;
+                    let max_len = self.config.max_descriptor_len;
                     let job_options = options.clone();
                     let (result, features, query_count) = self
                         .pool
@@ -138,6 +139,7 @@ impl App {
                                         extractor.as_ref(),
                                         &parts,
                                         max_pixels,
+                                        max_len,
                                         map.dim,
                                     )?
                                 }
