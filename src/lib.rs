@@ -30,7 +30,7 @@ pub mod eval;
 pub mod features;
 pub mod localize;
 pub mod matrix;
-pub mod online;
+pub mod picture;
 pub mod service;
 pub mod similarity;
 pub mod solver;

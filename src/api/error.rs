@@ -31,6 +31,12 @@ pub enum ApiError {
     /// 409 `trip_conflict`: the trip changed while a batch was computed (retry the batch).
     #[error("{0}")]
     TripConflict(String),
+    /// 404 `thumbnail_not_found`: no such image, or an image stored without a thumbnail.
+    #[error("{0}")]
+    ThumbnailNotFound(String),
+    /// 404 `picture_not_found`: a localization stored without a similarity picture.
+    #[error("{0}")]
+    PictureNotFound(String),
     /// 404 `asset_not_found`: a dashboard file that does not exist.
     #[error("no dashboard file `{0}`")]
     AssetNotFound(String),
@@ -157,6 +163,8 @@ impl ApiError {
             ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
             ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
             ApiError::AssetNotFound(_) => (S::NOT_FOUND, "asset_not_found", false),
+            ApiError::ThumbnailNotFound(_) => (S::NOT_FOUND, "thumbnail_not_found", false),
+            ApiError::PictureNotFound(_) => (S::NOT_FOUND, "picture_not_found", false),
             ApiError::TripNotFound(_) => (S::NOT_FOUND, "trip_not_found", false),
             ApiError::TripClosed(_) => (S::CONFLICT, "trip_closed", false),
             ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),

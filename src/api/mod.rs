@@ -22,6 +22,7 @@ mod router;
 pub mod state;
 pub mod trips;
 pub mod upload;
+mod views;
 
 pub use error::ApiError;
 pub use router::{app, ROUTES};

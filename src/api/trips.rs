@@ -344,11 +344,22 @@ async fn frames(
     }))
 }
 
+/// Query of `GET /v1/trips/{id}`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ReadQuery {
+    /// Only the estimates of frames `since..` (a live view's poll); all when absent.
+    since: Option<u32>,
+}
+
 async fn read(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    query: Result<Query<ReadQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<TripResponse>, ApiError> {
-    let (record, estimates) = state.app.get_trip(trip_id(&id)?).await?;
+    let Query(q) = query.map_err(|e| ApiError::param("query", e.body_text()))?;
+    let since = q.since.unwrap_or(0);
+    let (record, estimates) = state.app.get_trip(trip_id(&id)?, since).await?;
     let mut r = response(&record);
     r.estimates = Some(estimates.iter().map(FrameEstimateDto::from).collect());
     Ok(Json(r))

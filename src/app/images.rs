@@ -61,6 +61,37 @@ pub fn describe(
     max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<Matrix> {
+    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
+    Ok(features::extract_batch(extractor, &images)?)
+}
+
+/// [`describe`] for reference images: also the JPEG thumbnail of each image
+/// ([`crate::picture::thumbnail_jpeg`]), from the same decoded pixels. Blocking.
+pub fn describe_with_thumbnails(
+    extractor: &dyn Extractor,
+    parts: &[ImageInput],
+    max_pixels: u64,
+    max_len: usize,
+    expected_dim: Option<u32>,
+) -> AppResult<(Matrix, Vec<Vec<u8>>)> {
+    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
+    let descriptors = features::extract_batch(extractor, &images)?;
+    let thumbnails = images
+        .par_iter()
+        .map(|img| crate::picture::thumbnail_jpeg(img).map_err(AppError::from))
+        .collect::<AppResult<Vec<_>>>()?;
+    Ok((descriptors, thumbnails))
+}
+
+/// Checks every part's header (format, pixel count, descriptor length) before decoding any,
+/// then decodes them all.
+fn decode_checked(
+    extractor: &dyn Extractor,
+    parts: &[ImageInput],
+    max_pixels: u64,
+    max_len: usize,
+    expected_dim: Option<u32>,
+) -> AppResult<Vec<image::DynamicImage>> {
     let dims = parts
         .par_iter()
         .map(|p| {
@@ -113,11 +144,10 @@ pub fn describe(
             Some(_) => {}
         }
     }
-    let images = parts
+    parts
         .par_iter()
         .map(|p| features::decode_image(&p.name, &p.bytes, max_pixels).map_err(AppError::from))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(features::extract_batch(extractor, &images)?)
+        .collect()
 }
 
 /// Decodes the parts to grey images, in order (the co-occurrence method's input). Blocking.

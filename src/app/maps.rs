@@ -198,7 +198,7 @@ impl App {
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
         let id = map.id;
-        let descriptors = self
+        let (descriptors, thumbnails) = self
             .pool
             .run(move || {
                 let Some(extractor) = map_extractor(&map)? else {
@@ -207,11 +207,18 @@ impl App {
                          images"
                     )));
                 };
-                images::describe(extractor.as_ref(), &images, max_pixels, max_len, map.dim)
+                images::describe_with_thumbnails(
+                    extractor.as_ref(),
+                    &images,
+                    max_pixels,
+                    max_len,
+                    map.dim,
+                )
             })
             .await?;
         let features_seconds = started.elapsed().as_secs_f64();
-        let mut outcome = self.store_batch(id, descriptors, metas).await?;
+        let batch = ImageBatch::new(id, descriptors, metas)?.with_thumbnails(thumbnails)?;
+        let mut outcome = self.store_batch(batch).await?;
         outcome.features_seconds = Some(features_seconds);
         Ok(outcome)
     }
@@ -224,16 +231,33 @@ impl App {
         descriptors: Matrix,
         metas: Vec<ImageMeta>,
     ) -> AppResult<AppendOutcome> {
-        self.store_batch(map, descriptors, metas).await
+        self.store_batch(ImageBatch::new(map, descriptors, metas)?)
+            .await
     }
 
-    async fn store_batch(
+    /// The JPEG thumbnail of image `index` of map `id` (stored at upload), `None` when the
+    /// image has none (stored before thumbnails existed, or not an image upload).
+    pub async fn thumbnail(&self, id: u64, index: u32) -> AppResult<Option<Vec<u8>>> {
+        Ok(self.store.thumbnail(id, index).await?)
+    }
+
+    /// The metadata of up to `limit` images of map `id` from index `from` on, in route order,
+    /// with the map (whose `image_count` tells whether more follow).
+    pub async fn image_metadata(
         &self,
-        map: u64,
-        descriptors: Matrix,
-        metas: Vec<ImageMeta>,
-    ) -> AppResult<AppendOutcome> {
-        let batch = ImageBatch::new(map, descriptors, metas)?;
+        id: u64,
+        from: u32,
+        limit: u32,
+    ) -> AppResult<(MapRecord, Vec<ImageMeta>)> {
+        let map = self.get_map(id).await?;
+        let start = from.min(map.image_count);
+        let end = start.saturating_add(limit).min(map.image_count);
+        let metas = self.store.image_metadata(id, start..end).await?;
+        Ok((map, metas))
+    }
+
+    async fn store_batch(&self, batch: ImageBatch) -> AppResult<AppendOutcome> {
+        let map = batch.map();
         let started = Instant::now();
         let indices = self.store.append_images(batch).await?;
         let store_seconds = started.elapsed().as_secs_f64();

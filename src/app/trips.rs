@@ -223,10 +223,12 @@ impl App {
         Ok(record)
     }
 
-    /// A trip and every frame's latest estimate.
-    pub async fn get_trip(&self, id: u64) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
+    /// A trip and the latest estimate of every frame from `since` on (0: all of them). A live
+    /// view polls with `since` = the frames it has minus the lag window, since estimates in
+    /// the window may still be revised.
+    pub async fn get_trip(&self, id: u64, since: u32) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
         let record = self.store.get_trip(id).await?;
-        let estimates = self.store.trip_estimates(id).await?;
+        let estimates = self.store.trip_estimates(id, since).await?;
         Ok((record, estimates))
     }
 

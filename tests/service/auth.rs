@@ -84,11 +84,18 @@ const TABLE: &[(&str, &str, Option<&str>)] = &[
     ("get", "/v1/maps/{id}", Some("reader")),
     ("delete", "/v1/maps/{id}", Some("admin")),
     ("post", "/v1/maps/{id}/images", Some("admin")),
+    ("get", "/v1/maps/{id}/images", Some("reader")),
+    (
+        "get",
+        "/v1/maps/{id}/images/{index}/thumbnail",
+        Some("reader"),
+    ),
     ("post", "/v1/maps/{id}/descriptors", Some("admin")),
     ("post", "/v1/maps/{id}/drives", Some("admin")),
     ("post", "/v1/maps/{id}/localize", Some("vehicle")),
     ("get", "/v1/localizations", Some("reader")),
     ("get", "/v1/localizations/{id}", Some("reader")),
+    ("get", "/v1/localizations/{id}/picture", Some("reader")),
     ("post", "/v1/maps/{id}/trips", Some("vehicle")),
     ("get", "/v1/maps/{id}/trips", Some("reader")),
     ("post", "/v1/trips/{id}/frames", Some("vehicle")),
@@ -141,6 +148,7 @@ fn every_role_against_every_route() {
         // Ids that do not exist: allowed calls answer 404/400/..., never touching data.
         let path = template
             .replace("{id}", "00000000ffffffff")
+            .replace("{index}", "0")
             .replace("{name}", "app.js");
         for (who, key) in callers {
             let r = call(

@@ -15,3 +15,4 @@ mod flow;
 mod http;
 mod spec;
 mod trips;
+mod views;

@@ -137,6 +137,26 @@ pub fn by_map_key(map: u64, id: u64) -> [u8; 17] {
     pair_key(LOCALIZATION_BY_MAP_PREFIX, map, id)
 }
 
+/// Prefix of image thumbnails (layout >= 5).
+pub const THUMBNAIL_PREFIX: u8 = b'J';
+/// Prefix of localizations' similarity pictures (layout >= 5).
+pub const PICTURE_PREFIX: u8 = b'P';
+
+/// `J` + map id: the prefix of all of a map's thumbnails.
+pub fn thumbnails_prefix(map: u64) -> [u8; 9] {
+    id_key(THUMBNAIL_PREFIX, map)
+}
+
+/// `J` + map id + index: an image's JPEG thumbnail.
+pub fn thumbnail_key(map: u64, index: u32) -> [u8; 13] {
+    index_key(THUMBNAIL_PREFIX, map, index)
+}
+
+/// `P` + localization id: the PNG of its similarity picture.
+pub fn picture_key(id: u64) -> [u8; 9] {
+    id_key(PICTURE_PREFIX, id)
+}
+
 /// Reads the `u64` at `key[at..at + 8]`.
 pub fn id_at(key: &[u8], at: usize) -> Result<u64, StoreError> {
     let bytes: [u8; 8] = key
@@ -767,6 +787,7 @@ mod tests {
                     .map(|(k, &c)| StoredPrediction { query: k, reference: k + 1, confidence: c })
                     .collect(),
                 timings: StoredTimings::default(),
+                picture: None,
             };
             let document = LocalizationDocument { id, map_id: 3, created_at_ms: 4, result };
             let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document };

@@ -26,10 +26,7 @@ use crate::solver::match_cost;
 use crate::window::trailing_min_by;
 use crate::{Error, Result};
 
-mod state;
-use state::corrupt;
-pub(crate) use state::corrupt_state;
-pub use state::{StateReader, StateWriter, STATE_FORMAT};
+use super::state::{corrupt, StateReader, StateWriter};
 
 /// Parameters of an online solver.
 #[derive(Clone, Copy, Debug, PartialEq)]
