@@ -124,6 +124,19 @@ pub enum ApiError {
     /// 422 `shape_mismatch`: inputs whose shapes do not fit together.
     #[error("{0}")]
     ShapeMismatch(String),
+    /// 401 `unauthorized` with `WWW-Authenticate: Bearer`: no key, or a key the service does
+    /// not know.
+    #[error("{0}")]
+    Unauthorized(String),
+    /// 403 `forbidden`: a known key whose role does not allow the request.
+    #[error("{0}")]
+    Forbidden(String),
+    /// 421 `misdirected_request`: a `Host` header that is not in `--allowed-host`.
+    #[error("{0}")]
+    MisdirectedRequest(String),
+    /// 429 `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
+    #[error("{0}")]
+    TooManyRequests(String),
     /// 503 `queue_full` with `Retry-After`: the localize queue is full.
     #[error("the localize queue is full; retry later")]
     QueueFull,
@@ -174,6 +187,12 @@ impl ApiError {
             ApiError::DescriptorLength(_) => (S::UNPROCESSABLE_ENTITY, "descriptor_length", false),
             ApiError::NonFinite(_) => (S::UNPROCESSABLE_ENTITY, "non_finite", false),
             ApiError::ShapeMismatch(_) => (S::UNPROCESSABLE_ENTITY, "shape_mismatch", false),
+            ApiError::Unauthorized(_) => (S::UNAUTHORIZED, "unauthorized", false),
+            ApiError::Forbidden(_) => (S::FORBIDDEN, "forbidden", false),
+            ApiError::MisdirectedRequest(_) => {
+                (S::MISDIRECTED_REQUEST, "misdirected_request", false)
+            }
+            ApiError::TooManyRequests(_) => (S::TOO_MANY_REQUESTS, "too_many_requests", true),
             ApiError::QueueFull => (S::SERVICE_UNAVAILABLE, "queue_full", true),
             ApiError::Overloaded => (S::SERVICE_UNAVAILABLE, "overloaded", true),
             ApiError::Timeout => (S::SERVICE_UNAVAILABLE, "timeout", true),
@@ -215,6 +234,12 @@ impl IntoResponse for ApiError {
             response
                 .headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECS));
+        }
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                HeaderValue::from_static("Bearer realm=\"seasonloc\""),
+            );
         }
         response
     }

@@ -115,6 +115,7 @@ impl App {
                         .await?;
                     let load = started.elapsed().as_secs_f64();
                     let max_pixels = self.config.max_image_pixels;
+                    let max_len = self.config.max_descriptor_len;
                     let job_options = options.clone();
                     let (result, features, query_count, picture) = self
                         .pool
@@ -143,6 +144,7 @@ impl App {
                                         extractor.as_ref(),
                                         &parts,
                                         max_pixels,
+                                        max_len,
                                         map.dim,
                                     )?
                                 }

@@ -73,9 +73,19 @@ fn cnn_error(e: crate::Error) -> AppError {
 /// Checks CNN options and loads the model for a new map (blocking): every failure names the
 /// descriptor field (a range, a missing file, not ONNX, an unknown layer with the available
 /// ones, the input size).
-fn check_cnn(options: CnnOptions) -> AppResult<CnnSettings> {
+fn check_cnn(options: CnnOptions, max_len: usize) -> AppResult<CnnSettings> {
     options.validate().map_err(cnn_error)?;
     let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
+    if spec.dim() > max_len {
+        return Err(AppError::param(
+            "descriptor.layer",
+            format!(
+                "`{}` gives descriptors of length {}, more than the server's limit of {max_len}",
+                options.layer,
+                spec.dim()
+            ),
+        ));
+    }
     Ok(CnnSettings {
         identity: spec.identity(),
         options,
@@ -85,10 +95,30 @@ fn check_cnn(options: CnnOptions) -> AppResult<CnnSettings> {
 impl App {
     /// Creates a map.
     pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
+        let max_len = self.config.max_descriptor_len;
         let descriptor = match spec.descriptor {
+            DescriptorSpec::Settings(DescriptorSettings::Precomputed { dim })
+                if dim as usize > max_len =>
+            {
+                return Err(AppError::param(
+                    "descriptor.dim",
+                    format!("{dim} is more than the server's limit of {max_len}"),
+                ));
+            }
             DescriptorSpec::Settings(d) => d,
-            DescriptorSpec::Cnn(options) => {
-                let settings = self.pool.run(move || check_cnn(options)).await?;
+            DescriptorSpec::Cnn(mut options) => {
+                // A model the request named is checked against the model directory first,
+                // on a blocking thread (stat only), so a hostile path never reaches the
+                // loader or the CPU pool.
+                if self.config.default_cnn_model.as_ref() != Some(&options.model) {
+                    let policy = self.config.models.clone();
+                    let requested = options.model.clone();
+                    options.model = tokio::task::spawn_blocking(move || policy.resolve(&requested))
+                        .await
+                        .map_err(|e| AppError::Internal(format!("model check: {e}")))??;
+                }
+                let max_len = self.config.max_descriptor_len;
+                let settings = self.pool.run(move || check_cnn(options, max_len)).await?;
                 DescriptorSettings::Cnn(Box::new(settings))
             }
         };
@@ -170,6 +200,7 @@ impl App {
         }
         let started = Instant::now();
         let max_pixels = self.config.max_image_pixels;
+        let max_len = self.config.max_descriptor_len;
         let id = map.id;
         let (descriptors, thumbnails) = self
             .pool
@@ -180,7 +211,13 @@ impl App {
                          images"
                     )));
                 };
-                images::describe_with_thumbnails(extractor.as_ref(), &images, max_pixels, map.dim)
+                images::describe_with_thumbnails(
+                    extractor.as_ref(),
+                    &images,
+                    max_pixels,
+                    max_len,
+                    map.dim,
+                )
             })
             .await?;
         let features_seconds = started.elapsed().as_secs_f64();

@@ -25,6 +25,7 @@ mod images;
 pub mod kind;
 mod localize;
 mod maps;
+pub mod models;
 pub mod pool;
 mod trips;
 
@@ -39,6 +40,7 @@ pub use error::{AppError, AppResult};
 pub use images::ImageInput;
 pub use localize::{LocalizeInput, Queries};
 pub use maps::{AppendOutcome, DescriptorSpec, NewMapSpec};
+pub use models::ModelPolicy;
 pub use pool::CpuPool;
 pub use trips::{FramesOutcome, FramesTimings};
 
@@ -51,6 +53,10 @@ pub struct AppConfig {
     pub max_image_pixels: u64,
     /// Model of CNN maps created without one.
     pub default_cnn_model: Option<PathBuf>,
+    /// Longest descriptor an image may give or a map may have (f32 values).
+    pub max_descriptor_len: usize,
+    /// Where model files named by requests may come from.
+    pub models: ModelPolicy,
 }
 
 /// The use cases over one store. Share it behind an `Arc`.

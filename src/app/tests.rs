@@ -57,6 +57,11 @@ fn app(store: Arc<dyn Store>) -> App {
             worker_threads: 2,
             max_image_pixels: 1 << 20,
             default_cnn_model: None,
+            max_descriptor_len: 1 << 20,
+            models: crate::app::ModelPolicy {
+                dir: None,
+                max_bytes: 1 << 20,
+            },
         },
     )
     .unwrap()

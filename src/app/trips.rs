@@ -144,6 +144,7 @@ impl App {
             )
             .await?;
         let max_pixels = self.config.max_image_pixels;
+        let max_len = self.config.max_descriptor_len;
         let (update, state, hidden_cost, mut timings) = self
             .pool
             .run(move || {
@@ -156,7 +157,8 @@ impl App {
                         map.id
                     )));
                 };
-                let queries = images::describe(extractor.as_ref(), &frames, max_pixels, map.dim)?;
+                let queries =
+                    images::describe(extractor.as_ref(), &frames, max_pixels, max_len, map.dim)?;
                 let features = t.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let c = similarity::cosine_matrix(&queries, &references)?;
