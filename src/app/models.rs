@@ -87,13 +87,11 @@ mod tests {
     use super::*;
 
     fn message(e: AppError) -> String {
-        match e {
-            AppError::InvalidParameter { name, reason } => {
-                assert_eq!(name, "descriptor.model");
-                reason
-            }
-            other => panic!("{other:?}"),
-        }
+        let AppError::InvalidParameter { name, reason } = e else {
+            panic!("{e:?}");
+        };
+        assert_eq!(name, "descriptor.model");
+        reason
     }
 
     #[test]
