@@ -302,6 +302,7 @@ mod tests {
             "/tmp/x",
             "--max-batch-images",
             "7",
+            "--allow-unauthenticated",
         ])
         .unwrap();
         let s = cli.serve.validate().unwrap();

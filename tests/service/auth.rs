@@ -567,7 +567,7 @@ fn sighup_rotates_keys_and_a_bad_file_keeps_the_old_ones() {
     assert!(p.terminate());
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(
-        text.contains("key=new-key"),
+        text.contains("key=\"new-key\""),
         "the key's name is in the request log:\n{text}"
     );
     for secret in ["k-old-1234", "k-new-5678"] {
