@@ -245,17 +245,10 @@ impl IntoResponse for ApiError {
     }
 }
 
+/// Core errors reach the wire the way the use-case layer classifies them (one mapping).
 impl From<crate::Error> for ApiError {
     fn from(e: crate::Error) -> Self {
-        use crate::Error as E;
-        match e {
-            E::InvalidParameter { name, reason } => ApiError::param(name, reason),
-            E::NonFinite { .. } => ApiError::NonFinite(e.to_string()),
-            E::Shape(s) => ApiError::ShapeMismatch(s),
-            E::Empty(s) => ApiError::EmptyBatch(s),
-            E::Image { name, reason } => ApiError::InvalidImage { part: name, reason },
-            E::Io { .. } | E::Format { .. } => ApiError::Internal(e.to_string()),
-        }
+        ApiError::from(AppError::from(e))
     }
 }
 
