@@ -348,7 +348,7 @@ pub(crate) mod tests {
     use super::super::keypoints::tests::squares;
     use super::super::{localize, CoocMethod, CoocOptions, SequenceParams};
     use super::*;
-    use crate::eval::Prediction;
+    use crate::localize::Prediction;
 
     fn recognize(map: &CoocMap, queries: &[GrayImage]) -> Vec<Prediction> {
         localize(map, queries, CoocMethod::Single, &CoocOptions::default())
