@@ -167,20 +167,23 @@ impl App {
         let started = Instant::now();
         let max_pixels = self.config.max_image_pixels;
         let id = map.id;
-        let descriptors = self
+        let (descriptors, geometry) = self
             .pool
             .run(move || {
+                let mut map = map;
+                let geometry = first_batch_geometry(&mut map, &images)?;
                 let Some(extractor) = map_extractor(&map)? else {
                     return Err(AppError::InvalidInput(format!(
                         "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
                          images"
                     )));
                 };
-                images::describe(extractor.as_ref(), &images, max_pixels, map.dim)
+                let rows = images::describe(extractor.as_ref(), &images, max_pixels, map.dim)?;
+                Ok((rows, geometry))
             })
             .await?;
         let features_seconds = started.elapsed().as_secs_f64();
-        let mut outcome = self.store_batch(id, descriptors, metas).await?;
+        let mut outcome = self.store_batch(id, descriptors, metas, geometry).await?;
         outcome.features_seconds = Some(features_seconds);
         Ok(outcome)
     }
@@ -193,7 +196,7 @@ impl App {
         descriptors: Matrix,
         metas: Vec<ImageMeta>,
     ) -> AppResult<AppendOutcome> {
-        self.store_batch(map, descriptors, metas).await
+        self.store_batch(map, descriptors, metas, None).await
     }
 
     async fn store_batch(
@@ -201,8 +204,9 @@ impl App {
         map: u64,
         descriptors: Matrix,
         metas: Vec<ImageMeta>,
+        geometry: Option<(u32, u32)>,
     ) -> AppResult<AppendOutcome> {
-        let batch = ImageBatch::new(map, descriptors, metas)?;
+        let batch = ImageBatch::new(map, descriptors, metas)?.with_geometry(geometry);
         let started = Instant::now();
         let indices = self.store.append_images(batch).await?;
         let store_seconds = started.elapsed().as_secs_f64();
@@ -218,4 +222,29 @@ impl App {
             store_seconds: Some(store_seconds),
         })
     }
+}
+
+/// The input geometry a HOG map without one gets from its first batch: the size of the batch's
+/// first image (`features::geometry`), set into `map` so that the whole batch is described at
+/// it, and returned for the store to record. `None` (and `map` unchanged) for other maps, maps
+/// that already have images or a `resize`, and a first image that cannot hold one HOG cell
+/// (which the description then reports by name).
+fn first_batch_geometry(
+    map: &mut MapRecord,
+    images: &[ImageInput],
+) -> AppResult<Option<(u32, u32)>> {
+    let has_images = map.dim.is_some();
+    let DescriptorSettings::Hog { cell_size, resize } = &mut map.descriptor else {
+        return Ok(None);
+    };
+    let (Some(first), None, false) = (images.first(), *resize, has_images) else {
+        return Ok(None);
+    };
+    let (w, h) = images::dimensions(first)?;
+    let usable = |side: u32| (*cell_size..=crate::features::hog::MAX_RESIZE_SIDE).contains(&side);
+    if !(usable(w) && usable(h)) {
+        return Ok(None);
+    }
+    *resize = Some((w, h));
+    Ok(Some((w, h)))
 }

@@ -95,6 +95,71 @@ fn run_localize(c: &Client, map: &str, queries: &[(String, Vec<u8>)], params: &V
     r.json()
 }
 
+/// PNG bytes of `png` resized to `w x h` (another camera).
+fn rescaled(png: &[u8], (w, h): (u32, u32)) -> Vec<u8> {
+    let img = image::load_from_memory(png).unwrap().to_luma8();
+    let out = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+    crate::common::png(&out)
+}
+
+/// A HOG map without `resize` takes its input geometry from its first image; query images and
+/// trip frames of another size and aspect ratio are then brought to it (stretched), and still
+/// localize; the geometry is visible on the map and survives later appends.
+#[test]
+fn images_of_any_size_are_brought_to_the_map_geometry() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(60, 11);
+    let map = create_hog_map(&c, "any-size", 8);
+    let r = c.get(&format!("/v1/maps/{map}"));
+    assert_eq!(r.json()["descriptor"]["resize"], Value::Null);
+    let refs: Vec<(String, Vec<u8>)> = (0..60)
+        .map(|i| (format!("ref-{i:03}.png"), route.reference_png(i)))
+        .collect();
+    upload(&c, &map, &refs[..30], None);
+    // Later reference batches may come from another camera too.
+    let bigger: Vec<(String, Vec<u8>)> = refs[30..]
+        .iter()
+        .map(|(n, b)| (n.clone(), rescaled(b, (128, 64))))
+        .collect();
+    upload(&c, &map, &bigger, None);
+    let r = c.get(&format!("/v1/maps/{map}"));
+    check("get", "/v1/maps/{id}", &r);
+    assert_eq!(r.json()["descriptor"]["resize"], json!([64, 32]));
+    assert_eq!(r.json()["image_count"], 60);
+
+    let correct = |result: &Value, offset: i64| {
+        result["predictions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|p| {
+                let q = p["query"].as_i64().unwrap() + offset;
+                (p["ref"].as_i64().unwrap() - q).abs() <= 1
+            })
+            .count()
+    };
+    for size in [(128, 64), (96, 40), (48, 24)] {
+        let queries: Vec<(String, Vec<u8>)> = (10..50)
+            .map(|i| (format!("q-{i:03}.png"), rescaled(&route.query_png(i), size)))
+            .collect();
+        let result = run_localize(&c, &map, &queries, &json!({}));
+        let n = correct(&result, 10);
+        assert!(n * 10 >= 40 * 8, "{size:?}: only {n} of 40 localized");
+    }
+
+    // A trip on the map takes frames of another size as well.
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let frames: Vec<Part> = (0..20)
+        .map(|i| Part::image(&format!("f{i}.png"), rescaled(&route.query_png(i), (96, 48))))
+        .collect();
+    let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames);
+    check("post", "/v1/trips/{id}/frames", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+}
+
 #[test]
 fn generated_route_end_to_end() {
     let server = Server::start();

@@ -81,6 +81,7 @@ impl SledStore {
     /// from the map's.
     pub fn append_images(&self, batch: &ImageBatch) -> StoreResult<Range<u32>> {
         let (map, descriptors, metas) = (batch.map(), batch.descriptors(), batch.metas());
+        let geometry = batch.geometry();
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
         if let Some(expected) = record.dim {
@@ -109,6 +110,11 @@ impl SledStore {
                 &codec::image_key(map, index),
                 codec::encode_image(row, meta),
             );
+        }
+        // A HOG map's first batch fixes its input geometry (ImageBatch::with_geometry).
+        if let (None, DescriptorSettings::Hog { resize, .. }) = (record.dim, &mut record.descriptor)
+        {
+            *resize = resize.or(geometry);
         }
         record.dim = Some(dim);
         record.image_count = end;
