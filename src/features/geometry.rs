@@ -204,15 +204,30 @@ mod tests {
     #[test]
     fn crop_window_keeps_the_geometry_aspect_ratio_centred() {
         // Same ratio (16:9 vs 16:9): nothing is cut.
-        assert_eq!(crop_window((640, 360), (960, 540)).unwrap(), (0, 0, 640, 360));
+        assert_eq!(
+            crop_window((640, 360), (960, 540)).unwrap(),
+            (0, 0, 640, 360)
+        );
         // 4:3 into 16:9: full width, centred 16:9 band.
-        assert_eq!(crop_window((640, 480), (960, 540)).unwrap(), (0, 60, 640, 360));
+        assert_eq!(
+            crop_window((640, 480), (960, 540)).unwrap(),
+            (0, 60, 640, 360)
+        );
         // 16:9 into 4:3: full height, centred 4:3 window.
-        assert_eq!(crop_window((960, 540), (640, 480)).unwrap(), (120, 0, 720, 540));
+        assert_eq!(
+            crop_window((960, 540), (640, 480)).unwrap(),
+            (120, 0, 720, 540)
+        );
         // Off by one pixel: that pixel is cut (the left half of the margin rounds down).
-        assert_eq!(crop_window((641, 360), (960, 540)).unwrap(), (0, 0, 640, 360));
+        assert_eq!(
+            crop_window((641, 360), (960, 540)).unwrap(),
+            (0, 0, 640, 360)
+        );
         // Off by less than half a pixel: the whole image.
-        assert_eq!(crop_window((1282, 721), (16, 9)).unwrap(), (0, 0, 1282, 721));
+        assert_eq!(
+            crop_window((1282, 721), (16, 9)).unwrap(),
+            (0, 0, 1282, 721)
+        );
         assert!(crop_window((0, 10), (4, 4)).is_err());
         assert!(crop_window((10, 10), (0, 4)).is_err());
         // A 1 px high strip has no 1:1000 window a whole pixel wide.

@@ -282,7 +282,10 @@ fn eval_rejects_bad_input_with_one_line() {
         (base(empty.to_str().unwrap()), "empty"),
         (base2(tiny.to_str().unwrap(), &route.query), "a.png"),
         (
-            with(base2(odd.to_str().unwrap(), &route.query), &["--fit", "zoom"]),
+            with(
+                base2(odd.to_str().unwrap(), &route.query),
+                &["--fit", "zoom"],
+            ),
             "--fit",
         ),
         (base2(corrupt.to_str().unwrap(), &route.query), "x.png"),
