@@ -257,7 +257,6 @@ impl ImageBatch {
         Ok(self)
     }
 
-
     /// The input geometry `(width, height)` of a HOG map's first batch (the size of its first
     /// image, `features::geometry`): the store records it as the map's `resize` when the batch
     /// is the map's first and the map has none, so that later images of any size are brought

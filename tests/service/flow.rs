@@ -153,7 +153,12 @@ fn images_of_any_size_are_brought_to_the_map_geometry() {
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let trip = r.json()["id"].as_str().unwrap().to_string();
     let frames: Vec<Part> = (0..20)
-        .map(|i| Part::image(&format!("f{i}.png"), rescaled(&route.query_png(i), (96, 48))))
+        .map(|i| {
+            Part::image(
+                &format!("f{i}.png"),
+                rescaled(&route.query_png(i), (96, 48)),
+            )
+        })
         .collect();
     let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames);
     check("post", "/v1/trips/{id}/frames", &r);
@@ -180,13 +185,23 @@ fn a_960x540_map_takes_640x360_queries_and_trip_frames() {
     // 32 px cells on 960x540 see about the detail 2 px cells see on the 64x32 originals.
     let map = create_hog_map(&c, "hd", 32);
     let refs: Vec<(String, Vec<u8>)> = (0..50)
-        .map(|i| (format!("ref-{i:03}.png"), rescaled(&route.reference_png(i), (960, 540))))
+        .map(|i| {
+            (
+                format!("ref-{i:03}.png"),
+                rescaled(&route.reference_png(i), (960, 540)),
+            )
+        })
         .collect();
     upload(&c, &map, &refs, None);
     let r = c.get(&format!("/v1/maps/{map}"));
     assert_eq!(r.json()["descriptor"]["resize"], json!([960, 540]));
     let queries: Vec<(String, Vec<u8>)> = (5..45)
-        .map(|i| (format!("q-{i:03}.png"), rescaled(&route.query_png(i), (640, 360))))
+        .map(|i| {
+            (
+                format!("q-{i:03}.png"),
+                rescaled(&route.query_png(i), (640, 360)),
+            )
+        })
         .collect();
     let result = run_localize(&c, &map, &queries, &json!({}));
     let preds = result["predictions"].as_array().unwrap();
@@ -197,7 +212,10 @@ fn a_960x540_map_takes_640x360_queries_and_trip_frames() {
             (p["ref"].as_i64().unwrap() - q).abs() <= 1
         })
         .count();
-    assert!(correct >= 32, "only {correct} of 40 640x360 queries localized: {result}");
+    assert!(
+        correct >= 32,
+        "only {correct} of 40 640x360 queries localized: {result}"
+    );
 
     let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -205,7 +223,12 @@ fn a_960x540_map_takes_640x360_queries_and_trip_frames() {
     let mut on_track = 0;
     for b in 0..3 {
         let frames: Vec<Part> = (b * 10..b * 10 + 10)
-            .map(|i| Part::image(&format!("f{i}.png"), rescaled(&route.query_png(i), (640, 360))))
+            .map(|i| {
+                Part::image(
+                    &format!("f{i}.png"),
+                    rescaled(&route.query_png(i), (640, 360)),
+                )
+            })
             .collect();
         let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames);
         check("post", "/v1/trips/{id}/frames", &r);
@@ -215,7 +238,10 @@ fn a_960x540_map_takes_640x360_queries_and_trip_frames() {
             on_track += usize::from(j.is_some_and(|j| (j - f).abs() <= 1));
         }
     }
-    assert!(on_track >= 24, "only {on_track} of 30 640x360 trip frames on track");
+    assert!(
+        on_track >= 24,
+        "only {on_track} of 30 640x360 trip frames on track"
+    );
     // A frame too small to hold one HOG cell is still a clear error.
     let tiny = rescaled(&route.query_png(0), (20, 12));
     let r = c.post_multipart(
