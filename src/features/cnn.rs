@@ -546,6 +546,42 @@ mod tests {
         assert_eq!(&parallel[3..], &sequential[..]);
     }
 
+    /// The documented tolerance of the fast preparation path (`features::resize_rgb`, within one
+    /// level of `image`'s triangle filter): descriptors of the sample photos and a Nordland frame
+    /// stay within this bound of the ones computed from `image`'s `imageops::resize`, the path
+    /// used before, and their cosine stays above 0.9999.
+    #[test]
+    fn fast_resize_keeps_descriptors_within_the_documented_tolerance() {
+        use image::imageops::{self, FilterType};
+        let Some(model) = shipped_model() else { return };
+        let s = spec(&model, "block10", CnnResize::Stretch);
+        let mut files: Vec<PathBuf> = ["dog.jpg", "eagle.jpg", "horses.jpg", "giraffe.jpg"]
+            .iter()
+            .map(|f| model.with_file_name("samples").join(f))
+            .collect();
+        let nordland = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../shared/data/nordland_64x32/winter/images-00100.png");
+        if nordland.is_file() {
+            files.push(nordland);
+        }
+        for file in files {
+            let img = image::open(&file).unwrap();
+            let new = s.extract(&img).unwrap();
+            let old_input = imageops::resize(&img.to_rgb8(), 224, 224, FilterType::Triangle);
+            let mut old = s.model.run(preprocess::to_planar_for_tests(&old_input)).unwrap();
+            l2_normalize(&mut old);
+            let worst = new
+                .iter()
+                .zip(&old)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            let cos: f64 = new.iter().zip(&old).map(|(a, b)| f64::from(a * b)).sum();
+            eprintln!("{}: max |diff| {worst:.2e}, cosine {cos:.7}", file.display());
+            assert!(worst < 2e-3, "{}: max |diff| {worst}", file.display());
+            assert!(cos > 0.9999, "{}: cosine {cos}", file.display());
+        }
+    }
+
     #[test]
     fn l2_normalize_gives_unit_norm_and_keeps_zero_vectors() {
         let mut v = vec![3.0, 4.0];
