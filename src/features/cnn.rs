@@ -568,7 +568,10 @@ mod tests {
             let img = image::open(&file).unwrap();
             let new = s.extract(&img).unwrap();
             let old_input = imageops::resize(&img.to_rgb8(), 224, 224, FilterType::Triangle);
-            let mut old = s.model.run(preprocess::to_planar_for_tests(&old_input)).unwrap();
+            let mut old = s
+                .model
+                .run(preprocess::to_planar_for_tests(&old_input))
+                .unwrap();
             l2_normalize(&mut old);
             let worst = new
                 .iter()
@@ -576,7 +579,10 @@ mod tests {
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0f32, f32::max);
             let cos: f64 = new.iter().zip(&old).map(|(a, b)| f64::from(a * b)).sum();
-            eprintln!("{}: max |diff| {worst:.2e}, cosine {cos:.7}", file.display());
+            eprintln!(
+                "{}: max |diff| {worst:.2e}, cosine {cos:.7}",
+                file.display()
+            );
             assert!(worst < 2e-3, "{}: max |diff| {worst}", file.display());
             assert!(cos > 0.9999, "{}: cosine {cos}", file.display());
         }

@@ -115,7 +115,11 @@ fn decode_jpeg(bytes: &[u8], max_pixels: u64) -> std::result::Result<DynamicImag
         decoder.input_colorspace(),
         Some(ColorSpace::Luma | ColorSpace::LumaA)
     );
-    let out = if gray { ColorSpace::Luma } else { ColorSpace::RGB };
+    let out = if gray {
+        ColorSpace::Luma
+    } else {
+        ColorSpace::RGB
+    };
     // A fresh decoder with the output colour space set before its headers are read (as
     // `image` does); the headers are a few hundred bytes.
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
