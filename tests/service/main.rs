@@ -2,6 +2,7 @@
 //! (in-process for most tests; the built binary for restart, SIGKILL, configuration and the
 //! Dockerfile's runtime assumptions).
 
+mod auth;
 mod browser;
 mod cnn;
 mod common;
@@ -14,3 +15,4 @@ mod flow;
 mod http;
 mod spec;
 mod trips;
+mod views;
