@@ -106,8 +106,7 @@ impl CoocMap {
     /// [`CoocMap::build`] from features already extracted with `params.keypoints` (e.g. to
     /// build several maps from the same drives without extracting them again).
     pub fn from_features(params: &CoocParams, drives: &[DriveFeatures]) -> Result<Self> {
-        let training: Vec<&keypoints::Features> =
-            drives.iter().flat_map(|d| &d.features).collect();
+        let training: Vec<&keypoints::Features> = drives.iter().flat_map(|d| &d.features).collect();
         Self::from_features_and_training(params, &training, drives)
     }
 
@@ -138,8 +137,7 @@ impl CoocMap {
         }
         // An even stride over all descriptors keeps every part of the route represented.
         let stride = total.div_ceil(params.max_training_descriptors);
-        let mut training_set =
-            Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
+        let mut training_set = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
         let all = training
             .iter()
             .flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
@@ -448,9 +446,14 @@ pub(crate) mod tests {
         };
         let training = extract_all(&p, 1, &separate).unwrap();
         let refs: Vec<&keypoints::Features> = training.iter().collect();
-        let map = CoocMap::from_features_and_training(&p, &refs, &[drive.clone()]).unwrap();
-        let own = CoocMap::from_features(&p, &[drive.clone()]).unwrap();
-        assert_ne!(map.vocabulary(), own.vocabulary(), "trained on other images");
+        let map =
+            CoocMap::from_features_and_training(&p, &refs, std::slice::from_ref(&drive)).unwrap();
+        let own = CoocMap::from_features(&p, std::slice::from_ref(&drive)).unwrap();
+        assert_ne!(
+            map.vocabulary(),
+            own.vocabulary(),
+            "trained on other images"
+        );
         assert_eq!(map.location_count(), 10);
         let found = recognize(&map, &day)
             .iter()
