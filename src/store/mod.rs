@@ -228,6 +228,7 @@ pub struct ImageBatch {
     map: u64,
     descriptors: Matrix,
     metas: Vec<ImageMeta>,
+    geometry: Option<(u32, u32)>,
     thumbnails: Vec<Vec<u8>>,
 }
 
@@ -247,6 +248,7 @@ impl ImageBatch {
             descriptors,
             metas,
             thumbnails: Vec::new(),
+            geometry: None,
         })
     }
 
@@ -262,6 +264,20 @@ impl ImageBatch {
         }
         self.thumbnails = thumbnails;
         Ok(self)
+    }
+
+    /// The input geometry `(width, height)` of a HOG map's first batch (the size of its first
+    /// image, `features::geometry`): the store records it as the map's `resize` when the batch
+    /// is the map's first and the map has none, so that later images of any size are brought
+    /// to it. Ignored otherwise.
+    pub fn with_geometry(mut self, geometry: Option<(u32, u32)>) -> Self {
+        self.geometry = geometry;
+        self
+    }
+
+    /// See [`ImageBatch::with_geometry`].
+    pub fn geometry(&self) -> Option<(u32, u32)> {
+        self.geometry
     }
 
     /// The map.

@@ -298,3 +298,55 @@ fn new_ids_are_random_and_still_list_newest_first() {
     assert_eq!(rest["items"][0]["id"], made[0].as_str());
     assert!(rest["next"].is_null(), "{rest}");
 }
+
+#[test]
+fn truncated_jpegs_are_refused_and_nothing_is_stored() {
+    let server = Server::start();
+    let client = server.client;
+    let map = create_hog_map(&client, "j", 8);
+    let route = Route::new(4, 11);
+    let jpeg = |i: u32| {
+        let img = image::load_from_memory(&route.reference_png(i))
+            .unwrap()
+            .to_luma8();
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90)
+            .encode_image(&img)
+            .unwrap();
+        out
+    };
+    let whole = jpeg(1);
+    let cut = whole[..whole.len() / 2].to_vec();
+    let r = client.post_multipart(
+        &format!("/v1/maps/{map}/images"),
+        &[
+            Part::image("a.jpg", jpeg(0)),
+            Part::image("b.jpg", cut.clone()),
+        ],
+    );
+    assert_eq!(r.status, 422, "{}", r.message());
+    assert_eq!(r.code(), "invalid_image");
+    assert!(r.message().contains("image[1]"), "{}", r.message());
+    // The batch was refused whole: the map is still empty.
+    let m = client.get(&format!("/v1/maps/{map}")).json();
+    assert_eq!(m["image_count"], 0, "{m}");
+    // With whole images the same batch is stored.
+    let parts: Vec<Part> = (0..4)
+        .map(|i| Part::image(&format!("{i}.jpg"), jpeg(i)))
+        .collect();
+    let r = client.post_multipart(&format!("/v1/maps/{map}/images"), &parts);
+    assert_eq!(r.status, 200, "{}", r.message());
+    // A truncated query is refused too, and no result is stored.
+    let r = client.post_multipart(
+        &format!("/v1/maps/{map}/localize"),
+        &[Part::image("q.jpg", cut)],
+    );
+    assert_eq!(r.status, 422, "{}", r.message());
+    assert_eq!(r.code(), "invalid_image");
+    let listed = client.get("/v1/localizations").json();
+    assert_eq!(
+        listed["items"].as_array().map(Vec::len),
+        Some(0),
+        "{listed}"
+    );
+}
