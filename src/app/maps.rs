@@ -10,7 +10,7 @@ use std::time::Instant;
 use super::error::{AppError, AppResult};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
-use super::{map_extractor, App};
+use super::{ids, map_extractor, App};
 use crate::features::cnn::{CnnOptions, CnnSpec};
 use crate::store::{CnnSettings, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap};
 use crate::Matrix;
@@ -122,13 +122,13 @@ impl App {
                 DescriptorSettings::Cnn(Box::new(settings))
             }
         };
-        let map = self
-            .store
-            .create_map(NewMap {
-                name: spec.name,
-                descriptor,
-            })
-            .await?;
+        let new = NewMap {
+            id: 0,
+            name: spec.name,
+            descriptor,
+        };
+        let map =
+            ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_map(n)).await?;
         tracing::info!(map = %format!("{:016x}", map.id), name = %map.name, "map created");
         Ok(map)
     }

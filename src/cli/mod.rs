@@ -34,7 +34,7 @@ pub enum Command {
     /// Localize a query image folder against a reference folder and score it against ground truth.
     Eval(Box<eval::EvalArgs>),
     /// Run the HTTP service on the embedded store (see docs/service.md).
-    Serve(crate::config::ServeArgs),
+    Serve(Box<crate::config::ServeArgs>),
 }
 
 /// Graph and solver flags shared by `solve` and `eval`.
