@@ -14,7 +14,7 @@ use tokio::net::TcpListener;
 use crate::api::{self, AppState};
 use crate::app::{App, AppConfig};
 use crate::config::{ServeArgs, Settings};
-use crate::store::{SledStore, Store};
+use crate::store::{PgStore, SledStore, Store};
 
 /// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
 /// `info`), and serves until SIGTERM or Ctrl-C.
@@ -51,14 +51,21 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let dir = settings.data_dir.clone();
-    let store = tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
-        std::fs::create_dir_all(&dir)
-            .with_context(|| format!("cannot create the data folder {}", dir.display()))?;
-        Ok(SledStore::open(&dir)?)
-    })
-    .await??;
-    let store: Arc<dyn Store> = Arc::new(store);
+    let store: Arc<dyn Store> = match &settings.database_url {
+        Some(url) => Arc::new(PgStore::connect(&url.0).await?),
+        None => {
+            let dir = settings.data_dir.clone();
+            Arc::new(
+                tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
+                    std::fs::create_dir_all(&dir).with_context(|| {
+                        format!("cannot create the data folder {}", dir.display())
+                    })?;
+                    Ok(SledStore::open(&dir)?)
+                })
+                .await??,
+            )
+        }
+    };
     let drain = settings.shutdown_timeout;
     let use_cases = Arc::new(App::new(
         store,
@@ -71,7 +78,7 @@ pub async fn serve(
     let state = AppState::new(Arc::clone(&use_cases), settings)?;
     let app = api::app(state);
     let addr = listener.local_addr()?;
-    tracing::info!(data_dir = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
+    tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
 
     let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
     let signal = async move {

@@ -139,6 +139,17 @@ impl Client {
         self.request("POST", path, Some(&ct), &multipart_body(parts))
     }
 
+    /// A multipart POST with extra request headers (e.g. `Idempotency-Key`).
+    pub fn post_multipart_with(
+        &self,
+        path: &str,
+        parts: &[Part],
+        headers: &[(&str, &str)],
+    ) -> std::io::Result<Response> {
+        let ct = format!("multipart/form-data; boundary={BOUNDARY}");
+        self.try_request_with("POST", path, Some(&ct), &multipart_body(parts), headers)
+    }
+
     pub fn request(
         &self,
         method: &str,
@@ -157,6 +168,17 @@ impl Client {
         content_type: Option<&str>,
         body: &[u8],
     ) -> std::io::Result<Response> {
+        self.try_request_with(method, path, content_type, body, &[])
+    }
+
+    pub fn try_request_with(
+        &self,
+        method: &str,
+        path: &str,
+        content_type: Option<&str>,
+        body: &[u8],
+        headers: &[(&str, &str)],
+    ) -> std::io::Result<Response> {
         let mut stream = TcpStream::connect(self.addr)?;
         stream.set_read_timeout(Some(Duration::from_secs(120)))?;
         stream.set_nodelay(true)?;
@@ -167,6 +189,9 @@ impl Client {
         );
         if let Some(ct) = content_type {
             head.push_str(&format!("Content-Type: {ct}\r\n"));
+        }
+        for (name, value) in headers {
+            head.push_str(&format!("{name}: {value}\r\n"));
         }
         head.push_str("\r\n");
         let mut request = head.into_bytes();

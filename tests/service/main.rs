@@ -12,5 +12,6 @@ mod durability;
 mod errors;
 mod flow;
 mod http;
+mod idempotency;
 mod spec;
 mod trips;
