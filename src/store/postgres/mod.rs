@@ -171,12 +171,17 @@ fn is_unavailable(e: &tokio_postgres::Error) -> bool {
     }
 }
 
-/// A database error as a store error.
+/// A database error as a store error (with the server's code and message: `Display` of a
+/// server error is only "db error").
 fn db_error(e: tokio_postgres::Error) -> StoreError {
+    let text = match e.as_db_error() {
+        Some(db) => format!("{}: {} ({})", db.severity(), db.message(), db.code().code()),
+        None => e.to_string(),
+    };
     if is_unavailable(&e) {
-        StoreError::Unavailable(format!("the database: {e}"))
+        StoreError::Unavailable(format!("the database: {text}"))
     } else {
-        StoreError::Backend(Box::new(e))
+        StoreError::Backend(text.into())
     }
 }
 

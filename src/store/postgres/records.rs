@@ -251,13 +251,16 @@ impl PgStore {
         let key = db_id(id).ok_or(StoreError::TripNotFound(id))?;
         let expected = i64::try_from(batch.expected_frames).unwrap_or(i64::MAX);
         let count = i64::try_from(batch.frame_count).unwrap_or(i64::MAX);
-        let frames: Vec<i64> = batch.estimates.iter().map(|e| i64::from(e.frame)).collect();
-        let references: Vec<Option<i64>> = batch
-            .estimates
-            .iter()
+        // A frame may appear twice (the lag window and the batch's own estimates); the later
+        // one wins, as in a sequence of writes (one upsert cannot touch a row twice).
+        let latest: std::collections::BTreeMap<u32, &FrameRecord> =
+            batch.estimates.iter().map(|e| (e.frame, e)).collect();
+        let frames: Vec<i64> = latest.keys().map(|&f| i64::from(f)).collect();
+        let references: Vec<Option<i64>> = latest
+            .values()
             .map(|e| e.reference.map(i64::from))
             .collect();
-        let confidences: Vec<f64> = batch.estimates.iter().map(|e| e.confidence).collect();
+        let confidences: Vec<f64> = latest.values().map(|e| e.confidence).collect();
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         let update = tx
