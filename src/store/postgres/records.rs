@@ -187,7 +187,7 @@ impl PgStore {
                  VALUES (nextval('seasonloc_ids'), $1, $2, NULL, 0, $3, 0, $4, $5) RETURNING id",
             )
             .await?;
-        let row = match client
+        let row = client
             .query_one(
                 &stmt,
                 &[
@@ -199,11 +199,13 @@ impl PgStore {
                 ],
             )
             .await
-        {
-            Ok(row) => row,
-            Err(e) if is_missing_parent(&e) => return Err(StoreError::MapNotFound(new.map_id)),
-            Err(e) => return Err(e.into()),
-        };
+            .map_err(|e| {
+                if is_missing_parent(&e) {
+                    StoreError::MapNotFound(new.map_id)
+                } else {
+                    e.into()
+                }
+            })?;
         let id: i64 = row.get(0);
         Ok(TripRecord {
             id: unsigned("trips", id, id)?,
