@@ -3,7 +3,15 @@
 # What the image runs (checked without a Docker engine by tests/service/docker.rs, which starts
 # the binary with this file's ENV and runs this file's HEALTHCHECK command against it):
 #   seasonloc serve   listening on 0.0.0.0:8080, store in the volume /data,
-#   as the unprivileged user `seasonloc` (uid 10001).
+#   as the unprivileged user `seasonloc` (uid 10001), API keys from the secret file
+#   /run/secrets/seasonloc-api-keys (the service refuses to start on 0.0.0.0 without it).
+#
+# The key file is JSON {"keys": [{"name", "role", "sha256"}]} holding only SHA-256 digests of
+# the keys; mount it as a secret, never bake it into the image:
+#   docker run -p 8080:8080 -v seasonloc-data:/data \
+#     --mount type=bind,src=$PWD/keys.json,dst=/run/secrets/seasonloc-api-keys,readonly seasonloc
+# (Compose/Swarm `secrets:` and Kubernetes secret volumes mount at the same path; send SIGHUP
+# to the process after rotating the file.)
 
 FROM rust:1.85-slim-bookworm AS build
 WORKDIR /src
@@ -21,6 +29,7 @@ RUN useradd --system --uid 10001 --home-dir /nonexistent --shell /usr/sbin/nolog
 COPY --from=build /src/target/release/seasonloc /usr/local/bin/seasonloc
 ENV SEASONLOC_ADDR=0.0.0.0:8080
 ENV SEASONLOC_DATA_DIR=/data
+ENV SEASONLOC_API_KEYS=/run/secrets/seasonloc-api-keys
 ENV RUST_LOG=info
 VOLUME /data
 EXPOSE 8080

@@ -12,8 +12,12 @@ use seasonloc::features::extract_files;
 use seasonloc::features::hog::{HogOptions, HogSpec};
 use seasonloc::localize::{localize, LocalizeOptions};
 use seasonloc::similarity::{cosine_matrix, Normalization};
-use seasonloc::trip::{jump_route, relocalization_delays, FrameEstimate, Trip, TripParams};
+use seasonloc::trip::{FrameEstimate, Trip, TripParams};
 use seasonloc::Matrix;
+
+#[path = "../tests/trip_jump/route.rs"]
+mod route;
+use route::{jump_route, relocalization_delays};
 
 fn files(dir: &Path) -> Vec<PathBuf> {
     let mut f: Vec<PathBuf> = std::fs::read_dir(dir)

@@ -83,12 +83,7 @@ pub fn score_hypothesis(
     hypothesis: &Hypothesis,
     params: &ConfidenceParams,
 ) -> Result<Vec<RowConfidence>> {
-    if !(graph.hidden_cost.is_finite() && graph.hidden_cost > 0.0) {
-        return Err(Error::param(
-            "hidden_cost",
-            format!("must be a finite number > 0, got {}", graph.hidden_cost),
-        ));
-    }
+    crate::solver::check_hidden_cost(graph.hidden_cost)?;
     let targets: Vec<(usize, usize)> = hypothesis
         .rows
         .iter()

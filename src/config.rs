@@ -52,6 +52,47 @@ pub struct ServeArgs {
     /// such a map is created).
     #[arg(long, env = "SEASONLOC_CNN_MODEL")]
     pub cnn_model: Option<PathBuf>,
+    /// Longest descriptor (in f32 values) an image may give or a map may have; bounds the
+    /// memory of a request in advance (batch x 4 bytes x this). Larger images get 422
+    /// `descriptor_length` before they are decoded.
+    #[arg(long, env = "SEASONLOC_MAX_DESCRIPTOR_LEN", default_value_t = 1 << 20)]
+    pub max_descriptor_len: usize,
+    /// Directory CNN models may be read from: a create request's `model` must name a regular
+    /// file inside it (none: requests cannot name a model, only `--cnn-model` is used).
+    #[arg(long, env = "SEASONLOC_MODEL_DIR")]
+    pub model_dir: Option<PathBuf>,
+    /// Largest accepted CNN model file in bytes.
+    #[arg(long, env = "SEASONLOC_MAX_MODEL_BYTES", default_value_t = 256 * 1024 * 1024)]
+    pub max_model_bytes: u64,
+    /// JSON file of API keys (`{"keys": [{"name", "role", "sha256"}]}`); when set, every route
+    /// but the probes and the dashboard's pages needs `Authorization: Bearer <key>`. Re-read
+    /// on SIGHUP.
+    #[arg(long, env = "SEASONLOC_API_KEYS")]
+    pub api_keys: Option<PathBuf>,
+    /// Serve without access control on a non-loopback address (explicit opt-out; without it,
+    /// `serve` on such an address refuses to start unless `--api-keys` is given).
+    #[arg(long, env = "SEASONLOC_ALLOW_UNAUTHENTICATED")]
+    pub allow_unauthenticated: bool,
+    /// Requests one API key may have in flight; more get 429 `too_many_requests`.
+    #[arg(long, env = "SEASONLOC_MAX_REQUESTS_PER_KEY", default_value_t = 32)]
+    pub max_requests_per_key: usize,
+    /// Origin allowed to call the API from a browser page (CORS), e.g.
+    /// `https://ops.example.com`; repeatable (comma-separated in the environment). None: no
+    /// cross-origin access.
+    #[arg(
+        long = "cors-origin",
+        env = "SEASONLOC_CORS_ORIGINS",
+        value_delimiter = ','
+    )]
+    pub cors_origins: Vec<String>,
+    /// Accepted values of the `Host` header (host name, or `host:port`), against DNS
+    /// rebinding; repeatable (comma-separated in the environment). None: any host.
+    #[arg(
+        long = "allowed-host",
+        env = "SEASONLOC_ALLOWED_HOSTS",
+        value_delimiter = ','
+    )]
+    pub allowed_hosts: Vec<String>,
 }
 
 impl Default for ServeArgs {
@@ -69,6 +110,14 @@ impl Default for ServeArgs {
             worker_threads: 0,
             shutdown_timeout_secs: 30,
             cnn_model: None,
+            max_descriptor_len: 1 << 20,
+            model_dir: None,
+            max_model_bytes: 256 * 1024 * 1024,
+            api_keys: None,
+            allow_unauthenticated: false,
+            max_requests_per_key: 32,
+            cors_origins: Vec::new(),
+            allowed_hosts: Vec::new(),
         }
     }
 }
@@ -100,6 +149,20 @@ pub struct Settings {
     pub shutdown_timeout: Duration,
     /// Model of CNN maps created without a `model`.
     pub default_cnn_model: Option<PathBuf>,
+    /// Descriptor length cap, > 0.
+    pub max_descriptor_len: usize,
+    /// Directory of model files requests may name.
+    pub model_dir: Option<PathBuf>,
+    /// Model file size cap, > 0.
+    pub max_model_bytes: u64,
+    /// API key file; `None` serves without access control (loopback or explicit opt-out).
+    pub api_keys: Option<PathBuf>,
+    /// In-flight requests per key, > 0.
+    pub max_requests_per_key: usize,
+    /// Origins allowed by CORS (exact `scheme://host[:port]` strings).
+    pub cors_origins: Vec<String>,
+    /// Accepted `Host` header values (lowercase); empty = any.
+    pub allowed_hosts: Vec<String>,
 }
 
 /// A database URL. It may carry a password, so it is never printed: `Debug` shows `***`.
@@ -143,6 +206,48 @@ impl ServeArgs {
             self.max_concurrent_requests as u64,
         )?;
         positive("localize_queue", self.localize_queue as u64)?;
+        positive("max_requests_per_key", self.max_requests_per_key as u64)?;
+        positive("max_model_bytes", self.max_model_bytes)?;
+        positive("max_descriptor_len", self.max_descriptor_len as u64)?;
+        // An empty value (e.g. `SEASONLOC_API_KEYS=` in `.env`) means "no key file".
+        let api_keys = self.api_keys.clone().filter(|p| !p.as_os_str().is_empty());
+        if api_keys.is_none() && !self.allow_unauthenticated && !self.addr.ip().is_loopback() {
+            return Err(ConfigError {
+                name: "api_keys",
+                reason: format!(
+                    "refusing to serve on {} (not a loopback address) without access control: \
+                     pass --api-keys FILE (SEASONLOC_API_KEYS), or --allow-unauthenticated to \
+                     serve anyone who can reach the port",
+                    self.addr
+                ),
+            });
+        }
+        let cors_origins: Vec<String> = self
+            .cors_origins
+            .iter()
+            .map(|o| o.trim().trim_end_matches('/').to_string())
+            .filter(|o| !o.is_empty())
+            .collect();
+        for o in &cors_origins {
+            let valid = (o.starts_with("http://") || o.starts_with("https://"))
+                && !o.contains(char::is_whitespace)
+                && axum::http::HeaderValue::from_str(o).is_ok()
+                && o.split("://")
+                    .nth(1)
+                    .is_some_and(|h| !h.is_empty() && !h.contains('/'));
+            if !valid {
+                return Err(ConfigError {
+                    name: "cors_origin",
+                    reason: format!("`{o}` is not an origin like https://host[:port]"),
+                });
+            }
+        }
+        let allowed_hosts: Vec<String> = self
+            .allowed_hosts
+            .iter()
+            .map(|h| h.trim().to_ascii_lowercase())
+            .filter(|h| !h.is_empty())
+            .collect();
         if self.data_dir.as_os_str().is_empty() {
             return Err(ConfigError {
                 name: "data_dir",
@@ -181,6 +286,13 @@ impl ServeArgs {
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
             // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".
             default_cnn_model: self.cnn_model.clone().filter(|p| !p.as_os_str().is_empty()),
+            max_descriptor_len: self.max_descriptor_len,
+            model_dir: self.model_dir.clone().filter(|p| !p.as_os_str().is_empty()),
+            max_model_bytes: self.max_model_bytes,
+            api_keys,
+            max_requests_per_key: self.max_requests_per_key,
+            cors_origins,
+            allowed_hosts,
         })
     }
 }
@@ -222,6 +334,7 @@ mod tests {
             "/tmp/x",
             "--max-batch-images",
             "7",
+            "--allow-unauthenticated",
         ])
         .unwrap();
         let s = cli.serve.validate().unwrap();
@@ -248,6 +361,57 @@ mod tests {
             .collect();
         from_file.sort();
         assert_eq!(from_file, from_flags);
+    }
+
+    #[test]
+    fn public_addresses_need_keys_or_an_explicit_opt_out() {
+        let public = ServeArgs {
+            addr: SocketAddr::from(([0, 0, 0, 0], 8080)),
+            ..ServeArgs::default()
+        };
+        let err = public.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("--api-keys") && err.contains("--allow-unauthenticated"),
+            "{err}"
+        );
+        assert!(!err.contains('\n'), "one line: {err}");
+        let keyed = ServeArgs {
+            api_keys: Some(PathBuf::from("/run/secrets/keys.json")),
+            ..public.clone()
+        };
+        assert!(keyed.validate().is_ok());
+        let opted_out = ServeArgs {
+            allow_unauthenticated: true,
+            ..public.clone()
+        };
+        assert!(opted_out.validate().unwrap().api_keys.is_none());
+        let v6_loopback = ServeArgs {
+            addr: "[::1]:8080".parse().unwrap(),
+            ..ServeArgs::default()
+        };
+        assert!(v6_loopback.validate().is_ok());
+    }
+
+    #[test]
+    fn cors_origins_are_checked() {
+        let ok = ServeArgs {
+            cors_origins: vec![
+                "https://ops.example.com/".into(),
+                "http://localhost:3000".into(),
+            ],
+            ..ServeArgs::default()
+        };
+        assert_eq!(
+            ok.validate().unwrap().cors_origins,
+            vec!["https://ops.example.com", "http://localhost:3000"]
+        );
+        for bad in ["ops.example.com", "https://a.com/path", "https://"] {
+            let args = ServeArgs {
+                cors_origins: vec![bad.into()],
+                ..ServeArgs::default()
+            };
+            assert_eq!(args.validate().unwrap_err().name, "cors_origin", "{bad}");
+        }
     }
 
     #[test]

@@ -7,10 +7,21 @@
 use std::time::Instant;
 
 use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
-use crate::eval::Prediction;
+use crate::picture::MatrixPicture;
 use crate::similarity::{self, Normalization};
 use crate::solver::{solve, Solution, SolverParams};
 use crate::{Matrix, Result};
+
+/// One method's answer for one query: at most one per query, higher confidence = more certain.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prediction {
+    /// Query index `i`.
+    pub query: usize,
+    /// Predicted reference index `j`.
+    pub reference: usize,
+    /// Higher = more certain. Finite.
+    pub confidence: f64,
+}
 
 /// Options of [`localize`].
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -50,20 +61,41 @@ pub fn localize(
     references: &Matrix,
     options: &LocalizeOptions,
 ) -> Result<Localization> {
+    localize_inspecting(queries, references, options, |_| Ok(())).map(|(l, ())| l)
+}
+
+/// [`localize`], plus the bounded picture of the normalised similarity matrix `ĉ` that the
+/// graph was solved on (the dashboard's figure; its time counts as similarity time).
+pub fn localize_with_picture(
+    queries: &Matrix,
+    references: &Matrix,
+    options: &LocalizeOptions,
+) -> Result<(Localization, MatrixPicture)> {
+    localize_inspecting(queries, references, options, MatrixPicture::bounded)
+}
+
+fn localize_inspecting<T>(
+    queries: &Matrix,
+    references: &Matrix,
+    options: &LocalizeOptions,
+    inspect: impl FnOnce(&Matrix) -> Result<T>,
+) -> Result<(Localization, T)> {
     options.solver.validate()?;
     let started = Instant::now();
     let c = similarity::cosine_matrix(queries, references)?;
     let chat = options.normalization.apply(&c)?;
+    let seen = inspect(&chat)?;
     let similarity_seconds = started.elapsed().as_secs_f64();
     let (solution, predictions) = solve_with_confidence(&chat, options)?;
-    Ok(Localization {
+    let localization = Localization {
         solution,
         predictions,
         timings: StageTimings {
             similarity: similarity_seconds,
             solve: started.elapsed().as_secs_f64() - similarity_seconds,
         },
-    })
+    };
+    Ok((localization, seen))
 }
 
 /// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most

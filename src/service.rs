@@ -1,6 +1,9 @@
 //! `seasonloc serve`: start-up (logging, store, CPU pool, listener), the one log line with the
 //! bound address, and graceful shutdown on SIGTERM/Ctrl-C.
 //!
+//! With `--api-keys`, SIGHUP re-reads the key file (rotation without restart); a file that does
+//! not load keeps the previous keys and logs why.
+//!
 //! Shutdown stops accepting connections, lets in-flight requests finish for at most
 //! `shutdown_timeout`, then flushes the store. Every acknowledged write was already flushed, so
 //! the final flush only covers the store's own bookkeeping.
@@ -73,9 +76,25 @@ pub async fn serve(
             worker_threads: settings.worker_threads,
             max_image_pixels: settings.max_image_pixels,
             default_cnn_model: settings.default_cnn_model.clone(),
+            max_descriptor_len: settings.max_descriptor_len,
+            models: crate::app::ModelPolicy {
+                dir: settings.model_dir.clone(),
+                max_bytes: settings.max_model_bytes,
+            },
         },
     )?);
     let state = AppState::new(Arc::clone(&use_cases), settings)?;
+    match &state.auth {
+        Some(auth) => {
+            tracing::info!(
+                keys = auth.ring().len(),
+                file = %auth.path().display(),
+                "access control on: API keys loaded (SIGHUP re-reads the file)"
+            );
+            reload_keys_on_sighup(Arc::clone(auth));
+        }
+        None => tracing::warn!("access control off: no --api-keys, every request is let through"),
+    }
     let app = api::app(state);
     let addr = listener.local_addr()?;
     tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
@@ -100,6 +119,33 @@ pub async fn serve(
     use_cases.flush().await?;
     tracing::info!("store flushed; stopped");
     Ok(())
+}
+
+/// Spawns the task that re-reads the key file on each SIGHUP.
+fn reload_keys_on_sighup(auth: Arc<api::auth::Auth>) {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut hangups = match signal(SignalKind::hangup()) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!("cannot listen for SIGHUP (API keys will not be reloaded): {e}");
+                return;
+            }
+        };
+        tokio::spawn(async move {
+            while hangups.recv().await.is_some() {
+                let a = Arc::clone(&auth);
+                match tokio::task::spawn_blocking(move || a.reload()).await {
+                    Ok(Ok(n)) => tracing::info!(keys = n, "SIGHUP: API keys reloaded"),
+                    Ok(Err(e)) => tracing::error!("SIGHUP: keeping the previous API keys: {e}"),
+                    Err(e) => tracing::error!("SIGHUP: keeping the previous API keys: {e}"),
+                }
+            }
+        });
+    }
+    #[cfg(not(unix))]
+    let _ = auth;
 }
 
 /// Completes on Ctrl-C or (on Unix) SIGTERM.

@@ -2,6 +2,7 @@
 // live pages fresh. Pages are modules exporting `render(main, id)`, which returns an optional
 // `{refresh, interval}` to poll while the page is visible.
 
+import { setUpKeyButton } from "./api.js";
 import { errorBox, fill, h, crumbs, liveStatus } from "./ui.js";
 import * as overview from "./overview.js";
 import * as map from "./map.js";
@@ -54,6 +55,7 @@ function keepFresh(live) {
 }
 
 async function main() {
+  setUpKeyButton();
   const root = document.getElementById("main");
   const path = decodeURI(location.pathname);
   const found = PAGES.map(([re, page]) => [path.match(re), page]).find(([m]) => m);

@@ -4,7 +4,8 @@
 // route, the parameters and the timings. Clicking a query (in the figure or the chart) shows
 // what it was matched to.
 
-import { getJson, seg } from "./api.js";
+import { getImageUrl, getJson, seg } from "./api.js";
+import { thumbnail } from "./thumbs.js";
 import { chart, confidenceColors, confidenceRange, legend, pathData, s, thin, widthOf } from "./plot.js";
 import { crumbs, facts, fill, fmtConf, fmtInt, fmtNum, fmtSeconds, fmtTime, h, section, shortId, stat } from "./ui.js";
 
@@ -28,6 +29,9 @@ export async function render(main, id) {
   document.title = `seasonloc — localization ${shortId(loc.id)} on ${mapName}`;
   crumbs([["Overview", "/"], [mapName, `/maps/${loc.map_id}`], [`Localization ${shortId(loc.id)}`, null]]);
 
+  // The similarity picture stored with the result (localizations made before it existed,
+  // and methods without a similarity matrix, have none: the figure then shows the paths only).
+  const pictureUrl = loc.picture ? await getImageUrl(`/v1/localizations/${seg(loc.id)}/picture`) : null;
   const byQuery = new Map(loc.predictions.map((p) => [p.query, p]));
   const colors = confidenceColors(loc.predictions.map((p) => p.confidence));
   const figure = h("div", { class: "figure", id: "matrix-figure" });
@@ -51,8 +55,14 @@ export async function render(main, id) {
       stat("total time", fmtSeconds(total)),
     ),
     section(
-      "Queries × references with the route hypotheses",
-      h("p", { class: "muted" }, "Each row is a query image, each column a reference image. Lines are the route hypotheses (rank 1 thickest), dots the predictions coloured by confidence."),
+      pictureUrl ? "Similarity matrix with the route hypotheses" : "Queries × references with the route hypotheses",
+      h(
+        "p",
+        { class: "muted" },
+        "Each row is a query image, each column a reference image" +
+          (pictureUrl ? `, bright where they look alike (normalised similarity ${fmtNum(loc.picture.lo)} or less is black, ${fmtNum(loc.picture.hi)} or more white${blockText(loc)})` : "") +
+          ". Lines are the route hypotheses (rank 1 thickest), dots the predictions coloured by confidence.",
+      ),
       figure,
       h("div", { class: "legend-row", id: "figure-legend" }),
       selected,
@@ -93,7 +103,7 @@ export async function render(main, id) {
 
   function draw() {
     const w = widthOf(figure);
-    const m1 = drawMatrix(figure, loc, colors, w, select);
+    const m1 = drawMatrix(figure, loc, colors, w, select, pictureUrl);
     const m2 = drawConfidence(confidence, loc, byQuery, colors, w, select);
     markers = (q) => {
       m1(q);
@@ -142,7 +152,7 @@ function sizeBars(root) {
 }
 
 /** Draws the queries × references figure into `el`; returns a function that marks a query. */
-function drawMatrix(el, loc, colors, width, select) {
+function drawMatrix(el, loc, colors, width, select, pictureUrl) {
   const Q = Math.max(1, loc.query_count);
   const D = Math.max(1, loc.reference_count);
   const height = Math.round(Math.min(560, Math.max(260, ((width - 72) * Q) / D + 52)));
@@ -157,6 +167,9 @@ function drawMatrix(el, loc, colors, width, select) {
     title: `${fmtInt(Q)} queries × ${fmtInt(D)} references with ${loc.hypotheses.length} route hypotheses`,
   });
   c.svg.classList.add("matrix");
+  if (pictureUrl) {
+    c.plot.append(s("image", { class: "matrix-picture", href: pictureUrl, x: 0, y: 0, width: c.w, height: c.h, preserveAspectRatio: "none" }));
+  }
   const cx = (j) => c.sx(j + 0.5);
   const cy = (i) => c.sy(i + 0.5);
   const paths = s("g", { class: "hypotheses" });
@@ -255,5 +268,13 @@ function showSelection(el, loc, byQuery, q) {
       ? h("p", { class: "match" }, "Matched to ", h("strong", { class: "matched-ref" }, `reference ${p.ref}`), ` with confidence ${fmtConf(p.confidence)}.`)
       : h("p", { class: "match" }, "No prediction: this query is off the map in every hypothesis."),
     facts(rows),
+    p ? h("div", { class: "selected-thumb" }, thumbnail(loc.map_id, p.ref, `reference ${p.ref} (matched)`)) : null,
   );
+}
+
+/** How much of the matrix one picture pixel covers, when it is more than one cell. */
+function blockText(loc) {
+  const br = Math.ceil(loc.query_count / loc.picture.rows);
+  const bc = Math.ceil(loc.reference_count / loc.picture.cols);
+  return br === 1 && bc === 1 ? "" : `; each pixel shows the largest value of up to ${br} × ${bc} cells`;
 }

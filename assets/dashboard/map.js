@@ -1,6 +1,7 @@
 // `/maps/{id}`: one map: its settings, its trips and its localizations.
 
 import { getJson, listPages, seg } from "./api.js";
+import { gpsRoute, strip } from "./route.js";
 import { crumbs, describeDescriptor, facts, fill, fmtInt, fmtNum, fmtTime, h, section, shortId, stat, statusBadge, table } from "./ui.js";
 
 /** Most trips and localizations listed on the page (newest first). */
@@ -17,6 +18,7 @@ export async function render(main, id) {
     listPages(`/v1/localizations?map=${seg(id)}`, LISTED),
   ]);
   const open = trips.items.filter((t) => t.closed_at_ms === null).length;
+  const gps = h("div", { class: "figure", id: "gps-route" }, h("p", { class: "muted" }, "Loading the images' GPS metadata…"));
   const more = (list, what) => (list.more ? h("p", { class: "muted" }, `Showing the newest ${LISTED} ${what}.`) : null);
 
   fill(
@@ -30,6 +32,8 @@ export async function render(main, id) {
       stat(open === 1 ? "open trip" : "open trips", fmtInt(open)),
       stat(locs.items.length === 1 ? "localization" : "localizations", fmtInt(locs.items.length) + (locs.more ? "+" : "")),
     ),
+    section("Along the route", strip(map)),
+    section("Route", gps),
     section(
       "Settings",
       facts([
@@ -75,5 +79,6 @@ export async function render(main, id) {
       more(locs, "localizations"),
     ),
   );
+  await gpsRoute(gps, map);
   return null;
 }

@@ -5,6 +5,7 @@
 
 import { getJson, seg } from "./api.js";
 import { chart, confidenceColors, confidenceRange, legend, pathData, s, thin, widthOf } from "./plot.js";
+import { thumbnail } from "./thumbs.js";
 import { crumbs, facts, fill, fmtConf, fmtInt, fmtNum, fmtTime, h, section, shortId, stat, statusBadge } from "./ui.js";
 
 /** Poll period while the trip is open. */
@@ -44,6 +45,18 @@ export async function render(main, id) {
     h("div", { class: "columns" }, section(`Confidence of the last ${RECENT} frames`, recent), section("Parameters", params)),
   );
 
+  // The thumbnail of the reference matched now, kept while the reference does not change.
+  let thumbOf = null;
+  let thumbBox = null;
+  function nowThumb(latest) {
+    if (!latest || latest.ref === null) return null;
+    if (thumbOf !== latest.ref) {
+      thumbOf = latest.ref;
+      thumbBox = thumbnail(trip.map_id, latest.ref, `reference ${fmtInt(latest.ref)} (matched now)`);
+    }
+    return h("div", { class: "now-thumb" }, thumbBox);
+  }
+
   let shown = "";
   function draw() {
     const t = trip;
@@ -68,6 +81,7 @@ export async function render(main, id) {
             ? h("p", {}, `Lost: frame ${fmtInt(latest.frame)} has no local support; its best guess is `, h("strong", {}, `reference ${fmtInt(latest.ref)}`), ` of ${fmtInt(t.reference_count)} (confidence ${fmtConf(latest.confidence)}).`)
             : h("p", {}, `Frame ${fmtInt(latest.frame)} is at `, h("strong", {}, `reference ${fmtInt(latest.ref)}`), ` of ${fmtInt(t.reference_count)}, confidence ${fmtConf(latest.confidence)}` + (t.status === "relocalized" ? " (relocalized: the vehicle re-entered the map elsewhere)." : ".")),
       t.closed_at_ms !== null ? h("p", { class: "muted" }, `Closed ${fmtTime(t.closed_at_ms)}.`) : null,
+      nowThumb(latest),
     );
     const w = widthOf(position);
     fill(position, positionChart(t, est, colors, w));
@@ -96,8 +110,13 @@ export async function render(main, id) {
     resized = setTimeout(draw, 150);
   });
 
+  // Polls ask only for the frames that can have changed: those from the start of the lag
+  // window (whose estimates a batch may revise) on; the rest are kept from earlier answers.
   async function refresh() {
-    const next = await getJson(`/v1/trips/${seg(id)}`);
+    const known = (trip.estimates || []).length;
+    const since = Math.max(0, known - trip.params.lag);
+    const next = await getJson(`/v1/trips/${seg(id)}?since=${since}`);
+    next.estimates = (trip.estimates || []).slice(0, since).concat(next.estimates || []);
     trip = next;
     if (signature(next) !== shown) draw();
     return next.closed_at_ms === null;

@@ -97,6 +97,8 @@ static ASSETS: &[Asset] = &[
     asset!("map.js", JS),
     asset!("localization.js", JS),
     asset!("trip.js", JS),
+    asset!("thumbs.js", JS),
+    asset!("route.js", JS),
     asset!("dashboard.css", "text/css; charset=utf-8"),
     asset!("favicon.svg", "image/svg+xml"),
 ];

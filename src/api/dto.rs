@@ -572,6 +572,25 @@ pub struct LocalizationResponse {
     pub predictions: Vec<PredictionDto>,
     /// Seconds per stage.
     pub timings: TimingsDto,
+    /// What the similarity picture (`GET /v1/localizations/{id}/picture`) shows; absent when
+    /// the result has none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub picture: Option<PictureDto>,
+}
+
+/// The similarity-matrix picture of a localization: `rows` x `cols` grey pixels, each the
+/// largest normalised similarity of its block of queries x references, `lo` black and `hi`
+/// white.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct PictureDto {
+    /// Height in pixels (blocks of queries).
+    pub rows: usize,
+    /// Width in pixels (blocks of references).
+    pub cols: usize,
+    /// Similarity shown black (and below).
+    pub lo: f32,
+    /// Similarity shown white (and above).
+    pub hi: f32,
 }
 
 impl From<&LocalizationDocument> for LocalizationResponse {
@@ -588,6 +607,12 @@ impl From<&LocalizationDocument> for LocalizationResponse {
             hypotheses: r.hypotheses.iter().map(HypothesisDto::from).collect(),
             predictions: r.predictions.iter().map(PredictionDto::from).collect(),
             timings: TimingsDto::from(&r.timings),
+            picture: r.picture.map(|p| PictureDto {
+                rows: p.rows,
+                cols: p.cols,
+                lo: p.lo,
+                hi: p.hi,
+            }),
         }
     }
 }

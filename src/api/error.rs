@@ -31,6 +31,12 @@ pub enum ApiError {
     /// 409 `trip_conflict`: the trip changed while a batch was computed (retry the batch).
     #[error("{0}")]
     TripConflict(String),
+    /// 404 `thumbnail_not_found`: no such image, or an image stored without a thumbnail.
+    #[error("{0}")]
+    ThumbnailNotFound(String),
+    /// 404 `picture_not_found`: a localization stored without a similarity picture.
+    #[error("{0}")]
+    PictureNotFound(String),
     /// 404 `asset_not_found`: a dashboard file that does not exist.
     #[error("no dashboard file `{0}`")]
     AssetNotFound(String),
@@ -121,6 +127,19 @@ pub enum ApiError {
     /// 422 `shape_mismatch`: inputs whose shapes do not fit together.
     #[error("{0}")]
     ShapeMismatch(String),
+    /// 401 `unauthorized` with `WWW-Authenticate: Bearer`: no key, or a key the service does
+    /// not know.
+    #[error("{0}")]
+    Unauthorized(String),
+    /// 403 `forbidden`: a known key whose role does not allow the request.
+    #[error("{0}")]
+    Forbidden(String),
+    /// 421 `misdirected_request`: a `Host` header that is not in `--allowed-host`.
+    #[error("{0}")]
+    MisdirectedRequest(String),
+    /// 429 `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
+    #[error("{0}")]
+    TooManyRequests(String),
     /// 503 `queue_full` with `Retry-After`: the localize queue is full.
     #[error("the localize queue is full; retry later")]
     QueueFull,
@@ -147,6 +166,8 @@ impl ApiError {
             ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
             ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
             ApiError::AssetNotFound(_) => (S::NOT_FOUND, "asset_not_found", false),
+            ApiError::ThumbnailNotFound(_) => (S::NOT_FOUND, "thumbnail_not_found", false),
+            ApiError::PictureNotFound(_) => (S::NOT_FOUND, "picture_not_found", false),
             ApiError::TripNotFound(_) => (S::NOT_FOUND, "trip_not_found", false),
             ApiError::TripClosed(_) => (S::CONFLICT, "trip_closed", false),
             ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),
@@ -170,6 +191,12 @@ impl ApiError {
             ApiError::DescriptorLength(_) => (S::UNPROCESSABLE_ENTITY, "descriptor_length", false),
             ApiError::NonFinite(_) => (S::UNPROCESSABLE_ENTITY, "non_finite", false),
             ApiError::ShapeMismatch(_) => (S::UNPROCESSABLE_ENTITY, "shape_mismatch", false),
+            ApiError::Unauthorized(_) => (S::UNAUTHORIZED, "unauthorized", false),
+            ApiError::Forbidden(_) => (S::FORBIDDEN, "forbidden", false),
+            ApiError::MisdirectedRequest(_) => {
+                (S::MISDIRECTED_REQUEST, "misdirected_request", false)
+            }
+            ApiError::TooManyRequests(_) => (S::TOO_MANY_REQUESTS, "too_many_requests", true),
             ApiError::QueueFull => (S::SERVICE_UNAVAILABLE, "queue_full", true),
             ApiError::Overloaded => (S::SERVICE_UNAVAILABLE, "overloaded", true),
             ApiError::Timeout => (S::SERVICE_UNAVAILABLE, "timeout", true),
@@ -188,6 +215,10 @@ impl ApiError {
 }
 
 impl IntoResponse for ApiError {
+    #[allow(
+        clippy::wildcard_enum_match_arm,
+        reason = "every variant but the two logged ones is a client error whose Display is its message"
+    )]
     fn into_response(self) -> Response {
         let (status, code, retry) = self.parts();
         let message = match &self {
@@ -208,21 +239,20 @@ impl IntoResponse for ApiError {
                 .headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECS));
         }
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                HeaderValue::from_static("Bearer realm=\"seasonloc\""),
+            );
+        }
         response
     }
 }
 
+/// Core errors reach the wire the way the use-case layer classifies them (one mapping).
 impl From<crate::Error> for ApiError {
     fn from(e: crate::Error) -> Self {
-        use crate::Error as E;
-        match e {
-            E::InvalidParameter { name, reason } => ApiError::param(name, reason),
-            E::NonFinite { .. } => ApiError::NonFinite(e.to_string()),
-            E::Shape(s) => ApiError::ShapeMismatch(s),
-            E::Empty(s) => ApiError::EmptyBatch(s),
-            E::Image { name, reason } => ApiError::InvalidImage { part: name, reason },
-            E::Io { .. } | E::Format { .. } => ApiError::Internal(e.to_string()),
-        }
+        ApiError::from(AppError::from(e))
     }
 }
 

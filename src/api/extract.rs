@@ -23,6 +23,10 @@ impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
     }
 }
 
+#[allow(
+    clippy::wildcard_enum_match_arm,
+    reason = "axum's JsonRejection is #[non_exhaustive]: a fallback arm is required"
+)]
 fn json_rejection(r: JsonRejection, max_body: usize) -> ApiError {
     match r {
         JsonRejection::JsonDataError(e) => ApiError::param("body", e.body_text()),

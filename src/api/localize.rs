@@ -33,6 +33,7 @@ pub fn router() -> Router<AppState> {
         .route("/v1/maps/{id}/localize", post(run))
         .route("/v1/localizations", get(list))
         .route("/v1/localizations/{id}", get(read))
+        .route("/v1/localizations/{id}/picture", get(super::views::picture))
 }
 
 /// Default and largest page size of `GET /v1/localizations`.

@@ -35,7 +35,14 @@ pub fn router() -> Router<AppState> {
     Router::new()
         .route("/v1/maps", post(create).get(list))
         .route("/v1/maps/{id}", get(read).delete(remove))
-        .route("/v1/maps/{id}/images", post(append_images))
+        .route(
+            "/v1/maps/{id}/images",
+            post(append_images).get(super::views::list_images),
+        )
+        .route(
+            "/v1/maps/{id}/images/{index}/thumbnail",
+            get(super::views::thumbnail),
+        )
         .route("/v1/maps/{id}/descriptors", post(append_descriptors))
 }
 
@@ -168,7 +175,12 @@ fn validate(
                 crate::Error::InvalidParameter { name, reason } => {
                     ApiError::param(format!("descriptor.{name}"), reason)
                 }
-                other => other.into(),
+                other @ (crate::Error::NonFinite { .. }
+                | crate::Error::Shape(_)
+                | crate::Error::Empty(_)
+                | crate::Error::Image { .. }
+                | crate::Error::Io { .. }
+                | crate::Error::Format { .. }) => other.into(),
             })?;
             DescriptorSettings::Cooc(Box::new(p))
         }

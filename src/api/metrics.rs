@@ -5,6 +5,8 @@
 //!   `seasonloc_http_request_duration_seconds{method,route}` (histogram), recorded by
 //!   [`track`] for every request; `route` is the matched route template, so ids do not explode
 //!   the label space;
+//! * `seasonloc_http_requests_by_key_total{key,status}`: requests that presented a known API
+//!   key, by the key's `name` (never the key itself);
 //! * `seasonloc_stage_duration_seconds{stage}` (histogram): `features`, `load_references`,
 //!   `similarity`, `solve`, `store`;
 //! * `seasonloc_images_ingested_total`, `seasonloc_queries_localized_total`,
@@ -19,6 +21,7 @@ use axum::extract::{MatchedPath, Request, State};
 use axum::middleware::Next;
 use axum::response::Response;
 
+use super::auth::KeyName;
 use super::state::AppState;
 
 /// Upper bounds of the latency buckets, in seconds.
@@ -63,6 +66,7 @@ impl Histogram {
 struct Inner {
     requests: BTreeMap<(String, String, u16), u64>,
     latency: BTreeMap<(String, String), Histogram>,
+    by_key: BTreeMap<(String, u16), u64>,
     stages: BTreeMap<&'static str, Histogram>,
     images_ingested: u64,
     queries_localized: u64,
@@ -91,6 +95,15 @@ impl Metrics {
             .entry((method.to_string(), route.to_string()))
             .or_default()
             .observe(seconds);
+    }
+
+    /// Counts one request of the API key named `key`.
+    pub fn observe_key(&self, key: &str, status: u16) {
+        *self
+            .lock()
+            .by_key
+            .entry((key.to_string(), status))
+            .or_default() += 1;
     }
 
     /// Records the duration of one pipeline stage.
@@ -137,6 +150,17 @@ impl Metrics {
         for ((method, route), h) in &m.latency {
             let labels = format!("method=\"{method}\",route=\"{}\"", escape(route));
             h.render(&mut out, "seasonloc_http_request_duration_seconds", &labels);
+        }
+        out.push_str(
+            "# HELP seasonloc_http_requests_by_key_total HTTP requests by API key name and status.\n",
+        );
+        out.push_str("# TYPE seasonloc_http_requests_by_key_total counter\n");
+        for ((key, status), n) in &m.by_key {
+            let _ = writeln!(
+                out,
+                "seasonloc_http_requests_by_key_total{{key=\"{}\",status=\"{status}\"}} {n}",
+                escape(key)
+            );
         }
         out.push_str("# HELP seasonloc_stage_duration_seconds Time per pipeline stage.\n");
         out.push_str("# TYPE seasonloc_stage_duration_seconds histogram\n");
@@ -186,6 +210,11 @@ pub async fn track(State(state): State<AppState>, req: Request, next: Next) -> R
         .get::<MatchedPath>()
         .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
     let response = next.run(req).await;
+    if let Some(key) = response.extensions().get::<KeyName>() {
+        state
+            .metrics
+            .observe_key(&key.0, response.status().as_u16());
+    }
     state.metrics.observe_request(
         &method,
         &route,
@@ -206,7 +235,11 @@ mod tests {
         m.observe_request("GET", "/v1/maps/{id}", 200, 0.2);
         m.observe_stage("solve", 0.02);
         m.add_images_ingested(5);
+        m.observe_key("car-7", 403);
         let text = m.render();
+        assert!(
+            text.contains("seasonloc_http_requests_by_key_total{key=\"car-7\",status=\"403\"} 1")
+        );
         assert!(text.contains(
             "seasonloc_http_requests_total{method=\"GET\",route=\"/v1/maps/{id}\",status=\"200\"} 2"
         ), "{text}");

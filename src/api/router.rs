@@ -2,19 +2,23 @@
 //! limits and record requests.
 //!
 //! Layers, outermost first: request id (`x-request-id`, generated when absent) -> trace span
-//! carrying it -> request id copied to the response -> JSON bodies for limit errors ->
-//! metrics -> load shedding (503 `overloaded`) over a global concurrency limit -> timeout
-//! (503 `timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so
-//! the configured limit is the only one.
+//! carrying it (and the API key's name once known) -> request id copied to the response ->
+//! JSON bodies for limit errors -> metrics -> `Host` check (421, when `--allowed-host` is set)
+//! -> CORS (when `--cors-origin` is set; answers preflights before any key is asked for) ->
+//! access control ([`super::auth`]: 401/403, per-key in-flight cap 429) -> load shedding (503
+//! `overloaded`) over a global concurrency limit -> timeout (503 `timeout`) -> body size limit
+//! (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
+//! one.
 
 use std::time::Duration;
 
 use axum::error_handling::HandleErrorLayer;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
-use axum::http::{header, HeaderName, StatusCode};
+use axum::http::{header, HeaderName, HeaderValue, Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{middleware, BoxError, Router};
 use tower::ServiceBuilder;
+use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::{DefaultOnResponse, TraceLayer};
@@ -22,7 +26,7 @@ use tracing::Level;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{cooc, dashboard, localize, maps, metrics, ops, trips};
+use super::{auth, cooc, dashboard, localize, maps, metrics, ops, trips};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -32,11 +36,14 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/maps/{id}"),
     ("delete", "/v1/maps/{id}"),
     ("post", "/v1/maps/{id}/images"),
+    ("get", "/v1/maps/{id}/images"),
+    ("get", "/v1/maps/{id}/images/{index}/thumbnail"),
     ("post", "/v1/maps/{id}/descriptors"),
     ("post", "/v1/maps/{id}/drives"),
     ("post", "/v1/maps/{id}/localize"),
     ("get", "/v1/localizations"),
     ("get", "/v1/localizations/{id}"),
+    ("get", "/v1/localizations/{id}/picture"),
     ("post", "/v1/maps/{id}/trips"),
     ("get", "/v1/maps/{id}/trips"),
     ("post", "/v1/trips/{id}/frames"),
@@ -80,13 +87,28 @@ pub fn app(state: AppState) -> Router {
                         .extensions()
                         .get::<MatchedPath>()
                         .map_or(req.uri().path(), |p| p.as_str());
-                    tracing::info_span!("request", request_id = %id, method = %req.method(), route = %route)
+                    tracing::info_span!(
+                        "request",
+                        request_id = %id,
+                        method = %req.method(),
+                        route = %route,
+                        key = tracing::field::Empty
+                    )
                 })
                 .on_response(DefaultOnResponse::new().level(Level::INFO)),
         )
         .layer(PropagateRequestIdLayer::new(REQUEST_ID))
         .layer(middleware::map_response(json_limit_errors))
-        .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            metrics::track,
+        ))
+        .layer(middleware::from_fn_with_state(state.clone(), check_host))
+        .option_layer(cors(&s.cors_origins))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            auth::authorize,
+        ))
         .layer(limits)
         .layer(RequestBodyLimitLayer::new(s.max_body_bytes))
         .layer(DefaultBodyLimit::disable());
@@ -105,6 +127,71 @@ pub fn app(state: AppState) -> Router {
         .layer(edge)
         .layer(axum::Extension(BodyLimit(max_body)))
         .with_state(state)
+}
+
+/// The CORS layer for the configured origins (`None` when there are none: no cross-origin
+/// access). Preflights from a listed origin are answered 200 with the allowed methods and
+/// headers; other origins get no `Access-Control-Allow-Origin`, so browsers refuse.
+fn cors(origins: &[String]) -> Option<CorsLayer> {
+    if origins.is_empty() {
+        return None;
+    }
+    // `Settings::validate` checked each origin is a valid header value.
+    let list: Vec<HeaderValue> = origins
+        .iter()
+        .filter_map(|o| HeaderValue::from_str(o).ok())
+        .collect();
+    Some(
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::list(list))
+            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_headers([
+                header::AUTHORIZATION,
+                header::CONTENT_TYPE,
+                HeaderName::from_static("idempotency-key"),
+                REQUEST_ID,
+            ])
+            .expose_headers([REQUEST_ID, header::RETRY_AFTER])
+            .max_age(Duration::from_secs(600)),
+    )
+}
+
+/// Rejects requests whose `Host` is not one of `--allowed-host` (DNS rebinding: a hostile page
+/// on a name that resolves to this server would otherwise be same-origin with it). The probes
+/// stay reachable under any name (orchestrators often call them by IP).
+async fn check_host(
+    axum::extract::State(state): axum::extract::State<AppState>,
+    req: Request,
+    next: middleware::Next,
+) -> Response {
+    let allowed = &state.settings.allowed_hosts;
+    let path = req.uri().path();
+    if allowed.is_empty() || path == "/healthz" || path == "/readyz" {
+        return next.run(req).await;
+    }
+    let host = req
+        .headers()
+        .get(header::HOST)
+        .and_then(|h| h.to_str().ok())
+        .or_else(|| req.uri().authority().map(|a| a.as_str()))
+        .map(str::to_ascii_lowercase);
+    let ok = host.as_deref().is_some_and(|h| {
+        let name = match h.rsplit_once(':') {
+            // `[::1]:8080` and `host:8080`; a bare IPv6 literal keeps its brackets.
+            Some((name, port)) if port.bytes().all(|b| b.is_ascii_digit()) => name,
+            _ => h,
+        };
+        allowed.iter().any(|a| a == h || a == name)
+    });
+    if ok {
+        next.run(req).await
+    } else {
+        ApiError::MisdirectedRequest(format!(
+            "Host `{}` is not one this server answers for",
+            host.unwrap_or_default()
+        ))
+        .into_response()
+    }
 }
 
 /// The configured body limit, for messages of responses built outside the handlers.

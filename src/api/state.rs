@@ -1,5 +1,5 @@
 //! Shared state of the handlers: the use cases ([`App`]), the validated settings, the admission
-//! slots of `/localize`, the metrics and the shipped OpenAPI document.
+//! slots of `/localize`, the access control, the metrics and the shipped OpenAPI document.
 //!
 //! Handlers never do CPU-heavy or blocking work themselves: they decode, call [`App`] (which
 //! runs CPU work on its pool and awaits the store), and encode.
@@ -9,6 +9,7 @@ use std::sync::Arc;
 use axum::body::Bytes;
 use tokio::sync::Semaphore;
 
+use super::auth::Auth;
 use super::metrics::Metrics;
 use crate::app::App;
 use crate::config::Settings;
@@ -26,13 +27,20 @@ pub struct AppState {
     pub metrics: Arc<Metrics>,
     /// `openapi/openapi.yaml` as JSON.
     pub openapi_json: Bytes,
+    /// Access control (`None`: every request is let through, see `--api-keys`).
+    pub auth: Option<Arc<Auth>>,
 }
 
 impl AppState {
-    /// Builds the state over the use cases.
+    /// Builds the state over the use cases; loads the API key file when one is configured.
     pub fn new(app: Arc<App>, settings: Settings) -> anyhow::Result<Self> {
         let openapi_json = Bytes::from(super::ops::openapi_json()?);
+        let auth = match &settings.api_keys {
+            Some(path) => Some(Arc::new(Auth::load(path, settings.max_requests_per_key)?)),
+            None => None,
+        };
         Ok(AppState {
+            auth,
             app,
             localize_slots: Arc::new(Semaphore::new(settings.localize_queue)),
             settings: Arc::new(settings),

@@ -25,7 +25,7 @@ use super::maps::map_id;
 use super::state::AppState;
 use super::upload;
 use crate::store::{FrameRecord, PageRequest, TripParamsDocument, TripRecord};
-use crate::trip::{FrameEstimate, Trip, TripParams, TripStatus};
+use crate::trip::{FrameEstimate, TripParams, TripStatus};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -92,7 +92,7 @@ impl TripParamsDto {
         }
         let relocalization = match self.relocalization {
             Some(false) => None,
-            _ => Some(
+            Some(true) | None => Some(
                 self.relocalization_cost
                     .unwrap_or(crate::trip::DEFAULT_RELOCALIZATION_COST),
             ),
@@ -107,8 +107,8 @@ impl TripParamsDto {
             normalize: self.normalize.unwrap_or(d.normalize),
             confidence: d.confidence,
         };
-        // Every range is checked by the core, on a one-column stand-in map.
-        Trip::new(vec![1.0], params)?;
+        // Every range is checked by the core.
+        params.validate()?;
         Ok(params)
     }
 }
@@ -352,11 +352,22 @@ async fn frames(
     ))
 }
 
+/// Query of `GET /v1/trips/{id}`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ReadQuery {
+    /// Only the estimates of frames `since..` (a live view's poll); all when absent.
+    since: Option<u32>,
+}
+
 async fn read(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    query: Result<Query<ReadQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<TripResponse>, ApiError> {
-    let (record, estimates) = state.app.get_trip(trip_id(&id)?).await?;
+    let Query(q) = query.map_err(|e| ApiError::param("query", e.body_text()))?;
+    let since = q.since.unwrap_or(0);
+    let (record, estimates) = state.app.get_trip(trip_id(&id)?, since).await?;
     let mut r = response(&record);
     r.estimates = Some(estimates.iter().map(FrameEstimateDto::from).collect());
     Ok(Json(r))

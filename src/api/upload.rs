@@ -114,7 +114,7 @@ pub fn descriptor_matrix(
             "descriptors must not be empty vectors".into(),
         ));
     }
-    let mut data = Vec::with_capacity(rows.len() * dim);
+    let mut out = Matrix::zeros(rows.len(), dim);
     for (i, row) in rows.iter().enumerate() {
         if row.len() != dim {
             return Err(ApiError::DescriptorLength(format!(
@@ -122,17 +122,17 @@ pub fn descriptor_matrix(
                 row.len()
             )));
         }
-        for (j, &v) in row.iter().enumerate() {
+        for (j, (out, &v)) in out.row_mut(i).iter_mut().zip(row).enumerate() {
             let x = v as f32;
             if !x.is_finite() {
                 return Err(ApiError::NonFinite(format!(
                     "descriptors[{i}][{j}] = {v} is not a finite 32-bit float"
                 )));
             }
-            data.push(x);
+            *out = x;
         }
     }
-    Ok(Matrix::from_vec(rows.len(), dim, data).expect("rows * dim values were pushed"))
+    Ok(out)
 }
 
 /// Parses a raw little-endian `f32` body of `dim`-long rows.
@@ -157,10 +157,12 @@ pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<M
             limit: max_rows,
         });
     }
-    let data: Vec<f32> = body
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().expect("chunks of 4")))
-        .collect();
+    // `rows * dim * 4 == body.len()` was checked above, so the matrix takes every 4-byte chunk.
+    let mut out = Matrix::zeros(rows, dim);
+    for (v, c) in out.as_mut_slice().iter_mut().zip(body.chunks_exact(4)) {
+        *v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+    }
+    let data = out.as_slice();
     if let Some(k) = data.iter().position(|v| !v.is_finite()) {
         return Err(ApiError::NonFinite(format!(
             "descriptors[{}][{}] = {} is not finite",
@@ -169,7 +171,7 @@ pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<M
             data[k]
         )));
     }
-    Ok(Matrix::from_vec(rows, dim, data).expect("length is a multiple of dim"))
+    Ok(out)
 }
 
 #[cfg(test)]

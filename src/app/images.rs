@@ -52,13 +52,46 @@ fn invalid(part: &ImageInput, reason: String) -> AppError {
 
 /// Decodes the parts and extracts one descriptor row per image, in order. All images must give
 /// descriptors of one length, equal to `expected_dim` when given (the map's); violations name
-/// the first offending part. Blocking: run on the CPU pool.
+/// the first offending part, and at most `max_len` (checked from the header, before anything
+/// is decoded, so a request's memory is bounded in advance). Blocking: run on the CPU pool.
 pub fn describe(
     extractor: &dyn Extractor,
     parts: &[ImageInput],
     max_pixels: u64,
+    max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<Matrix> {
+    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
+    Ok(features::extract_batch(extractor, &images)?)
+}
+
+/// [`describe`] for reference images: also the JPEG thumbnail of each image
+/// ([`crate::picture::thumbnail_jpeg`]), from the same decoded pixels. Blocking.
+pub fn describe_with_thumbnails(
+    extractor: &dyn Extractor,
+    parts: &[ImageInput],
+    max_pixels: u64,
+    max_len: usize,
+    expected_dim: Option<u32>,
+) -> AppResult<(Matrix, Vec<Vec<u8>>)> {
+    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
+    let descriptors = features::extract_batch(extractor, &images)?;
+    let thumbnails = images
+        .par_iter()
+        .map(|img| crate::picture::thumbnail_jpeg(img).map_err(AppError::from))
+        .collect::<AppResult<Vec<_>>>()?;
+    Ok((descriptors, thumbnails))
+}
+
+/// Checks every part's header (format, pixel count, descriptor length) before decoding any,
+/// then decodes them all.
+fn decode_checked(
+    extractor: &dyn Extractor,
+    parts: &[ImageInput],
+    max_pixels: u64,
+    max_len: usize,
+    expected_dim: Option<u32>,
+) -> AppResult<Vec<image::DynamicImage>> {
     let dims = parts
         .par_iter()
         .map(|p| {
@@ -82,6 +115,14 @@ pub fn describe(
     let mut first: Option<(u32, u32, usize)> = None;
     for (p, d) in parts.iter().zip(dims) {
         let (w, h, dim) = d?;
+        if dim > max_len {
+            return Err(AppError::DescriptorLength(format!(
+                "{} is {w}x{h} and would give descriptors of length {dim}, more than the \
+                 server's limit of {max_len} (send smaller images, or use a larger cell size \
+                 or a `resize`)",
+                p.name
+            )));
+        }
         if let Some(expected) = expected_dim {
             if dim != expected as usize {
                 return Err(AppError::DescriptorLength(format!(
@@ -103,11 +144,10 @@ pub fn describe(
             Some(_) => {}
         }
     }
-    let images = parts
+    parts
         .par_iter()
         .map(|p| features::decode_image(&p.name, &p.bytes, max_pixels).map_err(AppError::from))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(features::extract_batch(extractor, &images)?)
+        .collect()
 }
 
 /// Decodes the parts to grey images, in order (the co-occurrence method's input). Blocking.
@@ -140,7 +180,7 @@ mod tests {
             name: "image[0] (\"x.png\")".into(),
             bytes: Bytes::from_static(b"not an image"),
         }];
-        let e = describe(&Never, &parts, 100, None).unwrap_err();
+        let e = describe(&Never, &parts, 100, 10, None).unwrap_err();
         assert!(
             matches!(&e, AppError::InvalidImage { part, .. } if part.contains("x.png")),
             "{e}"
@@ -153,9 +193,24 @@ mod tests {
             name: "image[0]".into(),
             bytes: Bytes::from(png),
         }];
-        let e = describe(&Never, &parts, 100, None).unwrap_err();
+        let e = describe(&Never, &parts, 100, 10, None).unwrap_err();
         assert!(
             matches!(e, AppError::ImageTooLarge { pixels: 200, .. }),
+            "{e}"
+        );
+        // 20x10 gives 200 values here: over a cap of 199, before any decoding.
+        struct PerPixel;
+        impl Extractor for PerPixel {
+            fn dim_for(&self, w: u32, h: u32) -> crate::Result<usize> {
+                Ok((w * h) as usize)
+            }
+            fn extract(&self, _: &image::DynamicImage) -> crate::Result<Vec<f32>> {
+                unreachable!("the batch is rejected before extraction")
+            }
+        }
+        let e = describe(&PerPixel, &parts, 1000, 199, None).unwrap_err();
+        assert!(
+            matches!(&e, AppError::DescriptorLength(m) if m.contains("200") && m.contains("199")),
             "{e}"
         );
     }

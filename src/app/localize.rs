@@ -12,9 +12,12 @@ use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{map_extractor, App};
 use crate::cooc::CoocMethod;
-use crate::localize::{localize, Localization, LocalizeOptions};
+use crate::localize::{localize_with_picture, Localization, LocalizeOptions};
+use crate::picture::MatrixPicture;
 use crate::store::document::{StoredMethod, StoredParams, StoredTimings};
-use crate::store::{LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest};
+use crate::store::{
+    LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest, StoredPicture,
+};
 use crate::Matrix;
 
 /// The queries of a localization, in driving order.
@@ -67,7 +70,7 @@ impl App {
         let started = Instant::now();
         let map = self.get_map(id).await?;
         let image_count = map.image_count as usize;
-        let (result, load_references, features, query_count, reference_count, method) =
+        let (result, load_references, features, query_count, reference_count, method, picture) =
             match kind(&map) {
                 Kind::Cooc(_) => {
                     let Queries::Images(parts) = queries else {
@@ -81,6 +84,7 @@ impl App {
                     let (result, load, features) = self
                         .localize_cooc(&map, parts, method, options.clone())
                         .await?;
+                    // The co-occurrence methods keep no similarity picture (yet).
                     (
                         result,
                         load,
@@ -88,6 +92,7 @@ impl App {
                         query_count,
                         image_count,
                         Some(method),
+                        None,
                     )
                 }
                 Kind::Descriptors(_) => {
@@ -110,8 +115,9 @@ impl App {
                         .await?;
                     let load = started.elapsed().as_secs_f64();
                     let max_pixels = self.config.max_image_pixels;
+                    let max_len = self.config.max_descriptor_len;
                     let job_options = options.clone();
-                    let (result, features, query_count) = self
+                    let (result, features, query_count, picture) = self
                         .pool
                         .run(move || {
                             let started = Instant::now();
@@ -138,17 +144,27 @@ impl App {
                                         extractor.as_ref(),
                                         &parts,
                                         max_pixels,
+                                        max_len,
                                         map.dim,
                                     )?
                                 }
                             };
                             let features = started.elapsed().as_secs_f64();
-                            let result: Localization =
-                                localize(&queries, &references, &job_options)?;
-                            Ok((result, features, queries.rows()))
+                            let (result, picture): (Localization, MatrixPicture) =
+                                localize_with_picture(&queries, &references, &job_options)?;
+                            let png = picture.to_png()?;
+                            Ok((result, features, queries.rows(), Some((picture, png))))
                         })
                         .await?;
-                    (result, load, features, query_count, image_count, None)
+                    (
+                        result,
+                        load,
+                        features,
+                        query_count,
+                        image_count,
+                        None,
+                        picture,
+                    )
                 }
             };
         let result = LocalizationResult {
@@ -168,10 +184,20 @@ impl App {
                 similarity: result.timings.similarity,
                 solve: result.timings.solve,
             },
+            picture: picture.as_ref().map(|(p, _)| StoredPicture {
+                rows: p.rows,
+                cols: p.cols,
+                lo: p.lo,
+                hi: p.hi,
+            }),
         };
         let record = self
             .store
-            .create_localization(NewLocalization { map_id: id, result })
+            .create_localization(NewLocalization {
+                map_id: id,
+                result,
+                picture: picture.map(|(_, png)| png),
+            })
             .await?;
         tracing::info!(
             map = %format!("{id:016x}"),
@@ -185,6 +211,11 @@ impl App {
     /// One stored result.
     pub async fn get_localization(&self, id: u64) -> AppResult<LocalizationRecord> {
         Ok(self.store.get_localization(id).await?)
+    }
+
+    /// The PNG of a stored result's similarity picture, `None` when it has none.
+    pub async fn localization_picture(&self, id: u64) -> AppResult<Option<Vec<u8>>> {
+        Ok(self.store.localization_picture(id).await?)
     }
 
     /// A page of stored results, newest first; only `map`'s when given.

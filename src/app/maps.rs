@@ -68,16 +68,30 @@ fn cnn_error(e: crate::Error) -> AppError {
             "descriptor.model",
             format!("cannot read {}: {source}", path.display()),
         ),
-        other => AppError::param("descriptor.model", other.to_string()),
+        other @ (crate::Error::NonFinite { .. }
+        | crate::Error::Shape(_)
+        | crate::Error::Empty(_)
+        | crate::Error::Image { .. }
+        | crate::Error::Format { .. }) => AppError::param("descriptor.model", other.to_string()),
     }
 }
 
 /// Checks CNN options and loads the model for a new map (blocking): every failure names the
 /// descriptor field (a range, a missing file, not ONNX, an unknown layer with the available
 /// ones, the input size).
-fn check_cnn(options: CnnOptions) -> AppResult<CnnSettings> {
+fn check_cnn(options: CnnOptions, max_len: usize) -> AppResult<CnnSettings> {
     options.validate().map_err(cnn_error)?;
     let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
+    if spec.dim() > max_len {
+        return Err(AppError::param(
+            "descriptor.layer",
+            format!(
+                "`{}` gives descriptors of length {}, more than the server's limit of {max_len}",
+                options.layer,
+                spec.dim()
+            ),
+        ));
+    }
     Ok(CnnSettings {
         identity: spec.identity(),
         options,
@@ -87,10 +101,30 @@ fn check_cnn(options: CnnOptions) -> AppResult<CnnSettings> {
 impl App {
     /// Creates a map.
     pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
+        let max_len = self.config.max_descriptor_len;
         let descriptor = match spec.descriptor {
+            DescriptorSpec::Settings(DescriptorSettings::Precomputed { dim })
+                if dim as usize > max_len =>
+            {
+                return Err(AppError::param(
+                    "descriptor.dim",
+                    format!("{dim} is more than the server's limit of {max_len}"),
+                ));
+            }
             DescriptorSpec::Settings(d) => d,
-            DescriptorSpec::Cnn(options) => {
-                let settings = self.pool.run(move || check_cnn(options)).await?;
+            DescriptorSpec::Cnn(mut options) => {
+                // A model the request named is checked against the model directory first,
+                // on a blocking thread (stat only), so a hostile path never reaches the
+                // loader or the CPU pool.
+                if self.config.default_cnn_model.as_ref() != Some(&options.model) {
+                    let policy = self.config.models.clone();
+                    let requested = options.model.clone();
+                    options.model = tokio::task::spawn_blocking(move || policy.resolve(&requested))
+                        .await
+                        .map_err(|e| AppError::Internal(format!("model check: {e}")))??;
+                }
+                let max_len = self.config.max_descriptor_len;
+                let settings = self.pool.run(move || check_cnn(options, max_len)).await?;
                 DescriptorSettings::Cnn(Box::new(settings))
             }
         };
@@ -237,8 +271,9 @@ impl App {
         }
         let started = Instant::now();
         let max_pixels = self.config.max_image_pixels;
+        let max_len = self.config.max_descriptor_len;
         let id = map.id;
-        let descriptors = self
+        let (descriptors, thumbnails) = self
             .pool
             .run(move || {
                 let Some(extractor) = map_extractor(&map)? else {
@@ -247,13 +282,20 @@ impl App {
                          images"
                     )));
                 };
-                images::describe(extractor.as_ref(), &images, max_pixels, map.dim)
+                images::describe_with_thumbnails(
+                    extractor.as_ref(),
+                    &images,
+                    max_pixels,
+                    max_len,
+                    map.dim,
+                )
             })
             .await?;
         let features_seconds = started.elapsed().as_secs_f64();
-        let mut outcome = self
-            .store_batch(id, descriptors, metas, idempotency)
-            .await?;
+        let batch = ImageBatch::new(id, descriptors, metas)?
+            .with_thumbnails(thumbnails)?
+            .with_idempotency(idempotency);
+        let mut outcome = self.store_batch(batch).await?;
         outcome.features_seconds = Some(features_seconds);
         Ok(outcome)
     }
@@ -266,17 +308,33 @@ impl App {
         descriptors: Matrix,
         metas: Vec<ImageMeta>,
     ) -> AppResult<AppendOutcome> {
-        self.store_batch(map, descriptors, metas, None).await
+        self.store_batch(ImageBatch::new(map, descriptors, metas)?)
+            .await
     }
 
-    async fn store_batch(
+    /// The JPEG thumbnail of image `index` of map `id` (stored at upload), `None` when the
+    /// image has none (stored before thumbnails existed, or not an image upload).
+    pub async fn thumbnail(&self, id: u64, index: u32) -> AppResult<Option<Vec<u8>>> {
+        Ok(self.store.thumbnail(id, index).await?)
+    }
+
+    /// The metadata of up to `limit` images of map `id` from index `from` on, in route order,
+    /// with the map (whose `image_count` tells whether more follow).
+    pub async fn image_metadata(
         &self,
-        map: u64,
-        descriptors: Matrix,
-        metas: Vec<ImageMeta>,
-        idempotency: Option<IdempotencyRecord>,
-    ) -> AppResult<AppendOutcome> {
-        let batch = ImageBatch::new(map, descriptors, metas)?.with_idempotency(idempotency);
+        id: u64,
+        from: u32,
+        limit: u32,
+    ) -> AppResult<(MapRecord, Vec<ImageMeta>)> {
+        let map = self.get_map(id).await?;
+        let start = from.min(map.image_count);
+        let end = start.saturating_add(limit).min(map.image_count);
+        let metas = self.store.image_metadata(id, start..end).await?;
+        Ok((map, metas))
+    }
+
+    async fn store_batch(&self, batch: ImageBatch) -> AppResult<AppendOutcome> {
+        let map = batch.map();
         let started = Instant::now();
         let indices = self.store.append_images(batch).await?;
         let store_seconds = started.elapsed().as_secs_f64();

@@ -13,6 +13,10 @@
 //! * What a process caches ([`cache`]) is checked against the store's versions first, so
 //!   several processes may serve one shared store.
 
+// Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
+// new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
+#![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
+
 mod cache;
 mod cooc;
 mod descriptors;
@@ -22,6 +26,7 @@ mod images;
 pub mod kind;
 mod localize;
 mod maps;
+pub mod models;
 pub mod pool;
 mod trips;
 
@@ -37,6 +42,7 @@ pub use idempotency::Idempotency;
 pub use images::ImageInput;
 pub use localize::{LocalizeInput, Queries};
 pub use maps::{AppendOutcome, DescriptorSpec, NewMapSpec};
+pub use models::ModelPolicy;
 pub use pool::CpuPool;
 pub use trips::{FramesOutcome, FramesTimings};
 
@@ -49,6 +55,10 @@ pub struct AppConfig {
     pub max_image_pixels: u64,
     /// Model of CNN maps created without one.
     pub default_cnn_model: Option<PathBuf>,
+    /// Longest descriptor an image may give or a map may have (f32 values).
+    pub max_descriptor_len: usize,
+    /// Where model files named by requests may come from.
+    pub models: ModelPolicy,
 }
 
 /// The use cases over one store. Share it behind an `Arc`.

@@ -113,6 +113,11 @@ fn app(store: Arc<dyn Store>) -> App {
             worker_threads: 2,
             max_image_pixels: 1 << 20,
             default_cnn_model: None,
+            max_descriptor_len: 1 << 20,
+            models: crate::app::ModelPolicy {
+                dir: None,
+                max_bytes: 1 << 20,
+            },
         },
     )
     .unwrap()
@@ -213,8 +218,8 @@ async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) 
     let (_, s2) = store.trip_state(single.id).await.unwrap();
     assert_eq!(s1, s2);
     assert_eq!(
-        a.get_trip(shared.id).await.unwrap().1,
-        b.get_trip(single.id).await.unwrap().1
+        a.get_trip(shared.id, 0).await.unwrap().1,
+        b.get_trip(single.id, 0).await.unwrap().1
     );
 }
 
@@ -301,8 +306,14 @@ impl Store for BothReadFirst {
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
         self.inner.close_trip(id).await
     }
-    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
-        self.inner.trip_estimates(id).await
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+        self.inner.trip_estimates(id, from).await
+    }
+    async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        self.inner.thumbnail(map, index).await
+    }
+    async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.inner.localization_picture(id).await
     }
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
         self.inner.list_trips(map, page).await
@@ -339,7 +350,7 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     let mut counts = [x.trip.frame_count, y.trip.frame_count];
     counts.sort_unstable();
     assert!(counts == [4, 10] || counts == [6, 10], "{counts:?}");
-    let (record, estimates) = a.get_trip(trip.id).await.unwrap();
+    let (record, estimates) = a.get_trip(trip.id, 0).await.unwrap();
     assert_eq!(record.frame_count, 10);
     assert_eq!(estimates.len(), 10);
     // The stored state is that of the two batches applied in the order they won.

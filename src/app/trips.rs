@@ -146,7 +146,7 @@ impl App {
                     attempt += 1;
                     tracing::info!(trip = %format!("{id:016x}"), attempt, %why, "trip changed meanwhile; recomputing the batch");
                 }
-                other => return other,
+                done @ (Ok(_) | Err(_)) => return done,
             }
         }
     }
@@ -192,6 +192,7 @@ impl App {
             )
             .await?;
         let max_pixels = self.config.max_image_pixels;
+        let max_len = self.config.max_descriptor_len;
         let (update, state, hidden_cost, mut timings) = self
             .pool
             .run(move || {
@@ -204,7 +205,8 @@ impl App {
                         map.id
                     )));
                 };
-                let queries = images::describe(extractor.as_ref(), &frames, max_pixels, map.dim)?;
+                let queries =
+                    images::describe(extractor.as_ref(), &frames, max_pixels, max_len, map.dim)?;
                 let features = t.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let c = similarity::cosine_matrix(&queries, &references)?;
@@ -281,10 +283,12 @@ impl App {
         Ok(record)
     }
 
-    /// A trip and every frame's latest estimate.
-    pub async fn get_trip(&self, id: u64) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
+    /// A trip and the latest estimate of every frame from `since` on (0: all of them). A live
+    /// view polls with `since` = the frames it has minus the lag window, since estimates in
+    /// the window may still be revised.
+    pub async fn get_trip(&self, id: u64, since: u32) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
         let record = self.store.get_trip(id).await?;
-        let estimates = self.store.trip_estimates(id).await?;
+        let estimates = self.store.trip_estimates(id, since).await?;
         Ok((record, estimates))
     }
 

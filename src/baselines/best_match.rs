@@ -6,7 +6,7 @@
 
 use rayon::prelude::*;
 
-use crate::eval::Prediction;
+use crate::localize::Prediction;
 use crate::Matrix;
 
 /// Per query row of `c` (Q x D, raw `C` or normalised `ĉ`) the column with the highest value,

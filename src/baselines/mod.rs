@@ -5,7 +5,7 @@
 //! * [`seqslam`] — SeqSLAM (Milford & Wyeth 2012) as in OpenSeqSLAM: local contrast
 //!   enhancement of the difference matrix plus a straight-line trajectory search.
 //!
-//! Both reduce their result to at most one [`Prediction`](crate::eval::Prediction) per query,
+//! Both reduce their result to at most one [`Prediction`](crate::localize::Prediction) per query,
 //! in increasing query order, with a documented confidence (higher = more certain).
 
 mod best_match;

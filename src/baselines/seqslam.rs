@@ -32,7 +32,7 @@
 
 use rayon::prelude::*;
 
-use crate::eval::Prediction;
+use crate::localize::Prediction;
 use crate::{Error, Matrix, Result};
 
 /// Smallest standard deviation used in the contrast enhancement.

@@ -30,7 +30,7 @@ use crate::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use crate::eval::{
     evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
 };
-use crate::features::{extract_files, list_images, Extractor};
+use crate::features::{extract_files, image_file_size, list_images, Extractor};
 use crate::localize::{solve_with_confidence, LocalizeOptions};
 use crate::similarity::{cosine_matrix, Normalization};
 use crate::Matrix;
@@ -207,10 +207,31 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     };
     let mut similarity_seconds = 0.0;
     if needs_descriptors {
-        let extractor = args.descriptor.to_extractor()?;
+        // The map's input geometry is its first image's size (or --resize); every other
+        // image, reference or query, is brought to it (features::geometry).
+        let first_file = reference_files
+            .first()
+            .context("list_images returns at least one image")?;
+        let first = image_file_size(first_file)?;
+        let extractor = args.descriptor.to_extractor(first).with_context(|| {
+            format!(
+                "the map's input geometry ({}x{} px, {})",
+                first.0,
+                first.1,
+                match args.descriptor.resize {
+                    Some(_) => "--resize".to_string(),
+                    None => format!("the first reference image {}", first_file.display()),
+                }
+            )
+        })?;
         let references = extract("reference", extractor.as_ref(), &reference_files)?;
         let queries = extract("query", extractor.as_ref(), &query_files)?;
         shapes = json!({"descriptor": args.descriptor.label(), "descriptor_dim": queries.cols()});
+        if args.descriptor.descriptor == super::DescriptorKind::Hog {
+            let (w, h) = args.descriptor.resize.unwrap_or(first);
+            shapes["input_geometry"] = json!([w, h]);
+            shapes["fit"] = json!(crate::features::Fit::from(args.descriptor.fit).name());
+        }
         let ts = Instant::now();
         let c = cosine_matrix(&queries, &references)?;
         let chat = Normalization::apply(args.normalization.into(), &c)?;

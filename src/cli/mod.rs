@@ -1,7 +1,7 @@
 //! The `seasonloc` command line: argument structs (clap) and one module per subcommand.
 //!
 //! Raw flags are turned into validated core settings ([`SolverArgs::to_params`],
-//! [`DescriptorArgs::to_spec`]) before any work starts, so a bad value fails in milliseconds with
+//! [`DescriptorArgs::to_extractor`]) before any work starts, so a bad value fails in milliseconds with
 //! a one-line reason. JSON goes to stdout, progress and logs to stderr.
 
 pub mod cooc;
@@ -14,8 +14,7 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use crate::features::hog::{HogOptions, HogSpec};
-use crate::features::Extractor;
+use crate::features::{Extractor, Fit, Fitted};
 use crate::solver::{HiddenCost, SolverParams};
 
 /// Visual localization across seasons.
@@ -96,9 +95,14 @@ pub struct DescriptorArgs {
     /// HOG cell size in pixels (the paper's default is 32; use 8 for 64x32 frames).
     #[arg(long, default_value_t = 32)]
     pub cell_size: u32,
-    /// Resize every image to WIDTHxHEIGHT before HOG extraction (e.g. 640x480).
+    /// HOG input geometry: bring every image to WIDTHxHEIGHT before extraction (e.g.
+    /// 640x480) [default: the size of the first reference image].
     #[arg(long, value_parser = parse_size)]
     pub resize: Option<(u32, u32)>,
+    /// HOG: how an image of another size reaches the input geometry: `stretch` (resize the
+    /// whole frame) or `crop` (cut the centred window of the geometry's aspect ratio first).
+    #[arg(long, value_enum, default_value_t = FitArg::Stretch)]
+    pub fit: FitArg,
     /// CNN: ONNX model file (an image classifier taking one [1, 3, H, W] float tensor).
     #[arg(long, env = "SEASONLOC_CNN_MODEL")]
     pub cnn_model: Option<PathBuf>,
@@ -132,6 +136,24 @@ pub enum DescriptorKind {
     Cnn,
 }
 
+/// `--fit` values (see `features::geometry`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FitArg {
+    /// Resize the whole frame to the geometry.
+    Stretch,
+    /// Cut the centred window of the geometry's aspect ratio, then resize.
+    Crop,
+}
+
+impl From<FitArg> for Fit {
+    fn from(f: FitArg) -> Self {
+        match f {
+            FitArg::Stretch => Fit::Stretch,
+            FitArg::Crop => Fit::Crop,
+        }
+    }
+}
+
 /// `--cnn-resize` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum CnnResizeArg {
@@ -142,15 +164,28 @@ pub enum CnnResizeArg {
 }
 
 impl DescriptorArgs {
-    /// The validated extractor these flags describe. For the CNN this loads the model and
-    /// checks the layer and input size, so a bad model fails before any image is read.
-    pub fn to_extractor(&self) -> crate::Result<Box<dyn Extractor>> {
+    /// The validated extractor these flags describe, for a map whose first reference image
+    /// is `first_image` px (`width, height`). HOG brings every image to the input geometry
+    /// (`--resize`, else `first_image`) by `--fit` (`features::geometry`); the CNN to its
+    /// network input by `--cnn-resize`. For the CNN this loads the model and checks the layer
+    /// and input size, so a bad model fails before any image is read.
+    pub fn to_extractor(&self, first_image: (u32, u32)) -> crate::Result<Box<dyn Extractor>> {
         match self.descriptor {
-            DescriptorKind::Hog => Ok(Box::new(HogSpec::new(HogOptions {
-                cell_size: self.cell_size,
-                resize: self.resize,
-            })?)),
-            DescriptorKind::Cnn => Ok(Box::new(CnnSpec::new(self.cnn_options()?)?)),
+            DescriptorKind::Hog => Ok(Box::new(Fitted::hog(
+                self.cell_size,
+                self.resize.unwrap_or(first_image),
+                self.fit.into(),
+            )?)),
+            DescriptorKind::Cnn => {
+                if self.fit != FitArg::Stretch {
+                    return Err(crate::Error::param(
+                        "fit",
+                        "--fit applies to HOG only; the CNN reaches its input size by \
+                         --cnn-resize",
+                    ));
+                }
+                Ok(Box::new(CnnSpec::new(self.cnn_options()?)?))
+            }
         }
     }
 
@@ -194,7 +229,10 @@ impl DescriptorArgs {
     /// A short label for reports, e.g. `hog-8px` or `cnn-efficientnet-lite0-224-block10-stretch`.
     pub fn label(&self) -> String {
         match self.descriptor {
-            DescriptorKind::Hog => format!("hog-{}px", self.cell_size),
+            DescriptorKind::Hog => match self.fit {
+                FitArg::Stretch => format!("hog-{}px", self.cell_size),
+                FitArg::Crop => format!("hog-{}px-crop", self.cell_size),
+            },
             DescriptorKind::Cnn => {
                 let model = self
                     .cnn_model
@@ -313,7 +351,7 @@ mod tests {
     #[test]
     fn cnn_without_a_model_or_with_hog_resize_is_a_clear_error() {
         let err = eval_descriptor(&["--descriptor=cnn"])
-            .to_extractor()
+            .to_extractor((64, 32))
             .err()
             .expect("no model given");
         assert!(err.to_string().contains("--cnn-model"), "{err}");

@@ -11,7 +11,7 @@ use clap::Args;
 use serde_json::{json, Value};
 
 use super::SolverArgs;
-use crate::eval::Prediction;
+use crate::localize::Prediction;
 use crate::localize::{solve_with_confidence, LocalizeOptions};
 use crate::similarity::normalize_columns;
 use crate::solver::Solution;

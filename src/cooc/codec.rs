@@ -21,10 +21,11 @@ use super::map::CoocMap;
 use super::model::{DriveRecord, LocationMap, Word};
 use super::vocabulary::Vocabulary;
 use super::CoocParams;
+use crate::codec::{ByteReader, ByteWriter, DecodeError};
 use crate::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"SLCOOCMP";
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 
 fn corrupt(reason: impl Into<String>) -> Error {
     Error::Format {
@@ -33,74 +34,73 @@ fn corrupt(reason: impl Into<String>) -> Error {
     }
 }
 
-struct Writer(Vec<u8>);
+/// The crate's byte codec plus this format's `u32` counts.
+struct Writer(ByteWriter);
+
+impl std::ops::Deref for Writer {
+    type Target = ByteWriter;
+    fn deref(&self) -> &ByteWriter {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Writer {
+    fn deref_mut(&mut self) -> &mut ByteWriter {
+        &mut self.0
+    }
+}
 
 impl Writer {
-    fn u8(&mut self, v: u8) {
-        self.0.push(v);
-    }
-    fn u16(&mut self, v: u16) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn u32(&mut self, v: u32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn u64(&mut self, v: u64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn f32(&mut self, v: f32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn f64(&mut self, v: f64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
     fn len(&mut self, n: usize) {
         self.u32(u32::try_from(n).expect("map sections hold fewer than 2^32 items"));
     }
 }
 
-struct Reader<'a> {
-    b: &'a [u8],
-    at: usize,
-}
+/// The crate's byte codec; every error says what was being read and where.
+struct Reader<'a>(ByteReader<'a>);
 
 impl Reader<'_> {
+    fn check<T>(&self, read: std::result::Result<T, DecodeError>, what: &str) -> Result<T> {
+        read.map_err(|e| match e {
+            DecodeError::Truncated { at } => {
+                corrupt(format!("truncated at byte {at} while reading {what}"))
+            }
+            DecodeError::BadTag { .. } => corrupt(format!("{e} while reading {what}")),
+        })
+    }
     fn take<const N: usize>(&mut self, what: &str) -> Result<[u8; N]> {
-        let end = self.at.checked_add(N).filter(|&e| e <= self.b.len());
-        let Some(end) = end else {
-            return Err(corrupt(format!(
-                "truncated at byte {} while reading {what}",
-                self.at
-            )));
-        };
-        let mut out = [0u8; N];
-        out.copy_from_slice(&self.b[self.at..end]);
-        self.at = end;
-        Ok(out)
+        let read = self.0.array::<N>();
+        self.check(read, what)
     }
     fn u8(&mut self, what: &str) -> Result<u8> {
-        Ok(self.take::<1>(what)?[0])
+        let read = self.0.u8();
+        self.check(read, what)
     }
     fn u16(&mut self, what: &str) -> Result<u16> {
-        Ok(u16::from_le_bytes(self.take(what)?))
+        let read = self.0.u16();
+        self.check(read, what)
     }
     fn u32(&mut self, what: &str) -> Result<u32> {
-        Ok(u32::from_le_bytes(self.take(what)?))
+        let read = self.0.u32();
+        self.check(read, what)
     }
     fn u64(&mut self, what: &str) -> Result<u64> {
-        Ok(u64::from_le_bytes(self.take(what)?))
+        let read = self.0.u64();
+        self.check(read, what)
     }
     fn f32(&mut self, what: &str) -> Result<f32> {
-        Ok(f32::from_le_bytes(self.take(what)?))
+        let read = self.0.f32();
+        self.check(read, what)
     }
     fn f64(&mut self, what: &str) -> Result<f64> {
-        Ok(f64::from_le_bytes(self.take(what)?))
+        let read = self.0.f64();
+        self.check(read, what)
     }
     /// A count of items of at least `item_bytes` each, checked against the remaining bytes so a
     /// corrupt count cannot trigger a huge allocation.
     fn count(&mut self, what: &str, item_bytes: usize) -> Result<usize> {
         let n = self.u32(what)? as usize;
-        if n.saturating_mul(item_bytes) > self.b.len() - self.at {
+        if n.saturating_mul(item_bytes) > self.0.remaining() {
             return Err(corrupt(format!("{what} = {n} exceeds the remaining bytes")));
         }
         Ok(n)
@@ -110,11 +110,18 @@ impl Reader<'_> {
 impl CoocMap {
     /// Encodes the map (see the module docs of `cooc::codec` for the layout).
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut w = Writer(Vec::new());
-        w.0.extend_from_slice(MAGIC);
-        w.u16(VERSION);
+        let mut w = Writer(ByteWriter::new());
+        w.raw(MAGIC);
         let p = &self.params;
         let k = &p.keypoints;
+        // The oldest layout that holds the map: a map extracted the version-1 way (no width
+        // cap, one octave) is written as version 1, so stored maps re-encode byte for byte.
+        let version = if k.max_width == 0 && k.octaves == 1 {
+            1
+        } else {
+            VERSION
+        };
+        w.u16(version);
         w.u32(k.upsample);
         w.len(k.max_keypoints);
         w.f32(k.harris_k);
@@ -122,6 +129,10 @@ impl CoocMap {
         w.f32(k.min_response);
         w.u32(k.nms_radius);
         w.u32(k.cell_size);
+        if version >= 2 {
+            w.u32(k.max_width);
+            w.u32(k.octaves);
+        }
         w.len(p.vocabulary_branching);
         w.len(p.vocabulary_depth);
         w.len(p.kmeans_iterations);
@@ -158,22 +169,22 @@ impl CoocMap {
                 }
             }
         }
-        w.0
+        w.0.into_bytes()
     }
 
     /// Decodes bytes written by [`CoocMap::to_bytes`], rebuilding the models and the index.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
-        let mut r = Reader { b: bytes, at: 0 };
+        let mut r = Reader(ByteReader::new(bytes));
         if r.take::<8>("magic")? != *MAGIC {
             return Err(corrupt("not a co-occurrence map (bad magic)"));
         }
         let version = r.u16("version")?;
-        if version != VERSION {
+        if !(1..=VERSION).contains(&version) {
             return Err(corrupt(format!(
-                "unsupported version {version} (this build reads {VERSION})"
+                "unsupported version {version} (this build reads 1..={VERSION})"
             )));
         }
-        let keypoints = KeypointParams {
+        let mut keypoints = KeypointParams {
             upsample: r.u32("upsample")?,
             max_keypoints: r.u32("max_keypoints")? as usize,
             harris_k: r.f32("harris_k")?,
@@ -181,7 +192,15 @@ impl CoocMap {
             min_response: r.f32("min_response")?,
             nms_radius: r.u32("nms_radius")?,
             cell_size: r.u32("cell_size")?,
+            // Version 1 maps were extracted without a width cap, on one octave: decoding keeps
+            // that, so their queries are described exactly as their drives were.
+            max_width: 0,
+            octaves: 1,
         };
+        if version >= 2 {
+            keypoints.max_width = r.u32("max_width")?;
+            keypoints.octaves = r.u32("octaves")?;
+        }
         let params = CoocParams {
             keypoints,
             vocabulary_branching: r.u32("vocabulary_branching")? as usize,
@@ -253,8 +272,8 @@ impl CoocMap {
                 .add_drive(DriveRecord { time, images })
                 .map_err(|e| corrupt(format!("drive {d}: {e}")))?;
         }
-        if r.at != bytes.len() {
-            return Err(corrupt(format!("{} trailing bytes", bytes.len() - r.at)));
+        if r.0.remaining() != 0 {
+            return Err(corrupt(format!("{} trailing bytes", r.0.remaining())));
         }
         Ok(CoocMap {
             params,

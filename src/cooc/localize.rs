@@ -29,7 +29,7 @@ use super::map::{flow_similarity, CoocMap};
 use super::model::Word;
 use super::recognition::Schedule;
 use super::sequence::{match_sequences, SequenceParams};
-use crate::eval::Prediction;
+use crate::localize::Prediction;
 use crate::localize::{solve_with_confidence, Localization, LocalizeOptions, StageTimings};
 use crate::solver::Solution;
 use crate::{Error, Matrix, Result};

@@ -33,22 +33,7 @@ pub struct Drive {
 impl Drive {
     /// A drive whose image `k` shows location `locations[k]`.
     pub fn new(time: f64, images: Vec<GrayImage>, locations: Vec<usize>) -> Result<Self> {
-        if !time.is_finite() {
-            return Err(Error::param("time", format!("must be finite, got {time}")));
-        }
-        if images.len() != locations.len() {
-            return Err(Error::Shape(format!(
-                "a drive has {} images but {} location indices",
-                images.len(),
-                locations.len()
-            )));
-        }
-        if let Some(&l) = locations.iter().find(|&&l| l >= MAX_LOCATIONS) {
-            return Err(Error::param(
-                "locations",
-                format!("location {l} is beyond the limit of {MAX_LOCATIONS} locations"),
-            ));
-        }
+        Drive::check(time, images.len(), &locations)?;
         Ok(Drive {
             time,
             images,
@@ -60,6 +45,25 @@ impl Drive {
     pub fn sequential(time: f64, images: Vec<GrayImage>) -> Result<Self> {
         let locations = (0..images.len()).collect();
         Drive::new(time, images, locations)
+    }
+
+    fn check(time: f64, images: usize, locations: &[usize]) -> Result<()> {
+        if !time.is_finite() {
+            return Err(Error::param("time", format!("must be finite, got {time}")));
+        }
+        if images != locations.len() {
+            return Err(Error::Shape(format!(
+                "a drive has {images} images but {} location indices",
+                locations.len()
+            )));
+        }
+        if let Some(&l) = locations.iter().find(|&&l| l >= MAX_LOCATIONS) {
+            return Err(Error::param(
+                "locations",
+                format!("location {l} is beyond the limit of {MAX_LOCATIONS} locations"),
+            ));
+        }
+        Ok(())
     }
 
     /// Number of images.
@@ -85,17 +89,37 @@ impl CoocMap {
     /// Learns the vocabulary from all images of `drives` and builds the location models.
     pub fn build(params: &CoocParams, drives: &[Drive]) -> Result<Self> {
         params.validate()?;
-        if drives.iter().all(Drive::is_empty) {
+        let features: Vec<DriveFeatures> = drives
+            .iter()
+            .enumerate()
+            .map(|(d, drive)| {
+                Ok(DriveFeatures {
+                    time: drive.time,
+                    features: extract_all(params, d, &drive.images)?,
+                    locations: drive.locations.clone(),
+                })
+            })
+            .collect::<Result<_>>()?;
+        Self::from_features(params, &features)
+    }
+
+    /// [`CoocMap::build`] from features already extracted with `params.keypoints` (e.g. to
+    /// build several maps from the same drives without extracting them again).
+    pub fn from_features(params: &CoocParams, drives: &[DriveFeatures]) -> Result<Self> {
+        params.validate()?;
+        for d in drives {
+            d.check()?;
+        }
+        if drives.iter().all(|d| d.features.is_empty()) {
             return Err(Error::Empty(
                 "a co-occurrence map needs at least one image".into(),
             ));
         }
-        let features: Vec<Vec<keypoints::Features>> = drives
+        let total: usize = drives
             .iter()
-            .enumerate()
-            .map(|(d, drive)| extract_all(params, d, &drive.images))
-            .collect::<Result<_>>()?;
-        let total: usize = features.iter().flatten().map(|f| f.keypoints.len()).sum();
+            .flat_map(|d| &d.features)
+            .map(|f| f.keypoints.len())
+            .sum();
         if total < params.vocabulary_branching {
             return Err(Error::Empty(format!(
                 "the drives yield only {total} keypoints, fewer than vocabulary_branching ({})",
@@ -105,9 +129,9 @@ impl CoocMap {
         // An even stride over all descriptors keeps every part of the route represented.
         let stride = total.div_ceil(params.max_training_descriptors);
         let mut training = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
-        let all = features
+        let all = drives
             .iter()
-            .flatten()
+            .flat_map(|d| &d.features)
             .flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
         for d in all.step_by(stride) {
             training.extend_from_slice(d);
@@ -128,8 +152,8 @@ impl CoocMap {
             ),
             vocabulary,
         };
-        for (drive, feats) in drives.iter().zip(&features) {
-            map.add_features(drive, feats)?;
+        for drive in drives {
+            map.add_features(drive)?;
         }
         Ok(map)
     }
@@ -138,16 +162,23 @@ impl CoocMap {
     /// locations it saw are rebuilt together with the drives adjacent to it in time.
     pub fn add_drive(&mut self, drive: &Drive) -> Result<()> {
         let d = self.locations.drives().len();
-        let feats = extract_all(&self.params, d, &drive.images)?;
-        self.add_features(drive, &feats)
+        self.add_features(&DriveFeatures {
+            time: drive.time,
+            features: extract_all(&self.params, d, &drive.images)?,
+            locations: drive.locations.clone(),
+        })
     }
 
-    fn add_features(&mut self, drive: &Drive, feats: &[keypoints::Features]) -> Result<()> {
+    /// [`CoocMap::add_drive`] from features extracted with this map's `params().keypoints`.
+    pub fn add_features(&mut self, drive: &DriveFeatures) -> Result<()> {
+        drive.check()?;
         let images = drive
             .locations
             .iter()
-            .zip(feats)
-            .map(|(&l, f)| (l as u32, self.words_of(f)))
+            .zip(&drive.features)
+            .collect::<Vec<_>>()
+            .par_iter()
+            .map(|&(&l, f)| (l as u32, self.quantize_features(f)))
             .collect();
         self.locations.add_drive(DriveRecord {
             time: drive.time,
@@ -155,7 +186,8 @@ impl CoocMap {
         })
     }
 
-    fn words_of(&self, f: &keypoints::Features) -> Vec<Word> {
+    /// The visual words of features extracted with this map's `params().keypoints`.
+    pub fn quantize_features(&self, f: &keypoints::Features) -> Vec<Word> {
         f.keypoints
             .iter()
             .enumerate()
@@ -166,7 +198,7 @@ impl CoocMap {
     /// The quantised features of one image (`name` appears in errors).
     pub fn quantize(&self, name: &str, image: &GrayImage) -> Result<Vec<Word>> {
         let f = keypoints::extract(name, image, &self.params.keypoints)?;
-        Ok(self.words_of(&f))
+        Ok(self.quantize_features(&f))
     }
 
     /// Quantises many images in parallel, in order.
@@ -231,7 +263,28 @@ impl CoocMap {
     }
 }
 
-fn extract_all(
+/// The features of one mapping drive: its time, each image's keypoints and descriptors, and
+/// the location each image shows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DriveFeatures {
+    /// Time key (only the order of drives matters).
+    pub time: f64,
+    /// Per image, extracted with the map's keypoint settings.
+    pub features: Vec<keypoints::Features>,
+    /// Location of each image.
+    pub locations: Vec<usize>,
+}
+
+impl DriveFeatures {
+    fn check(&self) -> Result<()> {
+        // Same rules as `Drive::new`.
+        Drive::check(self.time, self.features.len(), &self.locations)
+    }
+}
+
+/// Extracts the features of `images` with `params.keypoints`, in parallel (`drive` names the
+/// drive in errors).
+pub fn extract_all(
     params: &CoocParams,
     drive: usize,
     images: &[GrayImage],
@@ -263,7 +316,7 @@ pub(crate) mod tests {
     use super::super::keypoints::tests::squares;
     use super::super::{localize, CoocMethod, CoocOptions, SequenceParams};
     use super::*;
-    use crate::eval::Prediction;
+    use crate::localize::Prediction;
 
     fn recognize(map: &CoocMap, queries: &[GrayImage]) -> Vec<Prediction> {
         localize(map, queries, CoocMethod::Single, &CoocOptions::default())

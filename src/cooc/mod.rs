@@ -17,7 +17,7 @@
 //! Invariants: a built [`CoocMap`] has a vocabulary, one model per location (possibly empty) and
 //! an inverted index consistent with the models; every stage is deterministic for a given
 //! [`CoocParams::seed`]. This module depends only on `crate::Error`, `crate::Matrix`,
-//! `crate::eval::Prediction`, `image` and `rayon` (no serde, no I/O).
+//! `crate::localize::Prediction`, `image` and `rayon` (no serde, no I/O).
 
 mod codec;
 pub mod keypoints;
@@ -30,7 +30,7 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
-pub use map::{flow_similarity, CoocMap, Drive};
+pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;

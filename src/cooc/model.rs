@@ -1,19 +1,34 @@
 //! Location models (Section II-B) and the map of all locations with its inverted index.
 //!
-//! A location's word-co-occurrence matrix `M_i` has one row per visual word seen there (a lookup
-//! table maps rows to words) and, for each word pair, the *set* of spatial words in which the
-//! pair was observed. It is stored sparsely: `words` (sorted, row `r` is `words[r]`) and `pairs`,
-//! a sorted list of packed `(row_a, row_b, spatial word)` entries with `row_a <= row_b` and the
-//! spatial word oriented from `a` to `b` (for `row_a == row_b` both orientations are stored), so
-//! a lookup is one binary search and the matrix takes 8 bytes per distinct entry.
+//! A word-co-occurrence matrix `M` has one row per visual word seen (a lookup table maps rows
+//! to words) and, for each word pair, the *set* of spatial words in which the pair was
+//! observed. It is stored sparsely: `words` (sorted, row `r` is `words[r]`), and per row `a` a
+//! sorted run of packed `(row_b, spatial word)` entries with `row_a <= row_b` and the spatial
+//! word oriented from `a` to `b` (for `row_a == row_b` both orientations are stored), so a
+//! lookup is one short binary search inside a row and the matrix takes 4 bytes per entry.
+//!
+//! **One model per training image.** The paper scores a location by "groups of features in the
+//! query image that have all co-occurred together in one of the training images for this
+//! location" (II-C). A location therefore keeps one model per training image ("set"): each
+//! drive's image of it and, with interpolation on, every *virtual* image of Section II-E (the
+//! union of the images of two drives adjacent in time). Its score is the best group over its
+//! sets. Fusing every image into a single matrix instead lets a group mix pairs seen in
+//! different images; measured on Gardens Point (`docs/cooc.md`), that raised the scores of
+//! wrong locations with every drive added, so fusing a night drive made day queries *worse*.
+//! With one model per set, a further drive adds sets and a location can only gain matches.
+//!
+//! Interpolation merges only drives at *different* times (sorted by time; drives at equal
+//! times are the same time of day and have nothing to interpolate between).
 //!
 //! [`LocationMap`] keeps, per mapping drive, the quantised features it saw at each location, and
-//! derives the models from them: every image's own pairs, plus — with merging on — the pairs of
-//! the union of the images of two drives adjacent in time at that location (Section II-E), which
-//! adds the cross-drive co-occurrences that an intermediate time of day would show.
+//! derives the models from them. Sets are numbered map-wide location by location ("entities"),
+//! so the search can treat them as independent candidates and report their location.
 //!
-//! Invariants: `models.len() == locations()`; the inverted index lists `(location, row)` for
-//! exactly the words in each model; drives are kept in time order (stable for equal times).
+//! Invariants: `sets(l)` holds every set of location `l`; entities are numbered in location
+//! order; the inverted index lists `(entity, row)` for exactly the words in each model, by
+//! entity; drives are kept in time order (stable for equal times).
+
+use rayon::prelude::*;
 
 use super::spatial::SpatialGrid;
 use crate::{Error, Result};
@@ -51,58 +66,72 @@ impl Word {
 /// the memory a corrupt or hostile location index can claim.
 pub const MAX_LOCATIONS: usize = 1 << 22;
 
-const ROW_BITS: u32 = 24;
-const MAX_ROWS: usize = 1 << ROW_BITS;
+/// Most distinct words one training set (image or virtual image) may have.
+const MAX_ROWS: usize = 1 << 16;
 
-#[inline]
-fn pack(a: u32, b: u32, s: u16) -> u64 {
-    (u64::from(a) << 40) | (u64::from(b) << 16) | u64::from(s)
-}
-
-/// The word-co-occurrence matrix `M_i` of one location.
+/// The word-co-occurrence matrix `M` of one training set of a location.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LocationModel {
     words: Vec<u32>,
-    pairs: Vec<u64>,
+    /// `row_start[a]..row_start[a + 1]` are row `a`'s entries in `pairs`.
+    row_start: Vec<u32>,
+    /// `(row_b << 16) | spatial word`, sorted within each row.
+    pairs: Vec<u32>,
 }
 
 impl LocationModel {
-    /// Builds `M_i` from "images" (feature sets): every pair within one set is recorded.
+    /// Builds `M` from "images" (feature sets): every pair within one set is recorded.
     pub fn build(sets: &[Vec<Word>], grid: &SpatialGrid) -> Result<Self> {
         let mut words: Vec<u32> = sets.iter().flatten().map(|f| f.word).collect();
         words.sort_unstable();
         words.dedup();
         if words.len() > MAX_ROWS {
             return Err(Error::Shape(format!(
-                "a location has {} distinct words, more than {MAX_ROWS}",
+                "a training image has {} distinct words, more than {MAX_ROWS}",
                 words.len()
             )));
         }
-        let row = |w: u32| words.binary_search(&w).expect("word collected above") as u32;
-        let mut pairs = Vec::new();
+        let row = |w: u32| words.partition_point(|&x| x < w) as u64;
+        let pack = |a: u64, b: u64, s: u16| (a << 32) | (b << 16) | u64::from(s);
+        let total: usize = sets.iter().map(|s| s.len() * s.len()).sum();
+        let mut packed = Vec::with_capacity(total / 2 + 1);
+        let mut rows = Vec::new();
         for set in sets {
-            let rows: Vec<u32> = set.iter().map(|f| row(f.word)).collect();
+            rows.clear();
+            rows.extend(set.iter().map(|f| row(f.word)));
             for i in 0..set.len() {
                 for j in i + 1..set.len() {
                     let (pi, pj) = (set[i].pos(), set[j].pos());
                     let (ri, rj) = (rows[i], rows[j]);
                     if ri < rj {
-                        pairs.push(pack(ri, rj, grid.word(pi, pj)));
+                        packed.push(pack(ri, rj, grid.word(pi, pj)));
                     } else if rj < ri {
-                        pairs.push(pack(rj, ri, grid.word(pj, pi)));
+                        packed.push(pack(rj, ri, grid.word(pj, pi)));
                     } else {
-                        pairs.push(pack(ri, rj, grid.word(pi, pj)));
-                        pairs.push(pack(ri, rj, grid.word(pj, pi)));
+                        packed.push(pack(ri, rj, grid.word(pi, pj)));
+                        packed.push(pack(ri, rj, grid.word(pj, pi)));
                     }
                 }
             }
         }
-        pairs.sort_unstable();
-        pairs.dedup();
-        Ok(LocationModel { words, pairs })
+        packed.sort_unstable();
+        packed.dedup();
+        let mut row_start = vec![0u32; words.len() + 1];
+        for &p in &packed {
+            row_start[(p >> 32) as usize + 1] += 1;
+        }
+        for r in 0..words.len() {
+            row_start[r + 1] += row_start[r];
+        }
+        let pairs = packed.iter().map(|&p| p as u32).collect();
+        Ok(LocationModel {
+            words,
+            row_start,
+            pairs,
+        })
     }
 
-    /// The visual words with a row in `M_i`, sorted (row `r` is `words()[r]`).
+    /// The visual words with a row in `M`, sorted (row `r` is `words()[r]`).
     pub fn words(&self) -> &[u32] {
         &self.words
     }
@@ -133,11 +162,13 @@ impl LocationModel {
         } else {
             (b, a, (-observed.0, -observed.1))
         };
-        let start = pack(lo, hi, 0);
-        let first = self.pairs.partition_point(|&p| p < start);
-        self.pairs[first..]
+        let run = &self.pairs
+            [self.row_start[lo as usize] as usize..self.row_start[lo as usize + 1] as usize];
+        let start = hi << 16;
+        let first = run.partition_point(|&p| p < start);
+        run[first..]
             .iter()
-            .take_while(|&&p| p >> 16 == start >> 16)
+            .take_while(|&&p| p >> 16 == hi)
             .any(|&p| grid.consistent((p & 0xffff) as u16, obs, tolerance))
     }
 }
@@ -158,8 +189,13 @@ pub struct LocationMap {
     tolerance: u16,
     merge_adjacent: bool,
     drives: Vec<DriveRecord>,
-    models: Vec<LocationModel>,
-    /// `index[w]` = `(location, row)` of every model that has word `w`, by location.
+    /// Per location, the models of its training sets.
+    models: Vec<Vec<LocationModel>>,
+    /// `first_entity[l]..first_entity[l + 1]` are location `l`'s entities (one per set).
+    first_entity: Vec<u32>,
+    /// The location of every entity.
+    entity_location: Vec<u32>,
+    /// `index[w]` = `(entity, row)` of every set model that has word `w`, by entity.
     index: Vec<Vec<(u32, u32)>>,
 }
 
@@ -172,6 +208,8 @@ impl LocationMap {
             merge_adjacent,
             drives: Vec::new(),
             models: Vec::new(),
+            first_entity: vec![0],
+            entity_location: Vec::new(),
             index: Vec::new(),
         }
     }
@@ -202,34 +240,40 @@ impl LocationMap {
         self.drives.insert(pos, drive);
         let needed = touched.last().map_or(0, |&l| l as usize + 1);
         if needed > self.models.len() {
-            self.models.resize(needed, LocationModel::default());
+            self.models.resize(needed, Vec::new());
         }
-        for &loc in &touched {
-            self.models[loc as usize] = self.build_model(loc)?;
+        let rebuilt: Vec<Vec<LocationModel>> = touched
+            .par_iter()
+            .map(|&loc| self.build_sets(loc))
+            .collect::<Result<_>>()?;
+        for (&loc, sets) in touched.iter().zip(rebuilt) {
+            self.models[loc as usize] = sets;
         }
         self.rebuild_index();
         Ok(())
     }
 
-    /// The feature sets ("virtual images") of one location, per Section II-E.
-    fn virtual_images(&self, loc: u32) -> Vec<Vec<Word>> {
-        let per_drive: Vec<Vec<&Vec<Word>>> = self
-            .drives
+    /// The training sets of one location: every image of it, then (interpolation on) the
+    /// union of every two images of drives adjacent in time (Section II-E).
+    fn training_sets(&self, loc: u32) -> Vec<Vec<Word>> {
+        // Per distinct time, in time order: the images of that time at `loc`.
+        let mut per_time: Vec<(f64, Vec<&Vec<Word>>)> = Vec::new();
+        for d in &self.drives {
+            let here = d.images.iter().filter(|(l, _)| *l == loc).map(|(_, f)| f);
+            match per_time.last_mut() {
+                Some((t, v)) if *t == d.time => v.extend(here),
+                _ => per_time.push((d.time, here.collect())),
+            }
+        }
+        per_time.retain(|(_, v)| !v.is_empty());
+        let mut sets: Vec<Vec<Word>> = per_time
             .iter()
-            .map(|d| {
-                d.images
-                    .iter()
-                    .filter(|(l, _)| *l == loc)
-                    .map(|(_, f)| f)
-                    .collect::<Vec<_>>()
-            })
-            .filter(|v: &Vec<&Vec<Word>>| !v.is_empty())
+            .flat_map(|(_, v)| v.iter().map(|f| (*f).clone()))
             .collect();
-        let mut sets: Vec<Vec<Word>> = per_drive.iter().flatten().map(|f| (*f).clone()).collect();
         if self.merge_adjacent {
-            for pair in per_drive.windows(2) {
-                for a in &pair[0] {
-                    for b in &pair[1] {
+            for pair in per_time.windows(2) {
+                for a in &pair[0].1 {
+                    for b in &pair[1].1 {
                         sets.push(a.iter().chain(b.iter()).copied().collect());
                     }
                 }
@@ -238,24 +282,38 @@ impl LocationMap {
         sets
     }
 
-    fn build_model(&self, loc: u32) -> Result<LocationModel> {
-        LocationModel::build(&self.virtual_images(loc), &self.grid)
+    fn build_sets(&self, loc: u32) -> Result<Vec<LocationModel>> {
+        self.training_sets(loc)
+            .iter()
+            .map(|set| LocationModel::build(std::slice::from_ref(set), &self.grid))
+            .collect()
     }
 
     fn rebuild_index(&mut self) {
         let top = self
             .models
             .iter()
+            .flatten()
             .filter_map(|m| m.words.last())
             .max()
             .map_or(0, |&w| w as usize + 1);
         let mut index: Vec<Vec<(u32, u32)>> = vec![Vec::new(); top];
-        for (loc, m) in self.models.iter().enumerate() {
-            for (row, &w) in m.words.iter().enumerate() {
-                index[w as usize].push((loc as u32, row as u32));
+        let mut first_entity = Vec::with_capacity(self.models.len() + 1);
+        let mut entity_location = Vec::new();
+        first_entity.push(0u32);
+        for (loc, sets) in self.models.iter().enumerate() {
+            for m in sets {
+                let e = entity_location.len() as u32;
+                entity_location.push(loc as u32);
+                for (row, &w) in m.words.iter().enumerate() {
+                    index[w as usize].push((e, row as u32));
+                }
             }
+            first_entity.push(entity_location.len() as u32);
         }
         self.index = index;
+        self.first_entity = first_entity;
+        self.entity_location = entity_location;
     }
 
     /// Number of locations.
@@ -263,9 +321,27 @@ impl LocationMap {
         self.models.len()
     }
 
-    /// The model of location `loc`.
-    pub fn model(&self, loc: usize) -> &LocationModel {
+    /// The models of the training sets of location `loc`.
+    pub fn sets(&self, loc: usize) -> &[LocationModel] {
         &self.models[loc]
+    }
+
+    /// Number of entities (training sets over all locations).
+    pub fn entities(&self) -> usize {
+        self.entity_location.len()
+    }
+
+    /// The location of entity `e`.
+    #[inline]
+    pub fn entity_location(&self, e: u32) -> usize {
+        self.entity_location[e as usize] as usize
+    }
+
+    /// The model of entity `e`.
+    #[inline]
+    pub fn entity_model(&self, e: u32) -> &LocationModel {
+        let loc = self.entity_location(e);
+        &self.models[loc][(e - self.first_entity[loc]) as usize]
     }
 
     /// The drives, in time order.
@@ -288,14 +364,14 @@ impl LocationMap {
         self.merge_adjacent
     }
 
-    /// Postings of visual word `w`: `(location, row)`, by location.
+    /// Postings of visual word `w`: `(entity, row)`, by entity.
     pub fn postings(&self, w: u32) -> &[(u32, u32)] {
         self.index.get(w as usize).map_or(&[], |v| v.as_slice())
     }
 
     /// Total `(word pair, spatial word)` entries over all models.
     pub fn entries(&self) -> usize {
-        self.models.iter().map(|m| m.entries()).sum()
+        self.models.iter().flatten().map(|m| m.entries()).sum()
     }
 }
 
@@ -355,10 +431,29 @@ mod tests {
             .unwrap();
         }
         let g = grid();
-        let (m, p) = (merged.model(0), plain.model(0));
-        assert!(m.consistent(0, 1, (6, 0), &g, 0));
-        assert!(!p.consistent(0, 1, (6, 0), &g, 0));
-        assert_eq!(merged.postings(2), &[(0, 1)]);
+        // Plain: one set per image; merged: also the virtual image day + night.
+        assert_eq!(plain.sets(0).len(), 2);
+        assert_eq!(merged.sets(0).len(), 3);
+        let virtual_image = &merged.sets(0)[2];
+        assert!(virtual_image.consistent(0, 1, (6, 0), &g, 0));
+        assert!(plain.sets(0).iter().all(|m| m.words().len() == 1));
+        // Word 2 is in the night set (entity 1, row 0) and the virtual image (entity 2, row 1).
+        assert_eq!(merged.postings(2), &[(1, 0), (2, 1)]);
+        assert_eq!(merged.entity_location(2), 0);
+    }
+
+    #[test]
+    fn drives_at_the_same_time_are_not_merged() {
+        let mut map = LocationMap::new(grid(), 0, true);
+        for (w, x) in [(1, 0.1), (2, 0.6)] {
+            map.add_drive(DriveRecord {
+                time: 12.0,
+                images: vec![(0, vec![Word::new(w, x, 0.5)])],
+            })
+            .unwrap();
+        }
+        assert_eq!(map.sets(0).len(), 2);
+        assert_eq!(map.entities(), 2);
     }
 
     #[test]
@@ -375,10 +470,14 @@ mod tests {
         }
         let times: Vec<f64> = map.drives().iter().map(|d| d.time).collect();
         assert_eq!(times, vec![10.0, 15.0, 20.0]);
-        let (g, m) = (grid(), map.model(0));
-        assert!(m.consistent(0, 1, (4, 0), &g, 0)); // 10h with 15h
-        assert!(m.consistent(1, 2, (4, 0), &g, 0)); // 15h with 20h
-        assert!(!m.consistent(0, 2, (9, 0), &g, 0)); // 10h and 20h are not adjacent
+        let (g, sets) = (grid(), map.sets(0));
+        // Three images, then the virtual images 10h+15h and 15h+20h; never 10h+20h.
+        assert_eq!(sets.len(), 5);
+        assert_eq!(sets[3].words(), &[1, 2]);
+        assert!(sets[3].consistent(0, 1, (4, 0), &g, 0)); // 10h with 15h
+        assert_eq!(sets[4].words(), &[2, 3]);
+        assert!(sets[4].consistent(0, 1, (4, 0), &g, 0)); // 15h with 20h
+        assert!(sets.iter().all(|m| m.words() != [1, 3]));
     }
 
     #[test]
@@ -390,7 +489,8 @@ mod tests {
         })
         .unwrap();
         assert_eq!(map.locations(), 4);
-        assert_eq!(map.postings(7), &[(3, 0)]);
+        assert_eq!(map.postings(7), &[(0, 0)]);
+        assert_eq!(map.entity_location(0), 3);
         assert!(map.postings(8).is_empty());
         let err = map
             .add_drive(DriveRecord {

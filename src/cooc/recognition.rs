@@ -3,8 +3,10 @@
 //! consistent group `K_i`, and the simultaneous search over all locations bounded by the
 //! maximum potential score (the current size of `J_i`).
 //!
-//! A candidate correspondence pairs a query feature with the row of its visual word in a
-//! location's model. Two candidates are consistent when the model recorded their word pair with
+//! The search runs over *entities*, the training sets of the locations (one per training image
+//! or virtual image, see [`super::model`]); a location's score is the best of its entities'.
+//! A candidate correspondence pairs a query feature with the row of its visual word in an
+//! entity's model. Two candidates are consistent when the model recorded their word pair with
 //! the spatial word the query shows between them. Elimination repeatedly removes the candidate
 //! consistent with the fewest others (ties: the lowest index, where the paper picks at random, so
 //! results are reproducible) until every remaining pair is consistent; the score is the group
@@ -48,7 +50,7 @@ pub struct Recognition {
     pub location: usize,
     /// Its score: the size of its spatially consistent group.
     pub score: usize,
-    /// Locations whose consistency matrix was built (the work done).
+    /// Entities (training sets) whose consistency matrix was built (the work done).
     pub evaluated: usize,
 }
 
@@ -159,7 +161,7 @@ impl QueryGeometry {
     }
 }
 
-/// Candidate correspondences grouped by location: `(location, [(query feature, row)])`.
+/// Candidate correspondences grouped by entity: `(entity, [(query feature, row)])`.
 pub(crate) struct Candidates {
     groups: Vec<(u32, usize, usize)>,
     items: Vec<(u32, u32)>,
@@ -169,8 +171,8 @@ impl Candidates {
     pub(crate) fn gather(map: &LocationMap, query: &[Word]) -> Self {
         let mut triples: Vec<(u32, u32, u32)> = Vec::new();
         for (q, f) in query.iter().enumerate() {
-            for &(loc, row) in map.postings(f.word) {
-                triples.push((loc, q as u32, row));
+            for &(entity, row) in map.postings(f.word) {
+                triples.push((entity, q as u32, row));
             }
         }
         triples.sort_unstable();
@@ -187,19 +189,19 @@ impl Candidates {
     }
 
     fn elimination(&self, map: &LocationMap, geo: &QueryGeometry, group: usize) -> Elimination {
-        let (loc, s, e) = self.groups[group];
-        consistency(map, geo, loc as usize, &self.items[s..e])
+        let (entity, s, e) = self.groups[group];
+        consistency(map, geo, entity, &self.items[s..e])
     }
 }
 
-/// The consistency matrix `J` of location `loc` for candidates `(query feature, row)`.
+/// The consistency matrix `J` of `entity` for candidates `(query feature, row)`.
 fn consistency(
     map: &LocationMap,
     geo: &QueryGeometry,
-    loc: usize,
+    entity: u32,
     items: &[(u32, u32)],
 ) -> Elimination {
-    let model = map.model(loc);
+    let model = map.entity_model(entity);
     let (grid, tol) = (map.grid(), map.tolerance());
     Elimination::new(items.len(), |a, b| {
         let (qa, ra) = items[a];
@@ -209,60 +211,63 @@ fn consistency(
     })
 }
 
-/// Every location's score for `query` (0 where it has no candidate): full elimination of each.
+/// Every location's score for `query` (0 where it has no candidate): full elimination of each
+/// entity, the best entity per location.
 pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
     let geo = QueryGeometry::new(map, query);
     let cands = Candidates::gather(map, query);
     let mut out = vec![0u32; map.locations()];
     for g in 0..cands.groups.len() {
-        out[cands.groups[g].0 as usize] = cands.elimination(map, &geo, g).run() as u32;
+        let loc = map.entity_location(cands.groups[g].0);
+        let s = cands.elimination(map, &geo, g).run() as u32;
+        out[loc] = out[loc].max(s);
     }
     out
 }
 
 /// Best-first search: candidate *counts* come from the inverted index (no grouping of the
-/// correspondences), and a location's candidates and `J` are only materialised when its bound
-/// is the highest of all. Returns `((score, location), evaluated)`.
+/// correspondences), and an entity's candidates and `J` are only materialised when its bound
+/// is the highest of all. Returns `((score, entity), evaluated)`.
 fn best_first(
     map: &LocationMap,
     query: &[Word],
     geo: &QueryGeometry,
-) -> (Option<(usize, usize)>, usize) {
-    let mut counts = vec![0u32; map.locations()];
+) -> (Option<(usize, u32)>, usize) {
+    let mut counts = vec![0u32; map.entities()];
     let mut touched = Vec::new();
     for f in query {
-        for &(loc, _) in map.postings(f.word) {
-            let c = &mut counts[loc as usize];
+        for &(entity, _) in map.postings(f.word) {
+            let c = &mut counts[entity as usize];
             if *c == 0 {
-                touched.push(loc as usize);
+                touched.push(entity);
             }
             *c += 1;
         }
     }
-    let mut heap: BinaryHeap<(usize, Reverse<usize>)> = touched
+    let mut heap: BinaryHeap<(usize, Reverse<u32>)> = touched
         .iter()
-        .map(|&l| (counts[l] as usize, Reverse(l)))
+        .map(|&e| (counts[e as usize] as usize, Reverse(e)))
         .collect();
-    let mut states: HashMap<usize, Elimination> = HashMap::new();
+    let mut states: HashMap<u32, Elimination> = HashMap::new();
     let mut evaluated = 0;
-    while let Some((_, Reverse(l))) = heap.pop() {
-        let e = states.entry(l).or_insert_with(|| {
+    while let Some((_, Reverse(entity))) = heap.pop() {
+        let e = states.entry(entity).or_insert_with(|| {
             evaluated += 1;
-            let model = map.model(l);
+            let model = map.entity_model(entity);
             let items: Vec<(u32, u32)> = query
                 .iter()
                 .enumerate()
                 .filter_map(|(q, f)| model.row(f.word).map(|r| (q as u32, r)))
                 .collect();
-            consistency(map, geo, l, &items)
+            consistency(map, geo, entity, &items)
         });
-        // Keep eliminating while this location stays at the top (same as push + pop).
+        // Keep eliminating while this entity stays at the top (same as push + pop).
         loop {
             if !e.step() {
-                // Highest bound of all, ties to the lowest location: this is the answer.
-                return (Some((e.bound(), l)), evaluated);
+                // Highest bound of all, ties to the lowest entity: this is the answer.
+                return (Some((e.bound(), entity)), evaluated);
             }
-            let key = (e.bound(), Reverse(l));
+            let key = (e.bound(), Reverse(entity));
             if heap.peek().is_some_and(|&top| top > key) {
                 heap.push(key);
                 break;
@@ -272,8 +277,9 @@ fn best_first(
     (None, evaluated)
 }
 
-/// `better(score, location, best)`: higher score wins, ties go to the lower location.
-fn better(score: usize, l: usize, best: &Option<(usize, usize)>) -> bool {
+/// `better(score, entity, best)`: higher score wins, ties go to the lower entity (entities are
+/// numbered in location order, so this is the lower location).
+fn better(score: usize, l: u32, best: &Option<(usize, u32)>) -> bool {
     match best {
         None => true,
         Some((bs, bl)) => score > *bs || (score == *bs && l < *bl),
@@ -294,7 +300,7 @@ pub fn recognize_query(
             let mut best = None;
             for g in 0..cands.groups.len() {
                 let s = cands.elimination(map, &geo, g).run();
-                let l = cands.groups[g].0 as usize;
+                let l = cands.groups[g].0;
                 if better(s, l, &best) {
                     best = Some((s, l));
                 }
@@ -303,11 +309,11 @@ pub fn recognize_query(
         }
         Schedule::Lockstep => {
             let cands = Candidates::gather(map, query);
-            let mut live: Vec<(usize, Elimination)> = (0..cands.groups.len())
-                .map(|g| (cands.groups[g].0 as usize, cands.elimination(map, &geo, g)))
+            let mut live: Vec<(u32, Elimination)> = (0..cands.groups.len())
+                .map(|g| (cands.groups[g].0, cands.elimination(map, &geo, g)))
                 .collect();
             let evaluated = live.len();
-            let mut best: Option<(usize, usize)> = None;
+            let mut best: Option<(usize, u32)> = None;
             while !live.is_empty() {
                 live.retain_mut(|(l, e)| {
                     if !better(e.bound(), *l, &best) {
@@ -323,8 +329,8 @@ pub fn recognize_query(
             (best, evaluated)
         }
     };
-    best.map(|(score, location)| Recognition {
-        location,
+    best.map(|(score, entity)| Recognition {
+        location: map.entity_location(entity),
         score,
         evaluated,
     })

@@ -19,7 +19,7 @@
 
 use rayon::prelude::*;
 
-use crate::eval::Prediction;
+use crate::localize::Prediction;
 use crate::{Error, Matrix, Result};
 
 /// Settings of [`match_sequences`].

@@ -15,13 +15,6 @@ pub use metrics::{evaluate, Metrics, PrPoint};
 pub use plot::{plot_pr, PLOT_SIZE};
 pub use predictions::write_predictions_csv;
 
-/// One method's answer for one query: at most one per query, higher confidence = more certain.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Prediction {
-    /// Query index `i`.
-    pub query: usize,
-    /// Predicted reference index `j`.
-    pub reference: usize,
-    /// Higher = more certain. Finite.
-    pub confidence: f64,
-}
+/// Every method's output type lives in the core next to [`crate::localize::localize`]; it is
+/// re-exported here because the protocol consumes it.
+pub use crate::localize::Prediction;

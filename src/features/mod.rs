@@ -18,9 +18,11 @@ use rayon::prelude::*;
 use crate::{Error, Matrix, Result};
 
 pub mod cnn;
+pub mod geometry;
 pub mod hog;
 mod image_io;
 
+pub use geometry::{image_file_size, Fit, Fitted};
 pub use image_io::{
     decode_image, list_images, load_image_file, prepare_gray, resize_gray, resize_rgb, to_gray,
     to_rgb, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,

@@ -139,8 +139,21 @@ pub(crate) fn check_matrix(chat: &Matrix) -> Result<()> {
     chat.check_finite("similarity matrix")
 }
 
-/// Fails unless `w` is a finite number > 0.
-pub(crate) fn check_hidden_cost(w: f64) -> Result<()> {
+/// Fails unless `fan_out` is at most [`MAX_FAN_OUT`]. The one check of the fan-out cap: the
+/// offline solver, the online solver and trip parameters all call it.
+pub fn check_fan_out(fan_out: usize) -> Result<()> {
+    if fan_out > MAX_FAN_OUT {
+        return Err(Error::param(
+            "fan_out",
+            format!("must be at most {MAX_FAN_OUT}, got {fan_out}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Fails unless `w` is a finite number > 0. The one check of the hidden cost: the offline
+/// solver, the confidence, the online solver and trip parameters all call it.
+pub fn check_hidden_cost(w: f64) -> Result<()> {
     if !(w.is_finite() && w > 0.0) {
         return Err(Error::param(
             "hidden_cost",
@@ -159,12 +172,7 @@ pub(crate) fn check_inputs(
     blocked: Option<&Blocked>,
 ) -> Result<()> {
     check_matrix(chat)?;
-    if fan_out > MAX_FAN_OUT {
-        return Err(Error::param(
-            "fan_out",
-            format!("must be at most {MAX_FAN_OUT}, got {fan_out}"),
-        ));
-    }
+    check_fan_out(fan_out)?;
     check_hidden_cost(w)?;
     if let Some(b) = blocked {
         if (b.rows(), b.cols()) != (chat.rows(), chat.cols()) {

@@ -27,6 +27,10 @@
 
 use super::graph::{match_cost, Blocked};
 
+/// Largest fan-out for which the window minimum is a direct scan instead of a monotone deque
+/// (measured with `benches/solver.rs`, group `window`).
+pub(crate) const DIRECT_WINDOW_MAX_K: usize = 8;
+
 /// Independent chunks scanned together in pass 3.
 pub(crate) const LANES: usize = 8;
 
@@ -528,7 +532,7 @@ pub(crate) fn forward_values_row(
         k,
         horizontal,
         w,
-        window: if k <= super::shortest_path::DIRECT_WINDOW_MAX_K {
+        window: if k <= DIRECT_WINDOW_MAX_K {
             Window::Direct
         } else {
             Window::Deque

@@ -36,7 +36,7 @@ mod shortest_path;
 /// Node cost of a matching node: `1/ĉ`, or `+inf` when `ĉ <= 0` (unusable). Every solver,
 /// the confidence and the online solver use this one definition.
 pub(crate) use graph::match_cost;
-pub use graph::Blocked;
+pub use graph::{check_fan_out, check_hidden_cost, Blocked};
 pub(crate) use kernel::{forward_values_row, Scratch as RowScratch};
 pub use marginals::{row_alternatives, RowAlternatives};
 pub use shortest_path::shortest_path;
@@ -91,19 +91,9 @@ pub const MAX_FLOWS: usize = 64;
 impl SolverParams {
     /// Checks every parameter's range.
     pub fn validate(&self) -> Result<()> {
-        if self.fan_out > MAX_FAN_OUT {
-            return Err(Error::param(
-                "fan_out",
-                format!("must be at most {MAX_FAN_OUT}, got {}", self.fan_out),
-            ));
-        }
+        check_fan_out(self.fan_out)?;
         if let HiddenCost::Fixed(w) = self.hidden_cost {
-            if !(w.is_finite() && w > 0.0) {
-                return Err(Error::param(
-                    "hidden_cost",
-                    format!("must be a finite number > 0, got {w}"),
-                ));
-            }
+            check_hidden_cost(w)?;
         }
         if self.flows == 0 || self.flows > MAX_FLOWS {
             return Err(Error::param(
@@ -228,7 +218,7 @@ pub fn solve(chat: &Matrix, params: &SolverParams) -> Result<Solution> {
         HiddenCost::Fixed(w) => w,
         HiddenCost::Auto => auto_hidden_cost(chat),
     };
-    graph::check_hidden_cost(w)?;
+    check_hidden_cost(w)?;
     let hypotheses = if params.flows > 1 && params.exact {
         exact::min_cost_flow(chat, params.fan_out, params.horizontal, w, params.flows)?
     } else {

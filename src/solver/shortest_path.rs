@@ -28,15 +28,13 @@
 //! the sink the smallest column of the last row wins.
 
 use super::graph::{check_inputs, hypothesis_from_steps, Blocked, Kind, Step};
-use super::kernel::{self, base_value, node_cost, range_step, BackPtr, Dest, RowCtx};
+use super::kernel::{
+    self, base_value, node_cost, range_step, BackPtr, Dest, RowCtx, DIRECT_WINDOW_MAX_K,
+};
 use super::Hypothesis;
 use crate::{Matrix, Result};
 
 pub(crate) use super::kernel::Window;
-
-/// Largest fan-out for which the window minimum is a direct scan instead of a monotone deque
-/// (measured with `benches/solver.rs`, group `window`).
-pub(crate) const DIRECT_WINDOW_MAX_K: usize = 8;
 
 /// Rows with at least this many columns are computed on two threads (two halves).
 pub(crate) const SPLIT_MIN_COLS: usize = 8192;

@@ -12,8 +12,8 @@ use serde::de::Error as _;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use super::{StoreError, StoreResult};
-use crate::eval::Prediction;
 use crate::localize::LocalizeOptions;
+use crate::localize::Prediction;
 use crate::similarity::Normalization;
 use crate::solver::{HiddenCost, Hypothesis};
 use crate::trip::TripParams;
@@ -48,6 +48,23 @@ pub struct LocalizationResult {
     pub predictions: Vec<StoredPrediction>,
     /// Seconds per stage.
     pub timings: StoredTimings,
+    /// The similarity-matrix picture stored with the result (its PNG is a separate blob, see
+    /// `Store::localization_picture`); `None` for results stored before pictures existed
+    /// (layout < 5) and for methods without a similarity matrix.
+    pub picture: Option<StoredPicture>,
+}
+
+/// What a localization's similarity-matrix picture shows (`crate::picture::MatrixPicture`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredPicture {
+    /// Picture height in pixels (query blocks).
+    pub rows: usize,
+    /// Picture width in pixels (reference blocks).
+    pub cols: usize,
+    /// The similarity shown black (and below).
+    pub lo: f32,
+    /// The similarity shown white (and above).
+    pub hi: f32,
 }
 
 /// How `W` was chosen.
@@ -224,6 +241,8 @@ struct FlatOut<'a> {
     hypotheses: &'a [StoredHypothesis],
     predictions: &'a [StoredPrediction],
     timings: &'a StoredTimings,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    picture: Option<&'a StoredPicture>,
 }
 
 #[derive(Deserialize)]
@@ -240,6 +259,8 @@ struct FlatIn {
     hypotheses: Vec<StoredHypothesis>,
     predictions: Vec<StoredPrediction>,
     timings: StoredTimings,
+    #[serde(default)]
+    picture: Option<StoredPicture>,
 }
 
 fn hex_out<S: Serializer>(id: &u64, s: S) -> Result<S::Ok, S::Error> {
@@ -270,6 +291,7 @@ impl LocalizationDocument {
             hypotheses: &r.hypotheses,
             predictions: &r.predictions,
             timings: &r.timings,
+            picture: r.picture.as_ref(),
         };
         serde_json::to_vec(&flat).map_err(|e| StoreError::Backend(Box::new(e)))
     }
@@ -290,6 +312,7 @@ impl LocalizationDocument {
                 hypotheses: f.hypotheses,
                 predictions: f.predictions,
                 timings: f.timings,
+                picture: f.picture,
             },
         })
     }
@@ -363,6 +386,7 @@ mod tests {
                     confidence: 0.5,
                 }],
                 timings: StoredTimings::default(),
+                picture: None,
             },
         };
         let json = doc.to_json().unwrap();

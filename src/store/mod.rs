@@ -28,6 +28,10 @@
 //! [`document`], separate from the API's wire DTOs, so a wire change cannot silently change
 //! stored data.
 
+// Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
+// new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
+#![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
+
 pub mod document;
 pub mod postgres;
 pub mod sled;
@@ -41,7 +45,7 @@ use crate::Matrix;
 
 pub use self::postgres::PgStore;
 pub use self::sled::SledStore;
-pub use document::{LocalizationDocument, LocalizationResult, TripParamsDocument};
+pub use document::{LocalizationDocument, LocalizationResult, StoredPicture, TripParamsDocument};
 
 /// A boxed engine error, kept as the source of [`StoreError::Backend`] and
 /// [`StoreError::Open`] without naming the engine's type.
@@ -252,12 +256,14 @@ impl IdempotencyRecord {
 }
 
 /// A batch of reference images for [`Store::append_images`]: one metadata entry per
-/// descriptor row (checked by [`ImageBatch::new`]).
+/// descriptor row (checked by [`ImageBatch::new`]), and optionally one JPEG thumbnail per row
+/// ([`ImageBatch::with_thumbnails`]; precomputed descriptors come without images).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImageBatch {
     map: u64,
     descriptors: Matrix,
     metas: Vec<ImageMeta>,
+    thumbnails: Vec<Vec<u8>>,
     idempotency: Option<IdempotencyRecord>,
 }
 
@@ -276,8 +282,23 @@ impl ImageBatch {
             map,
             descriptors,
             metas,
+            thumbnails: Vec::new(),
             idempotency: None,
         })
+    }
+
+    /// The same batch with one JPEG thumbnail per row (`crate::picture::thumbnail_jpeg`),
+    /// stored in the same atomic write ([`crate::Error::Shape`] when the count differs).
+    pub fn with_thumbnails(mut self, thumbnails: Vec<Vec<u8>>) -> crate::Result<Self> {
+        if thumbnails.len() != self.descriptors.rows() {
+            return Err(crate::Error::Shape(format!(
+                "{} thumbnails for {} descriptor rows",
+                thumbnails.len(),
+                self.descriptors.rows()
+            )));
+        }
+        self.thumbnails = thumbnails;
+        Ok(self)
     }
 
     /// The batch, stored together with `record` (whose `indices` the engine sets); the write
@@ -305,6 +326,11 @@ impl ImageBatch {
     /// The metadata, one entry per row.
     pub fn metas(&self) -> &[ImageMeta] {
         &self.metas
+    }
+
+    /// The thumbnails, one per row, or none at all.
+    pub fn thumbnails(&self) -> &[Vec<u8>] {
+        &self.thumbnails
     }
 }
 
@@ -344,6 +370,9 @@ pub struct NewLocalization {
     pub map_id: u64,
     /// The result; the engine adds the id, map id and creation time to its document.
     pub result: LocalizationResult,
+    /// The PNG of the similarity-matrix picture that `result.picture` describes, stored in
+    /// the same atomic write (`None` when the result has no picture).
+    pub picture: Option<Vec<u8>>,
 }
 
 /// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
@@ -467,6 +496,11 @@ pub trait Store: Send + Sync + 'static {
     /// Metadata of the images `rows` of a map, in order.
     async fn image_metadata(&self, map: u64, rows: Range<u32>) -> StoreResult<Vec<ImageMeta>>;
 
+    /// The JPEG thumbnail of image `index` of a map, `None` when it has none (stored before
+    /// thumbnails existed, precomputed descriptors, or no such image). Fails with
+    /// [`StoreError::MapNotFound`] when the map is gone.
+    async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>>;
+
     /// The encoded co-occurrence map of `map`, `None` before its first images.
     async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>>;
 
@@ -481,6 +515,10 @@ pub trait Store: Send + Sync + 'static {
 
     /// One stored result.
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord>;
+
+    /// The PNG of a stored result's similarity-matrix picture, `None` when it has none.
+    /// Fails with [`StoreError::LocalizationNotFound`] when the result is gone.
+    async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>>;
 
     /// A page of results, newest first; only `map`'s when given (which must exist).
     async fn list_localizations(
@@ -506,8 +544,8 @@ pub trait Store: Send + Sync + 'static {
     /// Closes a trip (idempotent: closing twice keeps the first time).
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord>;
 
-    /// Every frame's latest estimate, in frame order.
-    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>>;
+    /// The latest estimate of every frame from `from` on, in frame order (`from` 0: all).
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>>;
 
     /// A page of `map`'s trips, newest first (the map must exist).
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>>;

@@ -251,6 +251,10 @@ fn eval_rejects_bad_input_with_one_line() {
     image::RgbImage::new(48, 32)
         .save(odd.join("b.png"))
         .unwrap();
+    // A first reference image smaller than one HOG cell cannot set the input geometry.
+    let tiny = dir.path("tiny");
+    std::fs::create_dir_all(&tiny).unwrap();
+    image::RgbImage::new(4, 4).save(tiny.join("a.png")).unwrap();
     let corrupt = dir.path("corrupt");
     std::fs::create_dir_all(&corrupt).unwrap();
     std::fs::write(corrupt.join("x.png"), b"\x89PNG but not really").unwrap();
@@ -276,7 +280,14 @@ fn eval_rejects_bad_input_with_one_line() {
     let cases: Vec<(Vec<String>, &str)> = vec![
         (base(dir.path("nope").to_str().unwrap()), "nope"),
         (base(empty.to_str().unwrap()), "empty"),
-        (base2(odd.to_str().unwrap(), &route.query), "b.png"),
+        (base2(tiny.to_str().unwrap(), &route.query), "a.png"),
+        (
+            with(
+                base2(odd.to_str().unwrap(), &route.query),
+                &["--fit", "zoom"],
+            ),
+            "--fit",
+        ),
         (base2(corrupt.to_str().unwrap(), &route.query), "x.png"),
         (with(base(&route.query), &["--flows", "abc"]), "--flows"),
         (with(base(&route.query), &["--exclude", "5-2"]), "exclude"),
@@ -290,6 +301,60 @@ fn eval_rejects_bad_input_with_one_line() {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         seasonloc(&args).failure_mentions(needle);
     }
+}
+
+/// Query images of another size or aspect ratio than the map's are brought to the map's input
+/// geometry (its first reference image's size) without any flag, by `--fit` stretch or crop.
+#[test]
+fn eval_brings_images_of_any_size_to_the_map_geometry() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 40, 30);
+    let resized = |name: &str, (w, h): (u32, u32), pad: u32| {
+        let out = dir.path(name);
+        std::fs::create_dir_all(&out).unwrap();
+        for entry in std::fs::read_dir(&route.query).unwrap() {
+            let path = entry.unwrap().path();
+            let img = image::open(&path).unwrap().to_rgb8();
+            let big = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+            // `pad` grey rows above and below: another camera with a taller field of view.
+            let mut framed = image::RgbImage::from_pixel(w, h + 2 * pad, image::Rgb([90; 3]));
+            image::imageops::replace(&mut framed, &big, 0, i64::from(pad));
+            framed.save(out.join(path.file_name().unwrap())).unwrap();
+        }
+        out.to_str().unwrap().to_string()
+    };
+    let twice = resized("query-128x64", (128, 64), 0);
+    let taller = resized("query-96x64", (96, 48), 8);
+    let run = |query: &str, extra: &[&str]| {
+        let mut args = vec![
+            "eval",
+            "--reference",
+            &route.reference,
+            "--query",
+            query,
+            "--ground-truth",
+            &route.ground_truth,
+            "--cell-size",
+            "8",
+            "--tolerance",
+            "1",
+        ];
+        args.extend_from_slice(extra);
+        seasonloc(&args).success_json()
+    };
+    let same = run(&route.query, &[]);
+    let out = run(&twice, &[]);
+    assert_eq!(out["input_geometry"], serde_json::json!([64, 32]), "{out}");
+    assert_eq!(out["fit"], "stretch");
+    assert_eq!(out["descriptor_dim"], same["descriptor_dim"]);
+    assert!(out["ap"].as_f64().unwrap() > 0.9, "{out}");
+    // 96x64 with 8 px bands: the centred 2:1 window is the scene; crop finds it.
+    let crop = run(&taller, &["--fit", "crop"]);
+    assert_eq!(crop["fit"], "crop");
+    assert!(crop["ap"].as_f64().unwrap() > 0.9, "{crop}");
+    // An explicit --resize is the geometry instead.
+    let explicit = run(&twice, &["--resize", "32x16"]);
+    assert_eq!(explicit["input_geometry"], serde_json::json!([32, 16]));
 }
 
 /// The acceptance numbers of the localization core on the shared Nordland split (winter queries

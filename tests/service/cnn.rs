@@ -83,10 +83,11 @@ fn route_pngs() -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
 
 #[test]
 fn cnn_map_equals_the_library_and_records_the_model_identity() {
-    let Some((_dir, model)) = model_copy() else {
+    let Some((dir, model)) = model_copy() else {
         return;
     };
-    let server = Server::start();
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -173,7 +174,8 @@ fn cnn_map_creation_errors_are_precise_400s() {
     let Some((dir, model)) = model_copy() else {
         return;
     };
-    let server = Server::start();
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let expect = |descriptor: Value, field: &str, needle: &str| {
         let r = create(c, descriptor.clone());
@@ -263,10 +265,11 @@ fn the_servers_default_model_is_used_when_the_body_names_none() {
 
 #[test]
 fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
-    let Some((_dir, model)) = model_copy() else {
+    let Some((dir, model)) = model_copy() else {
         return;
     };
-    let server = Server::start();
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -320,10 +323,11 @@ fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
 /// a model changed after creation is 409 `model_mismatch` that leaves the trip as it was.
 #[test]
 fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
-    let Some((_dir, model)) = model_copy() else {
+    let Some((dir, model)) = model_copy() else {
         return;
     };
-    let server = Server::start();
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));

@@ -35,7 +35,7 @@ fn base(c: &Client) -> String {
 }
 
 /// The screenshots the README shows (`docs/dashboard-NAME.png`): one of each page on a laptop.
-const DOC_SHOTS: &[&str] = &["overview", "map", "localization", "trip"];
+const DOC_SHOTS: &[&str] = &["overview", "map", "map-gps", "localization", "trip"];
 
 /// Saves a screenshot of the current page as `name.png` under the test artifacts and, with
 /// `SEASONLOC_UPDATE_DOCS=1`, the ones in [`DOC_SHOTS`] under `docs/`.
@@ -202,9 +202,17 @@ fn dashboard_pages_in_a_browser_on_generated_images() {
     );
     assert_eq!(r.status, 201, "{}", body(&r));
     let map = r.json()["id"].as_str().unwrap().to_string();
-    let parts: Vec<Part> = (0..40)
+    let mut parts: Vec<Part> = (0..40)
         .map(|i| Part::image(&format!("r{i}.png"), route.reference_png(i)))
         .collect();
+    // GPS metadata along a quarter circle (so the plotted route is not a straight line).
+    let metas: Vec<Value> = (0..40)
+        .map(|i| {
+            let a = f64::from(i) / 39.0 * std::f64::consts::FRAC_PI_2;
+            json!({"latitude": 63.40 + 0.01 * a.sin(), "longitude": 10.40 + 0.02 * a.cos()})
+        })
+        .collect();
+    parts.push(Part::json("metadata", &json!(metas)));
     upload(&c, &map, &parts);
 
     b.goto(&format!("{origin}/"));
@@ -240,6 +248,52 @@ fn dashboard_pages_in_a_browser_on_generated_images() {
         "{errors:#?}"
     );
 
+    // `/maps/{id}`: the thumbnails along the route load (real pictures of the references,
+    // 64 x 32 like the uploads), the rest as the strip scrolls, and the GPS route is drawn.
+    b.goto(&format!("{origin}/maps/{map}"));
+    let loaded = "[...document.querySelectorAll('#thumb-strip img.thumb-img')]\
+                  .filter(i => i.complete && i.naturalWidth === 64 && i.naturalHeight === 32).length";
+    b.wait_for(&format!("{loaded} >= 4"), Duration::from_secs(10))
+        .unwrap();
+    assert_eq!(
+        b.eval("document.querySelectorAll('#thumb-strip figure.thumb').length"),
+        16,
+        "16 thumbnails spread along the route"
+    );
+    assert_eq!(
+        b.eval("[...document.querySelectorAll('#thumb-strip figcaption')].map(f => f.innerText).join('|')"),
+        (0..16)
+            .map(|k| format!("reference {}", (k * 39 + 7) / 15))
+            .collect::<Vec<_>>()
+            .join("|"),
+        "the strip spans the route from its first image to its last"
+    );
+    // Scroll the strip as a person would, a few hundred pixels at a time.
+    b.eval(
+        "(async () => { const s = document.querySelector('#thumb-strip'); \
+         for (let k = 0; k < 40 && s.scrollLeft + s.clientWidth < s.scrollWidth - 1; k++) { s.scrollLeft += 300; \
+         await new Promise(r => setTimeout(r, 80)); } return 1; })()",
+    );
+    b.wait_for(&format!("{loaded} === 16"), Duration::from_secs(10))
+        .unwrap();
+    b.wait_for(
+        "document.querySelector('#gps-route path.gps-route') !== null",
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    assert_eq!(
+        b.eval("(document.querySelector('#gps-route path.gps-route').getAttribute('d').match(/[ML]/g) || []).length"),
+        40,
+        "one route point per image with GPS metadata"
+    );
+    // The quarter circle runs from east (start) to north (end): the start is drawn right of
+    // and below the end.
+    let (sx, sy) = b.center_of("#gps-route .gps-start");
+    let (ex, ey) = b.center_of("#gps-route .gps-end");
+    assert!(sx > ex && sy > ey, "start ({sx}, {sy}) end ({ex}, {ey})");
+    shoot(&mut b, "map-gps");
+    b.assert_no_script_errors("/maps/{id}");
+
     // A trip opened before any frame: the page shows that, then follows the batches.
     let r = c.request("POST", &format!("/v1/maps/{map}/trips"), None, &[]);
     assert_eq!(r.status, 201, "{}", body(&r));
@@ -272,6 +326,19 @@ fn dashboard_pages_in_a_browser_on_generated_images() {
     );
     let dots = b.eval("document.querySelectorAll('#position-chart .position-dot').length");
     assert_eq!(dots, 20, "one dot per frame on the map");
+    // The thumbnail of the reference the vehicle is matched to now.
+    let now = c.get(&format!("/v1/trips/{trip}?since=19")).json();
+    let reference = now["estimates"][0]["ref"].as_u64().unwrap();
+    b.wait_for(
+        "(() => { const i = document.querySelector('.now-thumb img.thumb-img'); \
+         return i !== null && i.complete && i.naturalWidth === 64; })()",
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    assert_eq!(
+        b.text_of(".now-thumb figcaption"),
+        Some(format!("reference {reference} (matched now)"))
+    );
     // Closing the trip stops the page's polling, and says so.
     let r = c.request("POST", &format!("/v1/trips/{trip}/close"), None, &[]);
     assert_eq!(r.status, 200, "{}", body(&r));
@@ -359,6 +426,21 @@ fn dashboard_pages_in_a_browser_on_nordland() {
             text.contains("HOG, 8 px cells") && text.contains(short),
             "{label} map: {text}"
         );
+        b.wait_for(
+            "[...document.querySelectorAll('#thumb-strip img.thumb-img')]\
+             .filter(i => i.complete && i.naturalWidth === 64).length >= 3",
+            Duration::from_secs(10),
+        )
+        .unwrap();
+        b.wait_for(
+            "document.querySelector('#no-gps') !== null",
+            Duration::from_secs(10),
+        )
+        .unwrap();
+        assert!(
+            b.text_of("#no-gps").unwrap().contains("0 of 200 images"),
+            "{label}: Nordland frames carry no GPS metadata"
+        );
         assert_fits_width(&mut b, "/maps/{id}");
         shoot(&mut b, &format!("map{suffix}"));
 
@@ -387,6 +469,28 @@ fn dashboard_pages_in_a_browser_on_nordland() {
             predictions.len(),
             "{label}: one dot per prediction"
         );
+        // Under the paths: the similarity picture stored with the result, as a real image of
+        // queries x references pixels (60 x 200: no downsampling needed at this size).
+        let picture = b.eval(
+            "(async () => { const i = document.querySelector('svg.matrix image.matrix-picture'); \
+             if (!i) return null; const href = i.getAttribute('href'); \
+             const img = new Image(); img.src = href; await img.decode(); \
+             const paths = document.querySelector('svg.matrix .hypotheses'); \
+             return { blob: href.startsWith('blob:'), w: img.naturalWidth, h: img.naturalHeight, \
+               under: Boolean(i.compareDocumentPosition(paths) & Node.DOCUMENT_POSITION_FOLLOWING) }; })()",
+        );
+        assert_eq!(
+            picture,
+            json!({"blob": true, "w": loc["picture"]["cols"], "h": loc["picture"]["rows"], "under": true}),
+            "{label}: the matrix picture is drawn under the route hypotheses"
+        );
+        assert_eq!(
+            (
+                loc["picture"]["rows"].as_u64(),
+                loc["picture"]["cols"].as_u64()
+            ),
+            (Some(60), Some(200))
+        );
         assert_eq!(
             b.eval("document.querySelectorAll('#confidence-chart .confidence-dot').length"),
             predictions.len()
@@ -411,6 +515,17 @@ fn dashboard_pages_in_a_browser_on_nordland() {
             b.text_of("#selected-query .matched-ref"),
             Some(format!("reference {}", p["ref"]))
         );
+        // ... and shows that reference's thumbnail (a 64 x 32 Nordland frame).
+        b.wait_for(
+            "(() => { const i = document.querySelector('#selected-query .thumb img.thumb-img'); \
+             return i !== null && i.complete && i.naturalWidth === 64 && i.naturalHeight === 32; })()",
+            Duration::from_secs(10),
+        )
+        .unwrap();
+        assert_eq!(
+            b.text_of("#selected-query .thumb figcaption"),
+            Some(format!("reference {} (matched)", p["ref"]))
+        );
         assert_fits_width(&mut b, "/localizations/{id}");
         shoot(&mut b, &format!("localization{suffix}"));
         b.assert_no_script_errors("/localizations/{id}");
@@ -422,6 +537,12 @@ fn dashboard_pages_in_a_browser_on_nordland() {
     assert_eq!(b.text_of("#frame-count").as_deref(), Some("30"));
     assert_eq!(b.text_of("#trip-status"), Some(first_status.clone()));
     assert_eq!(b.text_of("#map-link").as_deref(), Some(name));
+    b.wait_for(
+        "(() => { const i = document.querySelector('.now-thumb img.thumb-img'); \
+         return i !== null && i.complete && i.naturalWidth === 64; })()",
+        Duration::from_secs(10),
+    )
+    .unwrap();
     shoot(&mut b, "trip");
     b.eval("window.__sameDocument = true");
     // Winter 1500-1519 is far past the map's end (summer 300-499): the vehicle leaves the

@@ -81,6 +81,12 @@ fn runtime_stage_is_small_non_root_and_consistent() {
     assert_eq!(rt.volumes, vec![rt.env["SEASONLOC_DATA_DIR"].clone()]);
     assert_eq!(rt.entrypoint, vec!["seasonloc"]);
     assert_eq!(rt.cmd, vec!["serve"]);
+    assert!(
+        rt.env
+            .get("SEASONLOC_API_KEYS")
+            .is_some_and(|p| p.starts_with("/run/secrets/")),
+        "the image reads its API keys from a mounted secret"
+    );
     assert!(rt.healthcheck.join(" ").contains("/healthz"));
     let ignore =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(".dockerignore"))
@@ -116,14 +122,26 @@ fn healthcheck_command_passes_against_the_image_environment() {
     let addr = rt.env["SEASONLOC_ADDR"].replace(&format!(":{image_port}"), &format!(":{port}"));
     let data = tmp.path().join("data");
     let data_s = data.to_string_lossy().into_owned();
+    // The image's key file is a mounted secret; stand in a temporary one at another path.
+    let keys = tmp.path().join("keys.json");
+    std::fs::write(
+        &keys,
+        r#"{"keys": [{"name": "ops", "role": "admin", "sha256": "2c26b46b68ffc68ff99b453c1d30413413422d706483bfa0f98a5e886266e7ae"}]}"#,
+    )
+    .unwrap();
+    let keys_s = keys.to_string_lossy().into_owned();
+    let replaced = ["SEASONLOC_ADDR", "SEASONLOC_DATA_DIR", "SEASONLOC_API_KEYS"];
     let mut env: Vec<(&str, &str)> = rt
         .env
         .iter()
-        .filter(|(k, _)| k.as_str() != "SEASONLOC_ADDR" && k.as_str() != "SEASONLOC_DATA_DIR")
+        .filter(|(k, _)| !replaced.contains(&k.as_str()))
         .map(|(k, v)| (k.as_str(), v.as_str()))
         .collect();
     env.push(("SEASONLOC_ADDR", &addr));
     env.push(("SEASONLOC_DATA_DIR", &data_s));
+    if rt.env.contains_key("SEASONLOC_API_KEYS") {
+        env.push(("SEASONLOC_API_KEYS", &keys_s));
+    }
     let args: Vec<&str> = rt.cmd[1..].iter().map(String::as_str).collect();
     let p = Process::start(&args, &env, &tmp.path().join("log"));
     let cmd: Vec<String> = rt

@@ -96,7 +96,7 @@ fn bad_map_settings_are_400() {
         (json!({"name": "a", "descriptor": {"kind": "sift"}}), "sift"),
         (
             json!({"name": "a", "descriptor": {"kind": "cnn", "model": "m.onnx", "layer": "x"}}),
-            "m.onnx",
+            "descriptor.model",
         ),
         (
             json!({"name": "a", "descriptor": {"kind": "precomputed", "dim": 0}}),

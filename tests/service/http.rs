@@ -147,7 +147,7 @@ impl Client {
         headers: &[(&str, &str)],
     ) -> std::io::Result<Response> {
         let ct = format!("multipart/form-data; boundary={BOUNDARY}");
-        self.try_request_with("POST", path, Some(&ct), &multipart_body(parts), headers)
+        self.try_request_with("POST", path, headers, Some(&ct), &multipart_body(parts))
     }
 
     pub fn request(
@@ -168,30 +168,45 @@ impl Client {
         content_type: Option<&str>,
         body: &[u8],
     ) -> std::io::Result<Response> {
-        self.try_request_with(method, path, content_type, body, &[])
+        self.try_request_with(method, path, &[], content_type, body)
+    }
+
+    /// A request with extra headers (e.g. `Authorization`).
+    pub fn request_with(
+        &self,
+        method: &str,
+        path: &str,
+        headers: &[(&str, &str)],
+        content_type: Option<&str>,
+        body: &[u8],
+    ) -> Response {
+        self.try_request_with(method, path, headers, content_type, body)
+            .unwrap_or_else(|e| panic!("{method} {path}: {e}"))
     }
 
     pub fn try_request_with(
         &self,
         method: &str,
         path: &str,
+        headers: &[(&str, &str)],
         content_type: Option<&str>,
         body: &[u8],
-        headers: &[(&str, &str)],
     ) -> std::io::Result<Response> {
         let mut stream = TcpStream::connect(self.addr)?;
         stream.set_read_timeout(Some(Duration::from_secs(120)))?;
         stream.set_nodelay(true)?;
         let mut head = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\nContent-Length: {}\r\n",
-            self.addr,
+            "{method} {path} HTTP/1.1\r\nConnection: close\r\nContent-Length: {}\r\n",
             body.len()
         );
+        if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("host")) {
+            head.push_str(&format!("Host: {}\r\n", self.addr));
+        }
         if let Some(ct) = content_type {
             head.push_str(&format!("Content-Type: {ct}\r\n"));
         }
-        for (name, value) in headers {
-            head.push_str(&format!("{name}: {value}\r\n"));
+        for (k, v) in headers {
+            head.push_str(&format!("{k}: {v}\r\n"));
         }
         head.push_str("\r\n");
         let mut request = head.into_bytes();

@@ -2,6 +2,7 @@
 //! (in-process for most tests; the built binary for restart, SIGKILL, configuration and the
 //! Dockerfile's runtime assumptions).
 
+mod auth;
 mod browser;
 mod cnn;
 mod common;
@@ -15,3 +16,4 @@ mod http;
 mod idempotency;
 mod spec;
 mod trips;
+mod views;

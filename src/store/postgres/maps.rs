@@ -190,6 +190,8 @@ impl PgStore {
             .iter()
             .map(|m| codec::encode_image(&[], m))
             .collect();
+        // NULL, not an empty array, for a batch without thumbnails (see migration 0003).
+        let thumbnails: Option<&[Vec<u8>]> = Some(batch.thumbnails()).filter(|t| !t.is_empty());
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         let lock = tx
@@ -222,8 +224,9 @@ impl PgStore {
         if end > start {
             let insert = tx
                 .prepare_cached(
-                    "INSERT INTO image_batches (map_id, first, count, dim, descriptors, metas)
-                     VALUES ($1, $2, $3, $4, $5, $6)",
+                    "INSERT INTO image_batches
+                         (map_id, first, count, dim, descriptors, metas, thumbnails)
+                     VALUES ($1, $2, $3, $4, $5, $6, $7)",
                 )
                 .await?;
             tx.execute(
@@ -235,6 +238,7 @@ impl PgStore {
                     &i64::from(dim),
                     &bytes,
                     &metas,
+                    &thumbnails,
                 ],
             )
             .await?;
@@ -352,6 +356,25 @@ impl PgStore {
             }
         }
         Ok(out)
+    }
+
+    pub(super) async fn thumbnail_of(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        let key = db_id(map).ok_or(StoreError::MapNotFound(map))?;
+        let client = self.client().await?;
+        // The map row decides "gone" vs "no thumbnail"; the batch holding `index`, if any, its
+        // thumbnail (PostgreSQL arrays count from 1; out of range or NULL array: NULL).
+        let stmt = client
+            .prepare_cached(
+                "SELECT b.thumbnails[$2 - b.first + 1]
+                 FROM maps m LEFT JOIN image_batches b
+                   ON b.map_id = m.id AND b.first <= $2 AND b.first + b.count > $2
+                 WHERE m.id = $1",
+            )
+            .await?;
+        match client.query_opt(&stmt, &[&key, &i64::from(index)]).await? {
+            Some(row) => Ok(row.get(0)),
+            None => Err(StoreError::MapNotFound(map)),
+        }
     }
 
     pub(super) async fn cooc(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {

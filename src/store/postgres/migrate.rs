@@ -27,6 +27,11 @@ pub const MIGRATIONS: &[(u32, &str, &str)] = &[
         "0002_idempotency",
         include_str!("../../../migrations/postgres/0002_idempotency.sql"),
     ),
+    (
+        3,
+        "0003_thumbnails_and_pictures",
+        include_str!("../../../migrations/postgres/0003_thumbnails_and_pictures.sql"),
+    ),
 ];
 
 /// The newest schema version this build knows.

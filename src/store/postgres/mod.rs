@@ -370,6 +370,10 @@ impl Store for PgStore {
         self.metas(map, rows).await
     }
 
+    async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        self.thumbnail_of(map, index).await
+    }
+
     async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
         self.cooc(map).await
     }
@@ -384,6 +388,10 @@ impl Store for PgStore {
 
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
         self.localization(id).await
+    }
+
+    async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.picture(id).await
     }
 
     async fn list_localizations(
@@ -414,8 +422,8 @@ impl Store for PgStore {
         self.close(id).await
     }
 
-    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
-        self.estimates(id).await
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+        self.estimates(id, from).await
     }
 
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {

@@ -110,11 +110,12 @@ impl PgStore {
         let json = record.document.to_json()?;
         let stmt = client
             .prepare_cached(
-                "INSERT INTO localizations (id, map_id, created_ms, document) VALUES ($1, $2, $3, $4)",
+                "INSERT INTO localizations (id, map_id, created_ms, document, picture)
+                 VALUES ($1, $2, $3, $4, $5)",
             )
             .await?;
         match client
-            .execute(&stmt, &[&id, &map, &ms(created_ms), &json])
+            .execute(&stmt, &[&id, &map, &ms(created_ms), &json, &new.picture])
             .await
         {
             Ok(_) => Ok(record),
@@ -336,17 +337,29 @@ impl PgStore {
         }
     }
 
-    pub(super) async fn estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
+    pub(super) async fn picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        let key = db_id(id).ok_or(StoreError::LocalizationNotFound(id))?;
+        let client = self.client().await?;
+        let stmt = client
+            .prepare_cached("SELECT picture FROM localizations WHERE id = $1")
+            .await?;
+        match client.query_opt(&stmt, &[&key]).await? {
+            Some(row) => Ok(row.get(0)),
+            None => Err(StoreError::LocalizationNotFound(id)),
+        }
+    }
+
+    pub(super) async fn estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
         let key = db_id(id).ok_or(StoreError::TripNotFound(id))?;
         let client = self.client().await?;
         let stmt = client
             .prepare_cached(
                 "SELECT t.id, f.frame, f.reference, f.confidence
-                 FROM trips t LEFT JOIN trip_frames f ON f.trip_id = t.id
+                 FROM trips t LEFT JOIN trip_frames f ON f.trip_id = t.id AND f.frame >= $2
                  WHERE t.id = $1 ORDER BY f.frame",
             )
             .await?;
-        let rows = client.query(&stmt, &[&key]).await?;
+        let rows = client.query(&stmt, &[&key, &i64::from(from)]).await?;
         if rows.is_empty() {
             return Err(StoreError::TripNotFound(id));
         }

@@ -165,6 +165,90 @@ async fn batches_read_back_across_their_boundaries() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thumbnails_and_pictures_ride_in_their_writes() {
+    use crate::store::document::{LocalizationResult, StoredParams, StoredTimings};
+    let Some(url) = database("pictures").await else {
+        return;
+    };
+    let store = PgStore::connect(&url).await.unwrap();
+    let map = store.create_map(precomputed(3)).await.unwrap();
+    let metas = vec![ImageMeta::default(); 2];
+    // A batch without thumbnails (precomputed descriptors), then one with.
+    store
+        .append_images(ImageBatch::new(map.id, rows(2, 3, 0.0), metas.clone()).unwrap())
+        .await
+        .unwrap();
+    let with = ImageBatch::new(map.id, rows(2, 3, 9.0), metas.clone())
+        .unwrap()
+        .with_thumbnails(vec![b"jpeg-2".to_vec(), b"jpeg-3".to_vec()])
+        .unwrap();
+    assert_eq!(store.append_images(with).await.unwrap(), 2..4);
+    // A refused batch writes neither its rows nor its thumbnails.
+    let wrong = ImageBatch::new(map.id, rows(1, 4, 0.0), metas[..1].to_vec())
+        .unwrap()
+        .with_thumbnails(vec![b"never".to_vec()])
+        .unwrap();
+    assert!(store.append_images(wrong).await.is_err());
+    assert_eq!(store.thumbnail(map.id, 0).await.unwrap(), None);
+    assert_eq!(store.thumbnail(map.id, 1).await.unwrap(), None);
+    assert_eq!(
+        store.thumbnail(map.id, 2).await.unwrap(),
+        Some(b"jpeg-2".to_vec())
+    );
+    assert_eq!(
+        store.thumbnail(map.id, 3).await.unwrap(),
+        Some(b"jpeg-3".to_vec())
+    );
+    assert_eq!(store.thumbnail(map.id, 4).await.unwrap(), None);
+    assert!(matches!(
+        store.thumbnail(u64::MAX - 1, 0).await,
+        Err(StoreError::MapNotFound(_))
+    ));
+
+    let result = LocalizationResult {
+        query_count: 1,
+        reference_count: 4,
+        params: StoredParams::new(&crate::localize::LocalizeOptions::default(), 1.0, None),
+        total_cost: 0.0,
+        hypotheses: Vec::new(),
+        predictions: Vec::new(),
+        timings: StoredTimings::default(),
+        picture: None,
+    };
+    let plain = store
+        .create_localization(NewLocalization {
+            map_id: map.id,
+            result: result.clone(),
+            picture: None,
+        })
+        .await
+        .unwrap();
+    let pictured = store
+        .create_localization(NewLocalization {
+            map_id: map.id,
+            result,
+            picture: Some(b"png".to_vec()),
+        })
+        .await
+        .unwrap();
+    assert_eq!(store.localization_picture(plain.id).await.unwrap(), None);
+    assert_eq!(
+        store.localization_picture(pictured.id).await.unwrap(),
+        Some(b"png".to_vec())
+    );
+    // Deleting the map takes its thumbnails and its results' pictures.
+    store.delete_map(map.id).await.unwrap();
+    assert!(matches!(
+        store.thumbnail(map.id, 2).await,
+        Err(StoreError::MapNotFound(_))
+    ));
+    assert!(matches!(
+        store.localization_picture(pictured.id).await,
+        Err(StoreError::LocalizationNotFound(_))
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn trip_batches_and_cooc_maps_are_conditional() {
     let Some(url) = database("conditional").await else {
         return;
@@ -207,8 +291,11 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
     ));
     let (rec, state) = store.trip_state(trip.id).await.unwrap();
     assert_eq!((rec.frame_count, state), (5, vec![2; 3]));
-    let est = store.trip_estimates(trip.id).await.unwrap();
+    let est = store.trip_estimates(trip.id, 0).await.unwrap();
     assert_eq!(est.len(), 5);
+    // Read from a frame on: the same estimates, the earlier ones left out.
+    assert_eq!(store.trip_estimates(trip.id, 3).await.unwrap(), est[3..]);
+    assert!(store.trip_estimates(trip.id, 9).await.unwrap().is_empty());
     // Frame 2 was revised by the second batch (its window).
     assert_eq!(est[2].reference, Some(4));
     assert_eq!(est[3].reference, None);
@@ -220,7 +307,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
         Err(StoreError::TripClosed(_))
     ));
     assert!(matches!(
-        store.trip_estimates(u64::MAX).await,
+        store.trip_estimates(u64::MAX, 0).await,
         Err(StoreError::TripNotFound(_))
     ));
     let page = store

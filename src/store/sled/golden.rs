@@ -272,6 +272,7 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
                 similarity: 1.0 / 3.0,
                 solve: 0.02,
             },
+            picture: None,
         },
     };
     let stored = golden()
@@ -298,7 +299,7 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
         closed.params,
         TripParamsDocument::from(&trip_params_custom())
     );
-    let estimates = store.trip_estimates(driven.id).await.unwrap();
+    let estimates = store.trip_estimates(driven.id, 0).await.unwrap();
     assert_eq!(
         estimates.iter().map(|e| e.frame).collect::<Vec<_>>(),
         (0..7).collect::<Vec<_>>()

@@ -32,6 +32,9 @@ impl SledStore {
             codec::encode_localization(&record)?,
         );
         batch.insert(&codec::by_map_key(record.map_id, id), &[] as &[u8]);
+        if let Some(png) = &new.picture {
+            batch.insert(&codec::picture_key(id), png.as_slice());
+        }
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
@@ -43,6 +46,17 @@ impl SledStore {
         match self.db.get(key)? {
             Some(v) => codec::decode_localization(&key, &v),
             None => Err(StoreError::LocalizationNotFound(id)),
+        }
+    }
+
+    /// The PNG of a stored result's similarity picture, if it has one.
+    pub fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        match self.db.get(codec::picture_key(id))? {
+            Some(v) => Ok(Some(v.to_vec())),
+            None => {
+                self.get_localization(id)?;
+                Ok(None)
+            }
         }
     }
 
@@ -86,6 +100,7 @@ mod tests {
             hypotheses: Vec::new(),
             predictions: Vec::new(),
             timings: StoredTimings::default(),
+            picture: None,
         }
     }
 
@@ -93,6 +108,7 @@ mod tests {
         store.create_localization(NewLocalization {
             map_id,
             result: result(k),
+            picture: None,
         })
     }
 

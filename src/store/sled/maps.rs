@@ -63,10 +63,14 @@ impl SledStore {
         for kv in self.db.scan_prefix(codec::images_prefix(id)) {
             batch.remove(kv?.0);
         }
+        for kv in self.db.scan_prefix(codec::thumbnails_prefix(id)) {
+            batch.remove(kv?.0);
+        }
         for kv in self.db.scan_prefix(codec::by_map_prefix(id)) {
             let (k, _) = kv?;
             let loc = codec::id_at(&k, 9)?;
             batch.remove(&codec::localization_key(loc));
+            batch.remove(&codec::picture_key(loc));
             batch.remove(k);
         }
         self.remove_trips(id, &mut batch)?;
@@ -84,6 +88,7 @@ impl SledStore {
     pub fn append_images(&self, batch: &ImageBatch) -> StoreResult<Range<u32>> {
         let batch_in = batch;
         let (map, descriptors, metas) = (batch.map(), batch.descriptors(), batch.metas());
+        let batch_thumbnails = batch.thumbnails();
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
         if let Some(expected) = record.dim {
@@ -111,6 +116,12 @@ impl SledStore {
             batch.insert(
                 &codec::image_key(map, index),
                 codec::encode_image(row, meta),
+            );
+        }
+        for (k, jpeg) in batch_thumbnails.iter().enumerate() {
+            batch.insert(
+                &codec::thumbnail_key(map, start + k as u32),
+                jpeg.as_slice(),
             );
         }
         record.dim = Some(dim);
@@ -169,6 +180,17 @@ impl SledStore {
             ));
         }
         Matrix::from_vec(got, dim, data).map_err(|e| StoreError::corrupt(&from, e.to_string()))
+    }
+
+    /// The JPEG thumbnail of image `index` of a map, if it has one.
+    pub fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        match self.db.get(codec::thumbnail_key(map, index))? {
+            Some(v) => Ok(Some(v.to_vec())),
+            None => {
+                self.get_map(map)?;
+                Ok(None)
+            }
+        }
     }
 
     /// Metadata of the images `range` of a map, in order.
@@ -321,6 +343,50 @@ mod tests {
         assert_eq!(store.db.scan_prefix(codec::images_prefix(gone)).count(), 0);
         assert_eq!(store.references(kept).unwrap().1.rows(), 2);
         assert_eq!(store.list_maps().unwrap().len(), 1);
+    }
+
+    #[test]
+    fn thumbnails_ride_in_the_image_batch_and_survive_reopen() {
+        let dir = tempfile::tempdir().unwrap();
+        let metas = [ImageMeta::default(), ImageMeta::default()];
+        let map = {
+            let store = SledStore::open(dir.path()).unwrap();
+            let map = store.create_map(hog()).unwrap();
+            // Images without thumbnails (precomputed-style batch) have none.
+            append(&store, map.id, &rows(2, 3, 0.0), &metas).unwrap();
+            let with = ImageBatch::new(map.id, rows(2, 3, 9.0), metas.to_vec())
+                .unwrap()
+                .with_thumbnails(vec![b"jpeg-2".to_vec(), b"jpeg-3".to_vec()])
+                .unwrap();
+            assert_eq!(store.append_images(&with).unwrap(), 2..4);
+            // A refused batch writes neither its rows nor its thumbnails.
+            let wrong = ImageBatch::new(map.id, rows(1, 4, 0.0), metas[..1].to_vec())
+                .unwrap()
+                .with_thumbnails(vec![b"never".to_vec()])
+                .unwrap();
+            assert!(store.append_images(&wrong).is_err());
+            // The count must match the rows.
+            assert!(ImageBatch::new(map.id, rows(2, 3, 0.0), metas.to_vec())
+                .unwrap()
+                .with_thumbnails(vec![b"one".to_vec()])
+                .is_err());
+            map.id
+            // Dropped without a clean shutdown: what `append_images` acknowledged was flushed.
+        };
+        let store = SledStore::open(dir.path()).unwrap();
+        assert_eq!(store.thumbnail(map, 0).unwrap(), None);
+        assert_eq!(store.thumbnail(map, 2).unwrap(), Some(b"jpeg-2".to_vec()));
+        assert_eq!(store.thumbnail(map, 3).unwrap(), Some(b"jpeg-3".to_vec()));
+        assert_eq!(store.thumbnail(map, 4).unwrap(), None);
+        assert!(matches!(
+            store.thumbnail(map + 1, 0),
+            Err(StoreError::MapNotFound(_))
+        ));
+        store.delete_map(map).unwrap();
+        assert_eq!(
+            store.db.scan_prefix(codec::thumbnails_prefix(map)).count(),
+            0
+        );
     }
 
     #[test]

@@ -44,10 +44,16 @@ pub const MIGRATIONS: &[Migration] = &[
         doc: include_str!("../../../migrations/0004_trips.md"),
         apply: trips,
     },
+    Migration {
+        version: 5,
+        file: "0005_thumbnails_and_pictures.md",
+        doc: include_str!("../../../migrations/0005_thumbnails_and_pictures.md"),
+        apply: thumbnails_and_pictures,
+    },
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 4;
+pub const CURRENT_VERSION: u32 = 5;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -105,6 +111,11 @@ fn initial(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
 
 /// Layouts before 4 have no trip keys, so there is nothing to convert.
 fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+    Ok(())
+}
+
+/// Layouts before 5 have no thumbnails or pictures: old maps and results simply have none.
+fn thumbnails_and_pictures(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -188,6 +199,7 @@ mod tests {
                     hypotheses: Vec::new(),
                     predictions: Vec::new(),
                     timings: StoredTimings::default(),
+                    picture: None,
                 };
                 let rec = LocalizationRecord {
                     id,

@@ -232,6 +232,10 @@ impl Store for SledStore {
         self.run(move |s| s.image_metadata(map, rows)).await
     }
 
+    async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.thumbnail(map, index)).await
+    }
+
     async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
         self.run(move |s| s.cooc_map(map)).await
     }
@@ -246,6 +250,10 @@ impl Store for SledStore {
 
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
         self.run(move |s| s.get_localization(id)).await
+    }
+
+    async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.localization_picture(id)).await
     }
 
     async fn list_localizations(
@@ -276,8 +284,8 @@ impl Store for SledStore {
         self.run(move |s| s.close_trip(id)).await
     }
 
-    async fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
-        self.run(move |s| s.trip_estimates(id)).await
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+        self.run(move |s| s.trip_estimates(id, from)).await
     }
 
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {

@@ -105,10 +105,10 @@ impl SledStore {
     }
 
     /// Every frame's latest estimate, in frame order.
-    pub fn trip_estimates(&self, id: u64) -> StoreResult<Vec<FrameRecord>> {
+    pub fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
         self.get_trip(id)?;
         self.db
-            .scan_prefix(codec::trip_frames_prefix(id))
+            .range(codec::trip_frame_key(id, from)..=codec::trip_frame_key(id, u32::MAX))
             .map(|kv| {
                 let (k, v) = kv?;
                 codec::decode_frame(&k, &v)
@@ -195,7 +195,7 @@ mod tests {
         ));
         let (rec, state) = store.trip_state(t.id).unwrap();
         assert_eq!((rec.frame_count, state), (5, vec![2; 3]));
-        let est = store.trip_estimates(t.id).unwrap();
+        let est = store.trip_estimates(t.id, 0).unwrap();
         assert_eq!(est.len(), 5);
         assert_eq!(est[4].reference, Some(8));
         assert_eq!(est[3].reference, None);
@@ -207,7 +207,7 @@ mod tests {
         // Reopening the store keeps everything.
         drop(store);
         let store = SledStore::open(dir.path()).unwrap();
-        assert_eq!(store.trip_estimates(t.id).unwrap(), est);
+        assert_eq!(store.trip_estimates(t.id, 0).unwrap(), est);
         assert!(store.get_trip(t.id).unwrap().closed_ms.is_some());
     }
 

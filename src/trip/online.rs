@@ -22,14 +22,11 @@
 use std::collections::VecDeque;
 
 use crate::confidence::GraphParams;
-use crate::solver::match_cost;
+use crate::solver::{check_fan_out, check_hidden_cost, match_cost};
 use crate::window::trailing_min_by;
 use crate::{Error, Result};
 
-mod state;
-use state::corrupt;
-pub(crate) use state::corrupt_state;
-pub use state::{StateReader, StateWriter, STATE_FORMAT};
+use super::state::{corrupt, StateReader, StateWriter};
 
 /// Parameters of an online solver.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,29 +45,29 @@ pub const MAX_LAG: usize = 10_000;
 impl OnlineParams {
     /// Checks every parameter's range.
     pub fn validate(&self) -> Result<()> {
-        let w = self.graph.hidden_cost;
-        if !(w.is_finite() && w > 0.0) {
-            return Err(Error::param(
-                "hidden_cost",
-                format!("must be a finite number > 0, got {w}"),
-            ));
-        }
-        if self.lag == 0 || self.lag > MAX_LAG {
-            return Err(Error::param(
-                "lag",
-                format!("must be between 1 and {MAX_LAG}, got {}", self.lag),
-            ));
-        }
-        if let Some(r) = self.relocalization {
-            if !(r.is_finite() && r >= 0.0) {
-                return Err(Error::param(
-                    "relocalization_cost",
-                    format!("must be a finite number >= 0, got {r}"),
-                ));
-            }
-        }
-        Ok(())
+        check_fan_out(self.graph.fan_out)?;
+        check_hidden_cost(self.graph.hidden_cost)?;
+        check_window(self.lag, self.relocalization)
     }
+}
+
+/// Checks the lag window (1 ..= [`MAX_LAG`]) and the relocalization cost (finite, >= 0).
+pub(crate) fn check_window(lag: usize, relocalization: Option<f64>) -> Result<()> {
+    if lag == 0 || lag > MAX_LAG {
+        return Err(Error::param(
+            "lag",
+            format!("must be between 1 and {MAX_LAG}, got {lag}"),
+        ));
+    }
+    if let Some(r) = relocalization {
+        if !(r.is_finite() && r >= 0.0) {
+            return Err(Error::param(
+                "relocalization_cost",
+                format!("must be a finite number >= 0, got {r}"),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Where the best path into a node came from, packed into a `u32`:

@@ -19,7 +19,7 @@
 //! * **Hidden cost.** `auto` resolves `W` once, from the first batch's normalised rows, with the
 //!   same quantile rule as offline ([`crate::solver::auto_hidden_cost`]), and keeps it for the
 //!   trip so the path costs stay comparable.
-//! * **The path** is [`crate::online::OnlineSolver`] (O(D) per frame, back-pointers for a lag
+//! * **The path** is [`online::OnlineSolver`] (O(D) per frame, back-pointers for a lag
 //!   window, optional relocalization).
 //! * **Confidence** of a frame is the local min-marginal ratio ([`crate::confidence`]) on the
 //!   `L` rows before it and the rows after it that have arrived (at most `L`).
@@ -30,23 +30,22 @@
 use std::collections::VecDeque;
 
 use crate::confidence::{window_ratio, ConfidenceParams, GraphParams};
-use crate::online::{
-    corrupt_state, OnlineParams, OnlineSolver, RowEstimate, StateReader, StateWriter, STATE_FORMAT,
-};
-use crate::solver::auto_hidden_cost;
-use crate::{similarity, Error, Matrix, Result};
+use crate::solver::{auto_hidden_cost, check_fan_out, check_hidden_cost};
+use crate::{Error, Matrix, Result};
 
-mod jump;
-pub use jump::{jump_route, relocalization_delays, JumpRoute, FOUND_RUN};
+mod normalize;
+pub mod online;
+pub mod state;
+
+pub use normalize::column_prior;
+use online::{OnlineParams, OnlineSolver, RowEstimate};
+use state::{corrupt_state, StateReader, StateWriter, STATE_FORMAT};
 
 /// A latest frame whose confidence is at most this is reported as lost.
 pub const LOST_RATIO: f64 = 1.0;
 
 /// Largest accepted confidence half window `L` and radius `r`.
 pub const MAX_CONFIDENCE_WINDOW: usize = 1000;
-
-/// How many map images [`column_prior`] compares each reference with.
-const PRIOR_SAMPLE: usize = 256;
 
 /// Parameters of a trip.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -67,6 +66,37 @@ pub struct TripParams {
     pub normalize: bool,
     /// Confidence window and radius.
     pub confidence: ConfidenceParams,
+}
+
+impl TripParams {
+    /// Checks every parameter's range, without a map: the graph (fan-out cap, `W`) with the
+    /// solver's one check ([`crate::solver::check_fan_out`], [`crate::solver::check_hidden_cost`]),
+    /// the lag window and relocalization cost, the prior weight and the confidence window.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
+            return Err(Error::param(
+                "prior_weight",
+                format!("must be a finite number >= 0, got {}", self.prior_weight),
+            ));
+        }
+        check_fan_out(self.fan_out)?;
+        if let Some(w) = self.hidden_cost {
+            check_hidden_cost(w)?;
+        }
+        online::check_window(self.lag, self.relocalization)?;
+        if self.confidence.half_window > MAX_CONFIDENCE_WINDOW
+            || self.confidence.radius > MAX_CONFIDENCE_WINDOW
+        {
+            return Err(Error::param(
+                "confidence",
+                format!(
+                    "half window and radius must be at most {MAX_CONFIDENCE_WINDOW}, got {:?}",
+                    self.confidence
+                ),
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl Default for TripParams {
@@ -122,26 +152,6 @@ pub struct BatchUpdate {
     pub status: TripStatus,
 }
 
-/// The map's prior column means: for each reference, its mean cosine similarity with an evenly
-/// spaced sample of at most 256 of the map's own images.
-pub fn column_prior(references: &Matrix) -> Result<Vec<f32>> {
-    let n = references.rows();
-    if n == 0 {
-        return Err(Error::Empty("the map has no reference images".into()));
-    }
-    let take = n.min(PRIOR_SAMPLE);
-    let rows: Vec<&[f32]> = (0..take).map(|s| references.row(s * n / take)).collect();
-    let sample = Matrix::from_rows(&rows)?;
-    let c = similarity::cosine_matrix(&sample, references)?;
-    let mut prior = vec![0.0f64; n];
-    for row in c.iter_rows() {
-        for (p, v) in prior.iter_mut().zip(row) {
-            *p += f64::from(*v);
-        }
-    }
-    Ok(prior.iter().map(|p| (p / take as f64) as f32).collect())
-}
-
 /// Magic bytes at the start of an encoded trip state.
 const STATE_MAGIC: &[u8; 4] = b"SLTR";
 
@@ -165,43 +175,7 @@ impl Trip {
         if prior.is_empty() {
             return Err(Error::Empty("the map has no reference images".into()));
         }
-        if !(params.prior_weight.is_finite() && params.prior_weight >= 0.0) {
-            return Err(Error::param(
-                "prior_weight",
-                format!("must be a finite number >= 0, got {}", params.prior_weight),
-            ));
-        }
-        let probe = OnlineParams {
-            graph: GraphParams {
-                fan_out: params.fan_out,
-                horizontal: params.horizontal,
-                hidden_cost: params.hidden_cost.unwrap_or(1.0),
-            },
-            lag: params.lag,
-            relocalization: params.relocalization,
-        };
-        probe.validate()?;
-        if params.confidence.half_window > MAX_CONFIDENCE_WINDOW
-            || params.confidence.radius > MAX_CONFIDENCE_WINDOW
-        {
-            return Err(Error::param(
-                "confidence",
-                format!(
-                    "half window and radius must be at most {MAX_CONFIDENCE_WINDOW}, got {:?}",
-                    params.confidence
-                ),
-            ));
-        }
-        if params.fan_out > crate::solver::MAX_FAN_OUT {
-            return Err(Error::param(
-                "fan_out",
-                format!(
-                    "must be at most {}, got {}",
-                    crate::solver::MAX_FAN_OUT,
-                    params.fan_out
-                ),
-            ));
-        }
+        params.validate()?;
         let prior_mean = prior.iter().map(|v| f64::from(*v)).sum::<f64>() / prior.len() as f64;
         Ok(Trip {
             params,
@@ -465,53 +439,6 @@ impl Trip {
             window,
             status,
         })
-    }
-
-    /// Normalises a batch with the running column means (see the module doc), updating them.
-    fn normalize(&mut self, c: &Matrix) -> Matrix {
-        let n0 = self.params.prior_weight;
-        if !self.params.normalize {
-            return c.clone();
-        }
-        let mut out = Matrix::zeros(c.rows(), c.cols());
-        let mut means = vec![0.0f64; c.cols()];
-        let mut scratch = vec![0.0f64; c.cols()];
-        for (i, row) in c.iter_rows().enumerate() {
-            for (s, v) in self.column_sums.iter_mut().zip(row) {
-                *s += f64::from(*v);
-            }
-            self.similarity_sum +=
-                row.iter().map(|v| f64::from(*v)).sum::<f64>() / row.len() as f64;
-            let n = (self.frames + i + 1) as f64;
-            let scale = if self.prior_mean > 0.0 {
-                (self.similarity_sum / n) / self.prior_mean
-            } else {
-                0.0
-            };
-            // Floor every column mean at half the median column mean, as the offline default
-            // (`similarity::normalize_columns_floored`): a near-empty reference (a dark tunnel
-            // frame) would otherwise get an exploding `ĉ` and hold the path for good.
-            for (m, (p, s)) in means
-                .iter_mut()
-                .zip(self.prior.iter().zip(&self.column_sums))
-            {
-                *m = (n0 * scale * f64::from(*p) + s) / (n0 + n);
-            }
-            scratch.copy_from_slice(&means);
-            let mid = scratch.len() / 2;
-            let (_, median, _) = scratch.select_nth_unstable_by(mid, f64::total_cmp);
-            let floor = similarity::MEAN_FLOOR_FRACTION * *median;
-            let out_row = out.row_mut(i);
-            for j in 0..row.len() {
-                let mean = means[j].max(floor);
-                out_row[j] = if mean > 1e-12 {
-                    (f64::from(row[j]) / mean) as f32
-                } else {
-                    0.0
-                };
-            }
-        }
-        out
     }
 
     /// Local ratio of an earlier frame still in the lag window, re-traced at `j`: its `L` rows

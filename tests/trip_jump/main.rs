@@ -1,0 +1,114 @@
+//! The relocalization check on the derived Nordland jump route (README, `docs/parameters.md`):
+//! streams real winter frames through a [`Trip`] and measures how many frames each jump takes
+//! to relocalize. Skips with a message when the shared data is absent.
+
+mod route;
+
+use route::{jump_route, relocalization_delays, JumpRoute};
+use seasonloc::similarity;
+use seasonloc::trip::{column_prior, FrameEstimate, Trip, TripParams, LOST_RATIO};
+use seasonloc::Matrix;
+
+/// Prints the jump route's delays and the dev-split AP for a grid of `R` (tuning aid).
+#[test]
+#[ignore = "reads the shared Nordland data; prints measurements"]
+fn nordland_relocalization_cost_grid() {
+    let Some((summer, winter, route)) = nordland_jump_inputs() else {
+        return;
+    };
+    let c = similarity::cosine_matrix(&winter, &summer).unwrap();
+    let prior = column_prior(&summer).unwrap();
+    for r in [0.25, 0.5, 1.0, 1.5, 2.0] {
+        let params = TripParams {
+            relocalization: Some(r),
+            ..TripParams::default()
+        };
+        let arrival = stream(&c, &prior, params);
+        let delays = relocalization_delays(&route, &arrival);
+        let (a, b) = (route.segments[2].0, route.segments[3].0);
+        let lost = arrival[a..b]
+            .iter()
+            .filter(|e| e.reference.is_none() || e.confidence <= LOST_RATIO)
+            .count();
+        eprintln!(
+            "R {r}: delays {delays:?}, off-map frames reported lost {lost}/{}",
+            b - a
+        );
+    }
+}
+
+fn stream(c: &Matrix, prior: &[f32], params: TripParams) -> Vec<FrameEstimate> {
+    let mut trip = Trip::new(prior.to_vec(), params).unwrap();
+    let mut arrival = Vec::new();
+    for start in (0..c.rows()).step_by(10) {
+        let rows: Vec<&[f32]> = (start..(start + 10).min(c.rows()))
+            .map(|i| c.row(i))
+            .collect();
+        arrival.extend(
+            trip.push_batch(&Matrix::from_rows(&rows).unwrap())
+                .unwrap()
+                .estimates,
+        );
+    }
+    arrival
+}
+
+fn nordland_jump_inputs() -> Option<(Matrix, Matrix, JumpRoute)> {
+    use seasonloc::features::extract_files;
+    use seasonloc::features::hog::{HogOptions, HogSpec};
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let Some(dir) = ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join("data/nordland_64x32"))
+        .find(|d| d.join("summer").is_dir())
+    else {
+        eprintln!("SKIPPED: ../shared/data/nordland_64x32 not found");
+        return None;
+    };
+    let files = |season: &str| -> Vec<std::path::PathBuf> {
+        let mut f: Vec<_> = std::fs::read_dir(dir.join(season))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "png"))
+            .collect();
+        f.sort();
+        f
+    };
+    let route = jump_route();
+    let spec = HogSpec::new(HogOptions {
+        cell_size: 8,
+        resize: None,
+    })
+    .unwrap();
+    let summer = extract_files(&spec, &files("summer")[..route.map_len], &|| {}).unwrap();
+    let winter_files = files("winter");
+    let picked: Vec<_> = route
+        .frames
+        .iter()
+        .map(|&i| winter_files[i].clone())
+        .collect();
+    let winter = extract_files(&spec, &picked, &|| {}).unwrap();
+    Some((summer, winter, route))
+}
+
+/// The derived jump route on real data: every jump is relocalized within 15 frames with
+/// the shipped defaults (skips with a message when the shared data is absent).
+#[test]
+fn nordland_jump_route_is_relocalized_within_15_frames() {
+    let Some((summer, winter, route)) = nordland_jump_inputs() else {
+        return;
+    };
+    let c = similarity::cosine_matrix(&winter, &summer).unwrap();
+    let prior = column_prior(&summer).unwrap();
+    let arrival = stream(&c, &prior, TripParams::default());
+    let delays = relocalization_delays(&route, &arrival);
+    eprintln!("relocalization delays per segment: {delays:?}");
+    // The start, the jump back (1499 -> 300), the stretch off the map and the re-entry
+    // after it are each found within 15 frames.
+    for (seg, d) in route.segments.iter().zip(&delays) {
+        assert!(
+            d.is_some_and(|d| d <= 15),
+            "segment {seg:?}: {d:?} ({delays:?})"
+        );
+    }
+}
