@@ -58,13 +58,22 @@ def summary(name, lat, items, wall):
             "p99_ms": round(1000 * pct(lat, 0.99), 1) if lat else None, "wall_s": round(wall, 2)}
 
 
+def sql(psql, query):
+    return subprocess.run(psql.split() + ["-At", "-c", query],
+                          capture_output=True, text=True, check=True).stdout.strip()
+
+
 def db_active_ms(psql):
     if not psql:
         return None
-    out = subprocess.run(psql.split() + ["-At", "-c",
-                         "SELECT sum(active_time) FROM pg_stat_database"],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    return float(out or 0)
+    return float(sql(psql, "SELECT sum(active_time) FROM pg_stat_database") or 0)
+
+
+def wal_bytes(psql):
+    """The server's WAL position in bytes (what every write since costs in log volume)."""
+    if not psql:
+        return None
+    return int(sql(psql, "SELECT pg_current_wal_lsn() - '0/0'::pg_lsn") or 0)
 
 
 def main():
@@ -106,6 +115,7 @@ def main():
     lat, lock, errors = [], threading.Lock(), []
     deadline = time.perf_counter() + a.max_seconds
     active0 = db_active_ms(a.psql)
+    wal0 = wal_bytes(a.psql)
 
     def vehicle(v):
         start = (v * 37) % (len(winter) - 10 * a.batches)
@@ -139,6 +149,9 @@ def main():
         busy = db_active_ms(a.psql) - active0
         result["frames"]["db_active_s"] = round(busy / 1000, 2)
         result["frames"]["db_share_of_request_time"] = round(busy / 1000 / sum(lat), 3) if lat else None
+        # What one batch writes: the trip's state row (whole, today) and the WAL it causes.
+        result["frames"]["wal_bytes_per_batch"] = round((wal_bytes(a.psql) - wal0) / len(lat)) if lat else None
+        result["frames"]["state_bytes"] = int(float(sql(a.psql, "SELECT avg(octet_length(state)) FROM trips") or 0))
     print(json.dumps(result))
 
 

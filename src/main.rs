@@ -15,7 +15,7 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Solve(args) => cli::solve::run(args).map(Some),
         Command::Eval(args) => cli::eval::run(args).map(Some),
-        Command::Serve(args) => seasonloc::service::run_serve(args.clone()).map(|()| None),
+        Command::Serve(args) => seasonloc::service::run_serve(args.as_ref().clone()).map(|()| None),
     };
     match result {
         Ok(Some(json)) => {

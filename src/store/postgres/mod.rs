@@ -193,7 +193,13 @@ fn pool_error(e: PoolError) -> StoreError {
             // nothing a request can do, and retrying after a fix may succeed.
             StoreError::Unavailable(format!("the database refused the connection: {e}"))
         }
-        other => StoreError::Unavailable(format!("cannot reach the database: {other}")),
+        other @ (PoolError::Backend(_)
+        | PoolError::Timeout(_)
+        | PoolError::Closed
+        | PoolError::NoRuntimeSpecified
+        | PoolError::PostCreateHook(_)) => {
+            StoreError::Unavailable(format!("cannot reach the database: {other}"))
+        }
     }
 }
 
