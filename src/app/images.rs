@@ -24,7 +24,7 @@ pub struct ImageInput {
 }
 
 /// Width and height from the header, without decoding the pixels.
-fn dimensions(part: &ImageInput) -> AppResult<(u32, u32)> {
+pub(crate) fn dimensions(part: &ImageInput) -> AppResult<(u32, u32)> {
     let reader = image::ImageReader::new(Cursor::new(&part.bytes[..]))
         .with_guessed_format()
         .map_err(|e| invalid(part, e.to_string()))?;

@@ -273,27 +273,31 @@ impl App {
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
         let id = map.id;
-        let (descriptors, thumbnails) = self
+        let (descriptors, thumbnails, geometry) = self
             .pool
             .run(move || {
+                let mut map = map;
+                let geometry = first_batch_geometry(&mut map, &images)?;
                 let Some(extractor) = map_extractor(&map)? else {
                     return Err(AppError::InvalidInput(format!(
                         "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
                          images"
                     )));
                 };
-                images::describe_with_thumbnails(
+                let rows = images::describe_with_thumbnails(
                     extractor.as_ref(),
                     &images,
                     max_pixels,
                     max_len,
                     map.dim,
-                )
+                )?;
+                Ok((rows.0, rows.1, geometry))
             })
             .await?;
         let features_seconds = started.elapsed().as_secs_f64();
         let batch = ImageBatch::new(id, descriptors, metas)?
             .with_thumbnails(thumbnails)?
+            .with_geometry(geometry)
             .with_idempotency(idempotency);
         let mut outcome = self.store_batch(batch).await?;
         outcome.features_seconds = Some(features_seconds);
@@ -351,4 +355,29 @@ impl App {
             replayed: false,
         })
     }
+}
+
+/// The input geometry a HOG map without one gets from its first batch: the size of the batch's
+/// first image (`features::geometry`), set into `map` so that the whole batch is described at
+/// it, and returned for the store to record. `None` (and `map` unchanged) for other maps, maps
+/// that already have images or a `resize`, and a first image that cannot hold one HOG cell
+/// (which the description then reports by name).
+fn first_batch_geometry(
+    map: &mut MapRecord,
+    images: &[ImageInput],
+) -> AppResult<Option<(u32, u32)>> {
+    let has_images = map.dim.is_some();
+    let DescriptorSettings::Hog { cell_size, resize } = &mut map.descriptor else {
+        return Ok(None);
+    };
+    let (Some(first), None, false) = (images.first(), *resize, has_images) else {
+        return Ok(None);
+    };
+    let (w, h) = images::dimensions(first)?;
+    let usable = |side: u32| (*cell_size..=crate::features::hog::MAX_RESIZE_SIDE).contains(&side);
+    if !(usable(w) && usable(h)) {
+        return Ok(None);
+    }
+    *resize = Some((w, h));
+    Ok(Some((w, h)))
 }

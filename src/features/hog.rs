@@ -178,8 +178,22 @@ impl Extractor for HogSpec {
                 reason: format!("{width}x{height} px has no pixels"),
             });
         }
-        let (w, h) = self.options.resize.unwrap_or((width, height));
-        Ok(self.grid(w, h)?.dim())
+        if let Some((w, h)) = self.options.resize {
+            // An image with less than one cell of detail is not brought to the geometry: its
+            // upscaled gradients would describe nothing (features::geometry).
+            let c = self.options.cell_size;
+            if width < c || height < c {
+                return Err(Error::Image {
+                    name: "input".into(),
+                    reason: format!(
+                        "{width}x{height} px is smaller than one HOG cell of {c}x{c} px, too \
+                         small to bring to the input geometry {w}x{h}"
+                    ),
+                });
+            }
+            return Ok(self.grid(w, h)?.dim());
+        }
+        Ok(self.grid(width, height)?.dim())
     }
 
     fn extract(&self, image: &DynamicImage) -> Result<Vec<f32>> {

@@ -263,6 +263,7 @@ pub struct ImageBatch {
     map: u64,
     descriptors: Matrix,
     metas: Vec<ImageMeta>,
+    geometry: Option<(u32, u32)>,
     thumbnails: Vec<Vec<u8>>,
     idempotency: Option<IdempotencyRecord>,
 }
@@ -284,6 +285,7 @@ impl ImageBatch {
             metas,
             thumbnails: Vec::new(),
             idempotency: None,
+            geometry: None,
         })
     }
 
@@ -311,6 +313,20 @@ impl ImageBatch {
     /// The idempotency record to store with the batch.
     pub fn idempotency(&self) -> Option<&IdempotencyRecord> {
         self.idempotency.as_ref()
+    }
+
+    /// The input geometry `(width, height)` of a HOG map's first batch (the size of its first
+    /// image, `features::geometry`): the store records it as the map's `resize` when the batch
+    /// is the map's first and the map has none, so that later images of any size are brought
+    /// to it. Ignored otherwise.
+    pub fn with_geometry(mut self, geometry: Option<(u32, u32)>) -> Self {
+        self.geometry = geometry;
+        self
+    }
+
+    /// See [`ImageBatch::with_geometry`].
+    pub fn geometry(&self) -> Option<(u32, u32)> {
+        self.geometry
     }
 
     /// The map.

@@ -95,6 +95,163 @@ fn run_localize(c: &Client, map: &str, queries: &[(String, Vec<u8>)], params: &V
     r.json()
 }
 
+/// PNG bytes of `png` resized to `w x h` (another camera).
+fn rescaled(png: &[u8], (w, h): (u32, u32)) -> Vec<u8> {
+    let img = image::load_from_memory(png).unwrap().to_luma8();
+    let out = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+    crate::common::png(&out)
+}
+
+/// A HOG map without `resize` takes its input geometry from its first image; query images and
+/// trip frames of another size and aspect ratio are then brought to it (stretched), and still
+/// localize; the geometry is visible on the map and survives later appends.
+#[test]
+fn images_of_any_size_are_brought_to_the_map_geometry() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(60, 11);
+    let map = create_hog_map(&c, "any-size", 8);
+    let r = c.get(&format!("/v1/maps/{map}"));
+    assert_eq!(r.json()["descriptor"]["resize"], Value::Null);
+    let refs: Vec<(String, Vec<u8>)> = (0..60)
+        .map(|i| (format!("ref-{i:03}.png"), route.reference_png(i)))
+        .collect();
+    upload(&c, &map, &refs[..30], None);
+    // Later reference batches may come from another camera too.
+    let bigger: Vec<(String, Vec<u8>)> = refs[30..]
+        .iter()
+        .map(|(n, b)| (n.clone(), rescaled(b, (128, 64))))
+        .collect();
+    upload(&c, &map, &bigger, None);
+    let r = c.get(&format!("/v1/maps/{map}"));
+    check("get", "/v1/maps/{id}", &r);
+    assert_eq!(r.json()["descriptor"]["resize"], json!([64, 32]));
+    assert_eq!(r.json()["image_count"], 60);
+
+    let correct = |result: &Value, offset: i64| {
+        result["predictions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|p| {
+                let q = p["query"].as_i64().unwrap() + offset;
+                (p["ref"].as_i64().unwrap() - q).abs() <= 1
+            })
+            .count()
+    };
+    for size in [(128, 64), (96, 40), (48, 24)] {
+        let queries: Vec<(String, Vec<u8>)> = (10..50)
+            .map(|i| (format!("q-{i:03}.png"), rescaled(&route.query_png(i), size)))
+            .collect();
+        let result = run_localize(&c, &map, &queries, &json!({}));
+        let n = correct(&result, 10);
+        assert!(n * 10 >= 40 * 8, "{size:?}: only {n} of 40 localized");
+    }
+
+    // A trip on the map takes frames of another size as well.
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let frames: Vec<Part> = (0..20)
+        .map(|i| {
+            Part::image(
+                &format!("f{i}.png"),
+                rescaled(&route.query_png(i), (96, 48)),
+            )
+        })
+        .collect();
+    let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames);
+    check("post", "/v1/trips/{id}/frames", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let estimates = r.json()["estimates"].as_array().unwrap().clone();
+    assert_eq!(estimates.len(), 20);
+    let on_track = estimates
+        .iter()
+        .filter(|e| {
+            let (f, j) = (e["frame"].as_i64().unwrap(), e["ref"].as_i64());
+            j.is_some_and(|j| (j - f).abs() <= 1)
+        })
+        .count();
+    assert!(on_track >= 16, "only {on_track} of 20 trip frames on track");
+}
+
+/// The case: a map built from 960x540 frames takes 640x360 query images and trip frames
+/// (another camera, same aspect ratio) without any per-request setting, and localizes them.
+#[test]
+fn a_960x540_map_takes_640x360_queries_and_trip_frames() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(50, 23);
+    // 32 px cells on 960x540 see about the detail 2 px cells see on the 64x32 originals.
+    let map = create_hog_map(&c, "hd", 32);
+    let refs: Vec<(String, Vec<u8>)> = (0..50)
+        .map(|i| {
+            (
+                format!("ref-{i:03}.png"),
+                rescaled(&route.reference_png(i), (960, 540)),
+            )
+        })
+        .collect();
+    upload(&c, &map, &refs, None);
+    let r = c.get(&format!("/v1/maps/{map}"));
+    assert_eq!(r.json()["descriptor"]["resize"], json!([960, 540]));
+    let queries: Vec<(String, Vec<u8>)> = (5..45)
+        .map(|i| {
+            (
+                format!("q-{i:03}.png"),
+                rescaled(&route.query_png(i), (640, 360)),
+            )
+        })
+        .collect();
+    let result = run_localize(&c, &map, &queries, &json!({}));
+    let preds = result["predictions"].as_array().unwrap();
+    let correct = preds
+        .iter()
+        .filter(|p| {
+            let q = p["query"].as_i64().unwrap() + 5;
+            (p["ref"].as_i64().unwrap() - q).abs() <= 1
+        })
+        .count();
+    assert!(
+        correct >= 32,
+        "only {correct} of 40 640x360 queries localized: {result}"
+    );
+
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let mut on_track = 0;
+    for b in 0..3 {
+        let frames: Vec<Part> = (b * 10..b * 10 + 10)
+            .map(|i| {
+                Part::image(
+                    &format!("f{i}.png"),
+                    rescaled(&route.query_png(i), (640, 360)),
+                )
+            })
+            .collect();
+        let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames);
+        check("post", "/v1/trips/{id}/frames", &r);
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        for e in r.json()["estimates"].as_array().unwrap() {
+            let (f, j) = (e["frame"].as_i64().unwrap(), e["ref"].as_i64());
+            on_track += usize::from(j.is_some_and(|j| (j - f).abs() <= 1));
+        }
+    }
+    assert!(
+        on_track >= 24,
+        "only {on_track} of 30 640x360 trip frames on track"
+    );
+    // A frame too small to hold one HOG cell is still a clear error.
+    let tiny = rescaled(&route.query_png(0), (20, 12));
+    let r = c.post_multipart(
+        &format!("/v1/trips/{trip}/frames"),
+        &[Part::image("tiny.png", tiny)],
+    );
+    assert_eq!(r.status, 422, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["error"]["code"], "invalid_image");
+}
+
 #[test]
 fn generated_route_end_to_end() {
     let server = Server::start();

@@ -195,7 +195,7 @@ impl PgStore {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         let lock = tx
-            .prepare_cached("SELECT dim, image_count FROM maps WHERE id = $1 FOR UPDATE")
+            .prepare_cached("SELECT dim, image_count, settings FROM maps WHERE id = $1 FOR UPDATE")
             .await?;
         let row = tx
             .query_opt(&lock, &[&key])
@@ -203,6 +203,25 @@ impl PgStore {
             .ok_or(StoreError::MapNotFound(map))?;
         let stored_dim: Option<i64> = row.get(0);
         let start = small("maps", key, row.get(1))?;
+        // A HOG map's first batch fixes its input geometry (ImageBatch::with_geometry), in
+        // this transaction: the settings to write back, if they change.
+        let settings = match (stored_dim, batch.geometry()) {
+            (None, Some(geometry)) => {
+                let stored: &[u8] = row.get(2);
+                let mut record = codec::decode_map(format!("maps/{key}").as_bytes(), stored)?;
+                match &mut record.descriptor {
+                    DescriptorSettings::Hog { resize, .. } if resize.is_none() => {
+                        *resize = Some(geometry);
+                        Some(codec::encode_map(&record))
+                    }
+                    DescriptorSettings::Hog { .. }
+                    | DescriptorSettings::Precomputed { .. }
+                    | DescriptorSettings::Cnn(_)
+                    | DescriptorSettings::Cooc(_) => None,
+                }
+            }
+            (None, None) | (Some(_), _) => None,
+        };
         if let Some(expected) = stored_dim {
             if expected != cols as i64 {
                 return Err(StoreError::DimensionMismatch {
@@ -244,10 +263,16 @@ impl PgStore {
             .await?;
         }
         let update = tx
-            .prepare_cached("UPDATE maps SET dim = $2, image_count = $3 WHERE id = $1")
+            .prepare_cached(
+                "UPDATE maps SET dim = $2, image_count = $3, settings = coalesce($4, settings)
+                 WHERE id = $1",
+            )
             .await?;
-        tx.execute(&update, &[&key, &Some(i64::from(dim)), &i64::from(end)])
-            .await?;
+        tx.execute(
+            &update,
+            &[&key, &Some(i64::from(dim)), &i64::from(end), &settings],
+        )
+        .await?;
         PgStore::claim_key(&tx, key, batch.idempotency(), Some(start..end)).await?;
         tx.commit().await?;
         Ok(start..end)

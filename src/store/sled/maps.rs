@@ -88,6 +88,7 @@ impl SledStore {
     pub fn append_images(&self, batch: &ImageBatch) -> StoreResult<Range<u32>> {
         let batch_in = batch;
         let (map, descriptors, metas) = (batch.map(), batch.descriptors(), batch.metas());
+        let geometry = batch.geometry();
         let batch_thumbnails = batch.thumbnails();
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
@@ -123,6 +124,11 @@ impl SledStore {
                 &codec::thumbnail_key(map, start + k as u32),
                 jpeg.as_slice(),
             );
+        }
+        // A HOG map's first batch fixes its input geometry (ImageBatch::with_geometry).
+        if let (None, DescriptorSettings::Hog { resize, .. }) = (record.dim, &mut record.descriptor)
+        {
+            *resize = resize.or(geometry);
         }
         record.dim = Some(dim);
         record.image_count = end;
