@@ -174,6 +174,7 @@ fn main() {
     for _ in 0..rounds {
         let map = store
             .create_map(seasonloc::store::NewMap {
+                id: seasonloc::app::new_id().expect("an id"),
                 name: "lib".into(),
                 descriptor: seasonloc::store::DescriptorSettings::Hog {
                     cell_size: CELL,

@@ -6,8 +6,12 @@
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
-//! (`CxR`), `tol`, `merge` (0/1), `train` (max training descriptors), `seed`, and `maps`
-//! (`pairs`: the single-drive and fused maps of the issue; `loo`: leave-one-out only).
+//! (`CxR`), `tol`, `merge` (0/1), `train` (max training descriptors), `seed`, `vocab` (`all`:
+//! trained on every drive of the map, the default here; `first`: on the first drive, as `eval`
+//! and the service; `sep`: on the traversal that is neither mapped nor queried, the paper's
+//! separate training images), and `maps`
+//! (`pairs`: the single-drive and fused maps of the issue; `loo`: leave-one-out only; `scale`:
+//! recognition time per query on a map of 2,200 locations, see [`scale`]).
 //!
 //! Several settings run one after the other (images loaded once, features re-extracted only
 //! when the keypoint settings change) when separated by `/`.
@@ -20,6 +24,8 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 use seasonloc::cooc::keypoints::{Features, KeypointParams};
+use seasonloc::cooc::recognition::{self, Schedule};
+use seasonloc::cooc::sequence::{match_sequences, SequenceParams};
 use seasonloc::cooc::{
     extract_all, CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, DriveFeatures,
 };
@@ -38,10 +44,10 @@ fn load(dir: &Path) -> Vec<GrayImage> {
         .collect()
 }
 
-fn parse_params(args: &[String]) -> (CoocParams, String, bool) {
+fn parse_params(args: &[String]) -> (CoocParams, String, String) {
     let mut p = CoocParams::default();
     let mut maps = "pairs".to_string();
-    let mut vocab_all = true;
+    let mut vocab = "all".to_string();
     for a in args {
         let (k, v) = a
             .split_once('=')
@@ -69,12 +75,12 @@ fn parse_params(args: &[String]) -> (CoocParams, String, bool) {
                 p.grid_rows = r.parse().expect("rows");
             }
             "maps" => maps = v.to_string(),
-            "vocab" => vocab_all = v == "all",
+            "vocab" => vocab = v.to_string(),
             other => panic!("unknown setting {other}"),
         }
     }
     p.validate().expect("valid settings");
-    (p, maps, vocab_all)
+    (p, maps, vocab)
 }
 
 fn main() {
@@ -90,12 +96,16 @@ fn main() {
     let images: Vec<Vec<GrayImage>> = TRAVERSALS.iter().map(|t| load(&dir.join(t))).collect();
     let mut cached: Option<(KeypointParams, Vec<Vec<Features>>)> = None;
     for config in rest.split(|a| a == "/") {
-        let (params, maps, vocab_all) = parse_params(config);
+        let (params, maps, vocab) = parse_params(config);
         if cached.as_ref().is_none_or(|c| c.0 != params.keypoints) {
             cached = Some((params.keypoints.clone(), extract(&params, &images)));
         }
         let features = &cached.as_ref().expect("extracted above").1;
-        run(&params, &maps, vocab_all, &images, features);
+        if maps == "scale" {
+            scale(&params, &images, &features[0]);
+        } else {
+            run(&params, &maps, &vocab, &images, features);
+        }
     }
 }
 
@@ -119,16 +129,16 @@ fn extract(params: &CoocParams, images: &[Vec<GrayImage>]) -> Vec<Vec<Features>>
 fn run(
     params: &CoocParams,
     maps: &str,
-    vocab_all: bool,
+    vocab: &str,
     images: &[Vec<GrayImage>],
     features: &[Vec<Features>],
 ) {
     println!(
         "settings: {params:?}, vocabulary from {}",
-        if vocab_all {
-            "all drives"
-        } else {
-            "the first drive"
+        match vocab {
+            "first" => "the first drive",
+            "sep" => "the traversal neither mapped nor queried (all drives when none is left)",
+            _ => "all drives",
         }
     );
     let n = images[1].len();
@@ -156,20 +166,28 @@ fn run(
         other => panic!("unknown maps={other}"),
     };
     println!(
-        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | size AP | margin AP | ratio AP | build s | score s |"
+        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | seq contrast 10 AP | size AP | margin AP | ratio AP | build s | score s |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for (map_drives, query) in sets {
         let started = Instant::now();
         let drives: Vec<DriveFeatures> = map_drives.iter().map(|&t| drive(t)).collect();
-        let map = if vocab_all {
-            CoocMap::from_features(params, &drives).expect("map")
-        } else {
-            let mut m = CoocMap::from_features(params, &drives[..1]).expect("map");
-            for d in &drives[1..] {
-                m.add_features(d).expect("drive");
+        let separate: Vec<&Features> = (0..TRAVERSALS.len())
+            .filter(|t| !map_drives.contains(t) && *t != query)
+            .flat_map(|t| &features[t])
+            .collect();
+        let map = match vocab {
+            "first" => {
+                let mut m = CoocMap::from_features(params, &drives[..1]).expect("map");
+                for d in &drives[1..] {
+                    m.add_features(d).expect("drive");
+                }
+                m
             }
-            m
+            "sep" if !separate.is_empty() => {
+                CoocMap::from_features_and_training(params, &separate, &drives).expect("map")
+            }
+            _ => CoocMap::from_features(params, &drives).expect("map"),
         };
         let build = started.elapsed().as_secs_f64();
         let words = features[query]
@@ -187,6 +205,14 @@ fn run(
                 row.push(format!("{:.2}", m.correct as f64 / n as f64));
             }
         }
+        // The sequence matching with SeqSLAM's local contrast enhancement (10 locations).
+        let contrast = SequenceParams {
+            contrast_window: 10,
+            ..options.sequence
+        };
+        let p = match_sequences(queries.scores(), &contrast).expect("sequences");
+        let m = evaluate(&p, &gt, n, 2, &Exclusions::none()).expect("metrics");
+        row.push(format!("{:.3}", m.ap));
         // Single image from the full scores with three confidences: the group size (the paper's),
         // and its margin over the best location more than 10 locations away (difference, ratio).
         for mode in [0, 1, 2] {
@@ -238,4 +264,136 @@ fn margin_predictions(
             })
         })
         .collect()
+}
+
+/// Variants of one frame that make distinct map locations: 85 % crops at 9 positions (3 x 3)
+/// and the whole frame and its centre crop mirrored left-right.
+const VARIANTS: usize = 11;
+
+fn variant(img: &GrayImage, v: usize) -> GrayImage {
+    let (w, h) = img.dimensions();
+    let (cw, ch) = (w * 85 / 100, h * 85 / 100);
+    match v {
+        0..=8 => {
+            let (x, y) = ((v % 3) as u32 * (w - cw) / 2, (v / 3) as u32 * (h - ch) / 2);
+            image::imageops::crop_imm(img, x, y, cw, ch).to_image()
+        }
+        9 => image::imageops::flip_horizontal(img),
+        _ => {
+            let c = image::imageops::crop_imm(img, (w - cw) / 2, (h - ch) / 2, cw, ch).to_image();
+            image::imageops::flip_horizontal(&c)
+        }
+    }
+}
+
+/// Recognition time per query on a map of 2,200 locations (the size of the paper's tours),
+/// built from the real Gardens Point images: the 200 frames of day_right and night_right, each
+/// in [`VARIANTS`] versions (crops at 9 positions, mirrored whole and centre crop), one drive of
+/// 2,200 locations ordered variant, traversal, frame (so the route runs 22 times along the
+/// map). Queries: 20 consecutive day_left frames (40..60). Prints extraction and map build time, then per query
+/// (one thread, mean over the queries): best-first single-image recognition (the bound of
+/// II-D), exhaustive recognition (every candidate location's `J`), a full score row (what the
+/// sequence matching and the flow graph need) and the sequence matching (II-F) over the
+/// 100 x 2,200 score matrix; and how often the answer shows the query's place (any variant of
+/// frames k-2..=k+2 of either traversal).
+fn scale(params: &CoocParams, images: &[Vec<GrayImage>], queries: &[Features]) {
+    let frames = images[1].len();
+    let sources: Vec<GrayImage> = (0..VARIANTS)
+        .flat_map(|v| {
+            [1usize, 2]
+                .into_iter()
+                .flat_map(move |t| (0..frames).map(move |k| (v, t, k)))
+        })
+        .collect::<Vec<_>>()
+        .par_iter()
+        .map(|&(v, t, k)| variant(&images[t][k], v))
+        .collect();
+    let n = sources.len();
+    let frame_of = |l: usize| l % frames;
+    let started = Instant::now();
+    let features = extract_all(params, 0, &sources).expect("features");
+    let extract_s = started.elapsed().as_secs_f64();
+    let started = Instant::now();
+    let drive = DriveFeatures {
+        time: 0.0,
+        features,
+        locations: (0..n).collect(),
+    };
+    let map = CoocMap::from_features(params, &[drive]).expect("map");
+    let build_s = started.elapsed().as_secs_f64();
+    println!(
+        "scale map: {n} locations from {} real frames x {VARIANTS} variants; extraction {:.1} ms/image \
+         (wall, all cores), vocabulary + models {build_s:.1} s, {} words",
+        2 * frames,
+        extract_s * 1000.0 / n as f64,
+        map.vocabulary().len()
+    );
+    // 20 consecutive day_left frames (40..60) keep the run within a CPU-queue hold and the
+    // sequence matching meaningful.
+    const FIRST: usize = 40;
+    let words: Vec<Vec<_>> = queries[FIRST..FIRST + 20]
+        .iter()
+        .map(|f| map.quantize_features(f))
+        .collect();
+    let near = |q: usize, l: usize| frame_of(l).abs_diff(q + FIRST) <= 2;
+    let time_per_query = |f: &dyn Fn(usize) -> Option<usize>| -> (f64, usize) {
+        let started = Instant::now();
+        let ok = (0..words.len())
+            .filter(|&q| f(q).is_some_and(|l| near(q, l)))
+            .count();
+        (
+            started.elapsed().as_secs_f64() * 1000.0 / words.len() as f64,
+            ok,
+        )
+    };
+    let mut evaluated = 0usize;
+    let (best_first_ms, best_first_ok) = time_per_query(&|q| {
+        map.recognize_words(&words[q], Schedule::BestFirst)
+            .map(|r| r.location)
+    });
+    for w in &words {
+        evaluated += map
+            .recognize_words(w, Schedule::BestFirst)
+            .map_or(0, |r| r.evaluated);
+    }
+    println!(
+        "best-first: {best_first_ms:.1} ms/query, {:.0} J built per query, top-1 at the place {best_first_ok}/{}",
+        evaluated as f64 / words.len() as f64,
+        words.len()
+    );
+    let (exhaustive_ms, exhaustive_ok) = time_per_query(&|q| {
+        map.recognize_words(&words[q], Schedule::Exhaustive)
+            .map(|r| r.location)
+    });
+    println!("exhaustive: {exhaustive_ms:.1} ms/query, top-1 at the place {exhaustive_ok}");
+    let started = Instant::now();
+    let rows: Vec<Vec<u32>> = words
+        .iter()
+        .map(|w| recognition::scores(map.locations(), w))
+        .collect();
+    let row_ms = started.elapsed().as_secs_f64() * 1000.0 / words.len() as f64;
+    let mut scores = seasonloc::Matrix::zeros(words.len(), n);
+    for (i, r) in rows.iter().enumerate() {
+        for (o, &v) in scores.row_mut(i).iter_mut().zip(r) {
+            *o = v as f32;
+        }
+    }
+    let started = Instant::now();
+    let seq = match_sequences(&scores, &SequenceParams::default()).expect("sequences");
+    let seq_ms = started.elapsed().as_secs_f64() * 1000.0 / words.len() as f64;
+    let seq_ok = seq.iter().filter(|p| near(p.query, p.reference)).count();
+    let candidates: f64 = (0..words.len())
+        .map(|q| scores.row(q).iter().filter(|&&s| s > 0.0).count() as f64)
+        .sum::<f64>()
+        / words.len() as f64;
+    println!(
+        "per query (one thread, {} queries): best-first {best_first_ms:.1} ms ({:.0} of {candidates:.0} \
+         scored locations' J built; top-1 at the place {best_first_ok}), exhaustive \
+         {exhaustive_ms:.1} ms (top-1 at the place {exhaustive_ok}), full score row {row_ms:.1} ms, \
+         sequence matching {seq_ms:.2} ms (sequence answer at the place {seq_ok}); \
+         score row + sequences = {:.1} ms",
+        words.len(),
+        evaluated as f64 / words.len() as f64,
+        row_ms + seq_ms
+    );
 }

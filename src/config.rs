@@ -42,6 +42,20 @@ pub struct ServeArgs {
     /// service answers 503 `queue_full` with `Retry-After`.
     #[arg(long, env = "SEASONLOC_LOCALIZE_QUEUE", default_value_t = 16)]
     pub localize_queue: usize,
+    /// Longest a localize request waits for a CPU, first come first served; a request that
+    /// would wait longer (estimated from recent localizations) is refused at once with 503
+    /// `queue_full` and `Retry-After`, so an admitted request never runs into the request
+    /// timeout by waiting. Must be below `--request-timeout-secs`.
+    #[arg(long, env = "SEASONLOC_LOCALIZE_MAX_WAIT_SECS", default_value_t = 30)]
+    pub localize_max_wait_secs: u64,
+    /// Seconds a client has to send a request's complete header once the connection is open
+    /// (or idle between requests); slower connections are closed (slowloris).
+    #[arg(long, env = "SEASONLOC_HEADER_READ_TIMEOUT_SECS", default_value_t = 10)]
+    pub header_read_timeout_secs: u64,
+    /// Seconds a request body may stall (no bytes arriving) before the request fails with 408
+    /// `body_timeout`; the whole request stays under `--request-timeout-secs`.
+    #[arg(long, env = "SEASONLOC_BODY_READ_TIMEOUT_SECS", default_value_t = 20)]
+    pub body_read_timeout_secs: u64,
     /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core).
     #[arg(long, env = "SEASONLOC_WORKER_THREADS", default_value_t = 0)]
     pub worker_threads: usize,
@@ -107,6 +121,9 @@ impl Default for ServeArgs {
             request_timeout_secs: 120,
             max_concurrent_requests: 256,
             localize_queue: 16,
+            localize_max_wait_secs: 30,
+            header_read_timeout_secs: 10,
+            body_read_timeout_secs: 20,
             worker_threads: 0,
             shutdown_timeout_secs: 30,
             cnn_model: None,
@@ -143,6 +160,12 @@ pub struct Settings {
     pub max_concurrent_requests: usize,
     /// Localize admission limit, > 0.
     pub localize_queue: usize,
+    /// Longest wait of an admitted localize request for its turn, > 0 and < `request_timeout`.
+    pub localize_max_wait: Duration,
+    /// Time to receive a request's header, > 0.
+    pub header_read_timeout: Duration,
+    /// Longest stall of a request body, > 0.
+    pub body_read_timeout: Duration,
     /// CPU pool threads, > 0 (resolved from 0 = one per core).
     pub worker_threads: usize,
     /// Drain time on shutdown.
@@ -206,6 +229,19 @@ impl ServeArgs {
             self.max_concurrent_requests as u64,
         )?;
         positive("localize_queue", self.localize_queue as u64)?;
+        positive("localize_max_wait_secs", self.localize_max_wait_secs)?;
+        positive("header_read_timeout_secs", self.header_read_timeout_secs)?;
+        positive("body_read_timeout_secs", self.body_read_timeout_secs)?;
+        if self.localize_max_wait_secs >= self.request_timeout_secs {
+            return Err(ConfigError {
+                name: "localize_max_wait_secs",
+                reason: format!(
+                    "must be below request_timeout_secs ({}), got {}: a request that waits \
+                     that long would time out after being admitted",
+                    self.request_timeout_secs, self.localize_max_wait_secs
+                ),
+            });
+        }
         positive("max_requests_per_key", self.max_requests_per_key as u64)?;
         positive("max_model_bytes", self.max_model_bytes)?;
         positive("max_descriptor_len", self.max_descriptor_len as u64)?;
@@ -282,6 +318,9 @@ impl ServeArgs {
             request_timeout: Duration::from_secs(self.request_timeout_secs),
             max_concurrent_requests: self.max_concurrent_requests,
             localize_queue: self.localize_queue,
+            localize_max_wait: Duration::from_secs(self.localize_max_wait_secs),
+            header_read_timeout: Duration::from_secs(self.header_read_timeout_secs),
+            body_read_timeout: Duration::from_secs(self.body_read_timeout_secs),
             worker_threads,
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
             // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".

@@ -4,6 +4,11 @@
 //! With `--api-keys`, SIGHUP re-reads the key file (rotation without restart); a file that does
 //! not load keeps the previous keys and logs why.
 //!
+//! Connections are served by hyper's HTTP/1.1 server directly (not `axum::serve`) so that the
+//! header read timeout applies: a client gets `header_read_timeout` to send a request's header,
+//! then it is disconnected (slowloris); a stalled body is cut off by the router's body read
+//! timeout (408).
+//!
 //! Shutdown stops accepting connections, lets in-flight requests finish for at most
 //! `shutdown_timeout`, then flushes the store. Every acknowledged write was already flushed, so
 //! the final flush only covers the store's own bookkeeping.
@@ -95,30 +100,59 @@ pub async fn serve(
         }
         None => tracing::warn!("access control off: no --api-keys, every request is let through"),
     }
+    let header_timeout = state.settings.header_read_timeout;
     let app = api::app(state);
     let addr = listener.local_addr()?;
     tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
 
-    let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
-    let signal = async move {
-        shutdown.await;
-        tracing::info!("shutdown requested: draining in-flight requests");
-        let _ = stop_tx.send(true);
-    };
-    let server = axum::serve(listener, app).with_graceful_shutdown(signal);
-    let deadline = async move {
-        if stop_rx.wait_for(|stop| *stop).await.is_err() {
-            std::future::pending::<()>().await;
-        }
-        tokio::time::sleep(drain).await;
-    };
+    let http = http1_builder(header_timeout);
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let (stream, _) = tokio::select! {
+            () = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok(conn) => conn,
+                Err(e) => {
+                    // Out of file descriptors and the like: wait instead of spinning.
+                    tracing::error!("accepting a connection: {e}");
+                    tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+                    continue;
+                }
+            },
+        };
+        // Small answers go out at once instead of waiting for Nagle's algorithm.
+        let _ = stream.set_nodelay(true);
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let conn = http.serve_connection(hyper_util::rt::TokioIo::new(stream), service);
+        let conn = graceful.watch(conn);
+        tokio::spawn(async move {
+            // Clients that hang up, send garbage or are too slow with their header end here.
+            if let Err(e) = conn.await {
+                tracing::debug!("connection closed: {e}");
+            }
+        });
+    }
+    tracing::info!("shutdown requested: draining in-flight requests");
     tokio::select! {
-        result = server => result.context("serving HTTP")?,
-        () = deadline => tracing::warn!("drain timeout elapsed; exiting with requests in flight"),
+        () = graceful.shutdown() => {}
+        () = tokio::time::sleep(drain) => {
+            tracing::warn!("drain timeout elapsed; exiting with requests in flight");
+        }
     }
     use_cases.flush().await?;
     tracing::info!("store flushed; stopped");
     Ok(())
+}
+
+/// HTTP/1.1 connections whose request header must arrive within `header_timeout` (from the
+/// connection's start, or from the end of the previous response on a kept-alive connection);
+/// a client that is slower (half a header, then nothing) is disconnected.
+fn http1_builder(header_timeout: std::time::Duration) -> hyper::server::conn::http1::Builder {
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(hyper_util::rt::TokioTimer::new())
+        .header_read_timeout(header_timeout);
+    http
 }
 
 /// Spawns the task that re-reads the key file on each SIGHUP.

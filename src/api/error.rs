@@ -140,9 +140,18 @@ pub enum ApiError {
     /// 429 `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
     #[error("{0}")]
     TooManyRequests(String),
-    /// 503 `queue_full` with `Retry-After`: the localize queue is full.
-    #[error("the localize queue is full; retry later")]
-    QueueFull,
+    /// 503 `queue_full` with `Retry-After`: the localize queue is full, or the request would
+    /// wait (or has waited) longer than `--localize-max-wait-secs` for a CPU.
+    #[error("{message}")]
+    QueueFull {
+        /// What happened, for the client.
+        message: String,
+        /// Seconds to send in `Retry-After`.
+        retry_after: u64,
+    },
+    /// 408 `body_timeout`: the request body stalled longer than `--body-read-timeout-secs`.
+    #[error("the request body stalled longer than the server's body read timeout")]
+    BodyTimeout,
     /// 503 `overloaded` with `Retry-After`: the concurrency limit is reached.
     #[error("the server is at its concurrency limit; retry later")]
     Overloaded,
@@ -197,11 +206,21 @@ impl ApiError {
                 (S::MISDIRECTED_REQUEST, "misdirected_request", false)
             }
             ApiError::TooManyRequests(_) => (S::TOO_MANY_REQUESTS, "too_many_requests", true),
-            ApiError::QueueFull => (S::SERVICE_UNAVAILABLE, "queue_full", true),
+            ApiError::QueueFull { .. } => (S::SERVICE_UNAVAILABLE, "queue_full", true),
+            ApiError::BodyTimeout => (S::REQUEST_TIMEOUT, "body_timeout", false),
             ApiError::Overloaded => (S::SERVICE_UNAVAILABLE, "overloaded", true),
             ApiError::Timeout => (S::SERVICE_UNAVAILABLE, "timeout", true),
             ApiError::NotReady(_) => (S::SERVICE_UNAVAILABLE, "not_ready", true),
             ApiError::Internal(_) => (S::INTERNAL_SERVER_ERROR, "internal", false),
+        }
+    }
+
+    /// Seconds to send in `Retry-After` (when [`ApiError::parts`] says to send it).
+    pub fn retry_after(&self) -> u64 {
+        if let ApiError::QueueFull { retry_after, .. } = self {
+            (*retry_after).max(1)
+        } else {
+            RETRY_AFTER_SECS
         }
     }
 
@@ -237,7 +256,7 @@ impl IntoResponse for ApiError {
         if retry {
             response
                 .headers_mut()
-                .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECS));
+                .insert(header::RETRY_AFTER, HeaderValue::from(self.retry_after()));
         }
         if status == StatusCode::UNAUTHORIZED {
             response.headers_mut().insert(
@@ -321,10 +340,20 @@ mod tests {
 
     #[tokio::test]
     async fn queue_full_sets_retry_after() {
-        let (status, body, retry) = body_of(ApiError::QueueFull).await;
+        let (status, body, retry) = body_of(ApiError::QueueFull {
+            message: "the localize queue is full; retry later".into(),
+            retry_after: 1,
+        })
+        .await;
         assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
         assert_eq!(body["error"]["code"], "queue_full");
         assert_eq!(retry.unwrap(), "1");
+        let (_, _, retry) = body_of(ApiError::QueueFull {
+            message: "would wait 40 s".into(),
+            retry_after: 40,
+        })
+        .await;
+        assert_eq!(retry.unwrap(), "40");
     }
 
     #[tokio::test]

@@ -37,9 +37,25 @@ fn json_rejection(r: JsonRejection, max_body: usize) -> ApiError {
     }
 }
 
-/// Maps a failure to read the body: over the limit is 413, anything else 400.
+/// Whether a body read failed because the body stalled longer than the body read timeout
+/// (`tower_http`'s `TimeoutError` somewhere in the error's source chain).
+pub fn is_body_timeout(err: &(dyn std::error::Error + 'static)) -> bool {
+    let mut cause = Some(err);
+    while let Some(e) = cause {
+        if e.is::<tower_http::timeout::TimeoutError>() {
+            return true;
+        }
+        cause = e.source();
+    }
+    false
+}
+
+/// Maps a failure to read the body: over the limit is 413, a stalled body 408, anything else
+/// 400.
 pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
-    if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
+    if is_body_timeout(&r) {
+        ApiError::BodyTimeout
+    } else if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
         ApiError::PayloadTooLarge(max_body)
     } else {
         ApiError::BadRequest(r.body_text())

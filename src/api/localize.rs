@@ -5,8 +5,6 @@
 //! stores the result, which is returned. Admission is bounded: when `localize_queue` requests
 //! are already running or waiting, the answer is 503 `queue_full` with `Retry-After`.
 
-use std::sync::Arc;
-
 use axum::body::Body;
 use axum::extract::multipart::Multipart;
 use axum::extract::{FromRequest, Path, Query, Request, State};
@@ -16,6 +14,7 @@ use axum::routing::{get, post};
 use axum::Router;
 use serde::Deserialize;
 
+use super::admission::Refusal;
 use super::dto::{
     format_id, parse_id, LocalizationListResponse, LocalizationResponse,
     LocalizeDescriptorsRequest, LocalizeParams,
@@ -86,12 +85,13 @@ async fn run(
     req: Request,
 ) -> Result<Response, ApiError> {
     let map = map_id(&id)?;
+    // A place in the queue before the body is read (a full queue refuses without reading
+    // it), the CPU turn once it is parsed (a slow upload never holds a turn).
+    let reservation = state.admission.reserve().map_err(|r| refused(&state, r))?;
     let input = parse(&state, req).await?;
-    let Ok(_permit) = Arc::clone(&state.localize_slots).try_acquire_owned() else {
-        state.metrics.add_queue_rejection();
-        return Err(ApiError::QueueFull);
-    };
+    let turn = reservation.turn().await.map_err(|r| refused(&state, r))?;
     let record = state.app.localize(map, input).await?;
+    turn.finish();
     let r = &record.document.result;
     let m = &state.metrics;
     m.observe_stage("load_references", r.timings.load_references);
@@ -100,6 +100,29 @@ async fn run(
     m.observe_stage("solve", r.timings.solve);
     m.add_queries_localized(r.query_count as u64);
     json_document(&record)
+}
+
+/// The answer to a request the localize queue did not admit.
+fn refused(state: &AppState, refusal: Refusal) -> ApiError {
+    state.metrics.add_queue_rejection();
+    let max_wait = state.settings.localize_max_wait.as_secs();
+    let message = match refusal {
+        Refusal::Full { .. } => format!(
+            "the localize queue is full ({} requests); retry later",
+            state.settings.localize_queue
+        ),
+        Refusal::Busy { retry_after } => format!(
+            "the localize queue would make this request wait about {retry_after} s, longer \
+             than the limit of {max_wait} s; retry later"
+        ),
+        Refusal::Waited { .. } => format!(
+            "this request waited {max_wait} s for a CPU without its turn coming; retry later"
+        ),
+    };
+    ApiError::QueueFull {
+        message,
+        retry_after: refusal.retry_after(),
+    }
 }
 
 /// The wire form of a stored result: the stored document's fields, byte for byte the JSON the

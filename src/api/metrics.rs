@@ -184,7 +184,7 @@ impl Metrics {
             ),
             (
                 "seasonloc_localize_rejected_total",
-                "Localize requests refused by the full queue.",
+                "Localize requests refused by the queue (full, or the wait would exceed its bound).",
                 m.localize_rejected,
             ),
         ] {

@@ -12,6 +12,7 @@
 // new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
+pub mod admission;
 pub mod auth;
 mod cooc;
 mod dashboard;

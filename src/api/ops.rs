@@ -43,7 +43,17 @@ async fn readyz(State(state): State<AppState>) -> Result<Json<StatusResponse>, A
 }
 
 async fn metrics(State(state): State<AppState>) -> Response {
-    let mut r = state.metrics.render().into_response();
+    let mut text = state.metrics.render();
+    let a = &state.admission;
+    text.push_str(&format!(
+        "# HELP seasonloc_localize_waiting Localize requests waiting for a CPU turn.\n\
+         # TYPE seasonloc_localize_waiting gauge\nseasonloc_localize_waiting {}\n\
+         # HELP seasonloc_localize_arrivals_total Localize requests that asked for a CPU turn.\n\
+         # TYPE seasonloc_localize_arrivals_total counter\nseasonloc_localize_arrivals_total {}\n",
+        a.waiting(),
+        a.arrivals()
+    ));
+    let mut r = text.into_response();
     r.headers_mut().insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static("text/plain; version=0.0.4"),

@@ -6,8 +6,8 @@
 //! JSON bodies for limit errors -> metrics -> `Host` check (421, when `--allowed-host` is set)
 //! -> CORS (when `--cors-origin` is set; answers preflights before any key is asked for) ->
 //! access control ([`super::auth`]: 401/403, per-key in-flight cap 429) -> load shedding (503
-//! `overloaded`) over a global concurrency limit -> timeout (503 `timeout`) -> body size limit
-//! (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
+//! `overloaded`) over a global concurrency limit -> timeout (503 `timeout`) -> body read
+//! timeout (a body that stalls fails with 408 `body_timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
 //! one.
 
 use std::time::Duration;
@@ -21,6 +21,7 @@ use tower::ServiceBuilder;
 use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::timeout::RequestBodyTimeoutLayer;
 use tower_http::trace::{DefaultOnResponse, TraceLayer};
 use tracing::Level;
 
@@ -110,6 +111,7 @@ pub fn app(state: AppState) -> Router {
             auth::authorize,
         ))
         .layer(limits)
+        .layer(RequestBodyTimeoutLayer::new(s.body_read_timeout))
         .layer(RequestBodyLimitLayer::new(s.max_body_bytes))
         .layer(DefaultBodyLimit::disable());
     let max_body = s.max_body_bytes;

@@ -1,5 +1,5 @@
 //! Shared state of the handlers: the use cases ([`App`]), the validated settings, the admission
-//! slots of `/localize`, the access control, the metrics and the shipped OpenAPI document.
+//! queue of `/localize`, the access control, the metrics and the shipped OpenAPI document.
 //!
 //! Handlers never do CPU-heavy or blocking work themselves: they decode, call [`App`] (which
 //! runs CPU work on its pool and awaits the store), and encode.
@@ -7,8 +7,8 @@
 use std::sync::Arc;
 
 use axum::body::Bytes;
-use tokio::sync::Semaphore;
 
+use super::admission::Admission;
 use super::auth::Auth;
 use super::metrics::Metrics;
 use crate::app::App;
@@ -21,8 +21,8 @@ pub struct AppState {
     pub app: Arc<App>,
     /// Validated settings.
     pub settings: Arc<Settings>,
-    /// Admission slots of `/localize` (running + waiting).
-    pub localize_slots: Arc<Semaphore>,
+    /// Admission of `/localize`: a bounded FIFO queue in front of the CPU pool.
+    pub admission: Arc<Admission>,
     /// Prometheus metrics.
     pub metrics: Arc<Metrics>,
     /// `openapi/openapi.yaml` as JSON.
@@ -42,7 +42,11 @@ impl AppState {
         Ok(AppState {
             auth,
             app,
-            localize_slots: Arc::new(Semaphore::new(settings.localize_queue)),
+            admission: Arc::new(Admission::new(
+                settings.localize_queue,
+                settings.worker_threads,
+                settings.localize_max_wait,
+            )),
             settings: Arc::new(settings),
             metrics: Arc::new(Metrics::default()),
             openapi_json,

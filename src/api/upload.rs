@@ -35,7 +35,9 @@ pub fn rejection(r: MultipartRejection) -> ApiError {
 }
 
 fn stream_error(e: MultipartError, max_body: usize) -> ApiError {
-    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+    if super::extract::is_body_timeout(&e) {
+        ApiError::BodyTimeout
+    } else if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
         ApiError::PayloadTooLarge(max_body)
     } else {
         ApiError::BadRequest(format!("malformed multipart body: {}", e.body_text()))

@@ -139,6 +139,7 @@ impl From<StoreError> for AppError {
             StoreError::TripConflict { .. } => AppError::TripConflict(e.to_string()),
             StoreError::Unavailable(cause) => AppError::Unavailable(cause),
             StoreError::Open { .. }
+            | StoreError::IdTaken(_)
             | StoreError::Backend(_)
             | StoreError::Corrupt { .. }
             | StoreError::UnsupportedSchema { .. } => AppError::Internal(e.to_string()),

@@ -10,7 +10,7 @@ use std::time::Instant;
 use super::error::{AppError, AppResult};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
-use super::{map_extractor, App};
+use super::{ids, map_extractor, App};
 use crate::cooc::CoocMethod;
 use crate::localize::{localize_with_picture, Localization, LocalizeOptions};
 use crate::picture::MatrixPicture;
@@ -167,6 +167,14 @@ impl App {
                     )
                 }
             };
+        // Bounded hidden costs keep every cost finite; a non-finite one would be stored and
+        // sent as `null`, against the schema, so it is a bug, never a result.
+        let total_cost = result.solution.total_cost();
+        if !total_cost.is_finite() {
+            return Err(AppError::Internal(format!(
+                "map `{id:016x}`: the solution's total cost is {total_cost}"
+            )));
+        }
         let result = LocalizationResult {
             query_count,
             reference_count,
@@ -175,7 +183,7 @@ impl App {
                 result.solution.hidden_cost,
                 method.map(stored_method),
             ),
-            total_cost: result.solution.total_cost(),
+            total_cost,
             hypotheses: result.solution.hypotheses.iter().map(Into::into).collect(),
             predictions: result.predictions.iter().map(Into::into).collect(),
             timings: StoredTimings {
@@ -191,14 +199,18 @@ impl App {
                 hi: p.hi,
             }),
         };
-        let record = self
-            .store
-            .create_localization(NewLocalization {
-                map_id: id,
-                result,
-                picture: picture.map(|(_, png)| png),
-            })
-            .await?;
+        let new = NewLocalization {
+            id: 0,
+            map_id: id,
+            result,
+            picture: picture.map(|(_, png)| png),
+        };
+        let record = ids::create_with_new_id(
+            new,
+            |n, id| n.id = id,
+            |n| self.store.create_localization(n),
+        )
+        .await?;
         tracing::info!(
             map = %format!("{id:016x}"),
             localization = %format!("{:016x}", record.id),

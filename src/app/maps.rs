@@ -11,7 +11,7 @@ use super::error::{AppError, AppResult};
 use super::idempotency::Idempotency;
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
-use super::{map_extractor, App};
+use super::{ids, map_extractor, App};
 use crate::features::cnn::{CnnOptions, CnnSpec};
 use crate::store::{
     CnnSettings, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
@@ -128,13 +128,13 @@ impl App {
                 DescriptorSettings::Cnn(Box::new(settings))
             }
         };
-        let map = self
-            .store
-            .create_map(NewMap {
-                name: spec.name,
-                descriptor,
-            })
-            .await?;
+        let new = NewMap {
+            id: 0,
+            name: spec.name,
+            descriptor,
+        };
+        let map =
+            ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_map(n)).await?;
         tracing::info!(map = %format!("{:016x}", map.id), name = %map.name, "map created");
         Ok(map)
     }

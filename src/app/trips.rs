@@ -19,7 +19,7 @@ use super::error::{AppError, AppResult};
 use super::idempotency::{self, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
-use super::{map_extractor, App};
+use super::{ids, map_extractor, App};
 use crate::similarity;
 use crate::store::{
     FrameRecord, IdempotencyRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch,
@@ -112,15 +112,15 @@ impl App {
             .pool
             .run(move || Ok(Trip::new(prior.as_ref().clone(), params)?.to_bytes()))
             .await?;
-        let record = self
-            .store
-            .create_trip(NewTrip {
-                map_id: id,
-                reference_count: count,
-                params: TripParamsDocument::from(&params),
-                state,
-            })
-            .await?;
+        let new = NewTrip {
+            id: 0,
+            map_id: id,
+            reference_count: count,
+            params: TripParamsDocument::from(&params),
+            state,
+        };
+        let record =
+            ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_trip(n)).await?;
         tracing::info!(map = %format!("{id:016x}"), trip = %format!("{:016x}", record.id), "trip opened");
         Ok(record)
     }

@@ -53,6 +53,10 @@ pub struct CoocArgs {
     /// [default: 10].
     #[arg(long)]
     pub seq_exclusion: Option<usize>,
+    /// `cooc-seq`: SeqSLAM's local contrast enhancement of the dissimilarities over this many
+    /// locations (0 = off) [default: the library's].
+    #[arg(long)]
+    pub seq_contrast_window: Option<usize>,
 }
 
 impl CoocArgs {
@@ -97,6 +101,7 @@ impl CoocArgs {
             length: self.seq_length.unwrap_or(d.length),
             max_step: self.seq_max_step.unwrap_or(d.max_step),
             exclusion: self.seq_exclusion.unwrap_or(d.exclusion),
+            contrast_window: self.seq_contrast_window.unwrap_or(d.contrast_window),
         };
         p.validate()?;
         Ok(p)

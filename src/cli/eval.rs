@@ -608,7 +608,8 @@ fn run_method(
             CoocMethod::Single => json!({"schedule": "best-first"}),
             CoocMethod::Sequence => {
                 let s = &cooc_options.sequence;
-                json!({"length": s.length, "max_step": s.max_step, "exclusion": s.exclusion})
+                json!({"length": s.length, "max_step": s.max_step, "exclusion": s.exclusion,
+                       "contrast_window": s.contrast_window})
             }
             CoocMethod::Flow => flow_params(&result.solution),
         };

@@ -272,6 +272,7 @@ mod tests {
                 length: 3,
                 max_step: 2,
                 exclusion: 2,
+                contrast_window: 0,
             },
             ..CoocOptions::default()
         };

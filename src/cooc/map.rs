@@ -106,6 +106,18 @@ impl CoocMap {
     /// [`CoocMap::build`] from features already extracted with `params.keypoints` (e.g. to
     /// build several maps from the same drives without extracting them again).
     pub fn from_features(params: &CoocParams, drives: &[DriveFeatures]) -> Result<Self> {
+        let training: Vec<&keypoints::Features> = drives.iter().flat_map(|d| &d.features).collect();
+        Self::from_features_and_training(params, &training, drives)
+    }
+
+    /// [`CoocMap::from_features`] with the vocabulary learned from `training` instead of from
+    /// the drives (the paper trains its vocabulary on a separate set of images). The drives
+    /// are then quantised with it; `training` is not part of the map.
+    pub fn from_features_and_training(
+        params: &CoocParams,
+        training: &[&keypoints::Features],
+        drives: &[DriveFeatures],
+    ) -> Result<Self> {
         params.validate()?;
         for d in drives {
             d.check()?;
@@ -115,26 +127,22 @@ impl CoocMap {
                 "a co-occurrence map needs at least one image".into(),
             ));
         }
-        let total: usize = drives
-            .iter()
-            .flat_map(|d| &d.features)
-            .map(|f| f.keypoints.len())
-            .sum();
+        let total: usize = training.iter().map(|f| f.keypoints.len()).sum();
         if total < params.vocabulary_branching {
             return Err(Error::Empty(format!(
-                "the drives yield only {total} keypoints, fewer than vocabulary_branching ({})",
+                "the training images yield only {total} keypoints, fewer than \
+                 vocabulary_branching ({})",
                 params.vocabulary_branching
             )));
         }
         // An even stride over all descriptors keeps every part of the route represented.
         let stride = total.div_ceil(params.max_training_descriptors);
-        let mut training = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
-        let all = drives
+        let mut training_set = Vec::with_capacity(total / stride * DESCRIPTOR_DIM + DESCRIPTOR_DIM);
+        let all = training
             .iter()
-            .flat_map(|d| &d.features)
             .flat_map(|f| f.descriptors.chunks_exact(DESCRIPTOR_DIM));
         for d in all.step_by(stride) {
-            training.extend_from_slice(d);
+            training_set.extend_from_slice(d);
         }
         let spec = TreeSpec {
             branching: params.vocabulary_branching,
@@ -142,7 +150,7 @@ impl CoocMap {
             iterations: params.kmeans_iterations,
             seed: params.seed,
         };
-        let vocabulary = Vocabulary::train(&training, DESCRIPTOR_DIM, spec)?;
+        let vocabulary = Vocabulary::train(&training_set, DESCRIPTOR_DIM, spec)?;
         let mut map = CoocMap {
             params: params.clone(),
             locations: LocationMap::new(
@@ -427,6 +435,39 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_vocabulary_trained_on_separate_images_quantises_the_drives() {
+        let day: Vec<GrayImage> = (0..10).map(|s| scene(s, false)).collect();
+        let separate: Vec<GrayImage> = (50..70).map(|s| scene(s, false)).collect();
+        let p = params();
+        let drive = DriveFeatures {
+            time: 12.0,
+            features: extract_all(&p, 0, &day).unwrap(),
+            locations: (0..10).collect(),
+        };
+        let training = extract_all(&p, 1, &separate).unwrap();
+        let refs: Vec<&keypoints::Features> = training.iter().collect();
+        let map =
+            CoocMap::from_features_and_training(&p, &refs, std::slice::from_ref(&drive)).unwrap();
+        let own = CoocMap::from_features(&p, std::slice::from_ref(&drive)).unwrap();
+        assert_ne!(
+            map.vocabulary(),
+            own.vocabulary(),
+            "trained on other images"
+        );
+        assert_eq!(map.location_count(), 10);
+        let found = recognize(&map, &day)
+            .iter()
+            .filter(|x| x.reference == x.query)
+            .count();
+        assert!(found >= 9, "{found} of 10 found");
+        // Too few training keypoints is an error naming the vocabulary size.
+        let err = CoocMap::from_features_and_training(&p, &[], &[drive])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("vocabulary_branching"), "{err}");
+    }
+
+    #[test]
     fn fused_drives_recognize_either_appearance() {
         let day: Vec<GrayImage> = (0..10).map(|s| scene(s, false)).collect();
         let night: Vec<GrayImage> = (0..10).map(|s| scene(s, true)).collect();
@@ -480,6 +521,7 @@ pub(crate) mod tests {
             length: 4,
             max_step: 2,
             exclusion: 2,
+            contrast_window: 0,
         };
         let p = sequence_match(&map, &queries, &seq);
         assert_eq!(p.len(), path.len());

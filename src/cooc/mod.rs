@@ -17,7 +17,9 @@
 //! Invariants: a built [`CoocMap`] has a vocabulary, one model per location (possibly empty) and
 //! an inverted index consistent with the models; every stage is deterministic for a given
 //! [`CoocParams::seed`]. This module depends only on `crate::Error`, `crate::Matrix`,
-//! `crate::localize::Prediction`, `image` and `rayon` (no serde, no I/O).
+//! `crate::localize::Prediction`, SeqSLAM's contrast enhancement
+//! (`crate::baselines::enhance_contrast`, an option of the sequence matching), `image` and
+//! `rayon` (no serde, no I/O).
 
 mod codec;
 pub mod keypoints;

@@ -4,6 +4,12 @@
 //!
 //! Input is a score matrix (`Q x L`, higher = more similar, e.g. co-occurrence scores). Each row
 //! becomes a dissimilarity `d_ij = 1 - s_ij / max_j s_ij` (all ones for a row without any score).
+//! With `contrast_window = w > 0` that dissimilarity is then contrast-enhanced as SeqSLAM does
+//! (the paper keeps SeqSLAM's parameters apart from the path shape): each `d_ij` becomes
+//! `(d_ij - mean) / std` over its `w` neighbours along the location axis
+//! ([`crate::baselines::enhance_contrast`]), shifted to a minimum of 0 and scaled to a maximum
+//! of 1. With many keypoints per image every location scores a few correspondences, a row's
+//! maximum says little about its background, and the local contrast restores it.
 //! For query `i` the window is queries `i+1-length ..= i`. A path starts at every location `j` in
 //! the window's first query and, for each next query, greedily steps to the location with the
 //! lowest dissimilarity among `pos ..= pos + max_step` (never backwards; ties to the nearest) —
@@ -31,6 +37,9 @@ pub struct SequenceParams {
     pub max_step: usize,
     /// Paths ending within this many locations of the best do not count as the runner-up.
     pub exclusion: usize,
+    /// SeqSLAM's local contrast enhancement of the dissimilarities over this many locations
+    /// (0 = off: the row-max dissimilarity only; otherwise at least 2).
+    pub contrast_window: usize,
 }
 
 impl Default for SequenceParams {
@@ -39,6 +48,7 @@ impl Default for SequenceParams {
             length: 10,
             max_step: 3,
             exclusion: 10,
+            contrast_window: 0,
         }
     }
 }
@@ -53,6 +63,12 @@ impl SequenceParams {
             return Err(Error::param(
                 "max_step",
                 "must be at least 1 (0 would forbid any forward motion)",
+            ));
+        }
+        if self.contrast_window == 1 {
+            return Err(Error::param(
+                "contrast_window",
+                "must be 0 (off) or at least 2 locations",
             ));
         }
         Ok(())
@@ -77,6 +93,22 @@ fn dissimilarity(scores: &Matrix) -> Result<Matrix> {
         }
     }
     Ok(d)
+}
+
+/// SeqSLAM's local contrast enhancement of the dissimilarities `d`, scaled back to `[0, 1]`.
+fn contrast_enhanced(d: &Matrix, window: usize) -> Result<Matrix> {
+    // enhance_contrast takes a similarity c and works on 1 - c = d.
+    let mut similarity = d.clone();
+    similarity
+        .as_mut_slice()
+        .iter_mut()
+        .for_each(|v| *v = 1.0 - *v);
+    let mut e = crate::baselines::enhance_contrast(&similarity, window)?;
+    let max = e.as_slice().iter().copied().fold(0.0f32, f32::max);
+    if max > 0.0 {
+        e.as_mut_slice().iter_mut().for_each(|v| *v /= max);
+    }
+    Ok(e)
 }
 
 /// The greedy forward path from location `start` over rows `first..=last`: (cost, end).
@@ -112,7 +144,10 @@ pub fn match_sequences(scores: &Matrix, params: &SequenceParams) -> Result<Vec<P
     if scores.cols() == 0 {
         return Err(Error::Empty("the score matrix has no locations".into()));
     }
-    let d = dissimilarity(scores)?;
+    let mut d = dissimilarity(scores)?;
+    if params.contrast_window > 0 {
+        d = contrast_enhanced(&d, params.contrast_window)?;
+    }
     let l = d.cols();
     let predictions = (0..d.rows())
         .into_par_iter()
@@ -230,6 +265,39 @@ mod tests {
     }
 
     #[test]
+    fn contrast_enhancement_finds_the_route_over_a_busy_background() {
+        // Every location scores a few correspondences; a band of locations scores many for every
+        // query (a repetitive place). The true path is only a local peak on its background.
+        let path: Vec<usize> = (0..20).map(|i| 30 + i).collect();
+        let mut rng = crate::cooc::SplitMix64::new(4);
+        let mut s = Matrix::zeros(path.len(), 80);
+        for (i, &p) in path.iter().enumerate() {
+            for j in 0..80 {
+                let base = if (5..15).contains(&j) { 9.0 } else { 2.0 };
+                s.set(i, j, base + (rng.next_f64() * 2.0) as f32);
+            }
+            s.set(i, p, 6.0);
+        }
+        let found = |contrast_window| {
+            let p = SequenceParams {
+                contrast_window,
+                ..SequenceParams::default()
+            };
+            let out = match_sequences(&s, &p).unwrap();
+            assert!(out.iter().all(|x| (0.0..=1.0).contains(&x.confidence)));
+            out.iter()
+                .skip(9)
+                .filter(|x| x.reference == path[x.query])
+                .count()
+        };
+        assert!(found(0) < 3, "the busy band should win without contrast");
+        assert!(
+            found(10) >= 10,
+            "contrast enhancement finds the windowed queries"
+        );
+    }
+
+    #[test]
     fn confidence_is_bounded() {
         let s = path_scores(20, &[10, 9, 8, 7, 6], 3);
         let p = match_sequences(
@@ -238,6 +306,7 @@ mod tests {
                 length: 5,
                 max_step: 2,
                 exclusion: 2,
+                contrast_window: 0,
             },
         )
         .unwrap();
@@ -263,5 +332,11 @@ mod tests {
             ..SequenceParams::default()
         };
         assert!(match_sequences(&Matrix::zeros(1, 1), &bad).is_err());
+        let bad = SequenceParams {
+            contrast_window: 1,
+            ..SequenceParams::default()
+        };
+        let err = match_sequences(&Matrix::zeros(1, 1), &bad).unwrap_err();
+        assert!(err.to_string().contains("contrast_window"), "{err}");
     }
 }

@@ -256,10 +256,16 @@ mod tests {
     fn any_size_gives_the_geometry_descriptor() {
         let fitted = Fitted::hog(8, (64, 32), Fit::Stretch).unwrap();
         let dim = fitted.dim_for(64, 32).unwrap();
-        for (w, h) in [(32, 16), (128, 64), (50, 50), (3, 7), (640, 360)] {
+        for (w, h) in [(32, 16), (128, 64), (50, 50), (8, 9), (640, 360)] {
             assert_eq!(fitted.dim_for(w, h).unwrap(), dim);
             assert_eq!(fitted.extract(&textured(w, h)).unwrap().len(), dim);
         }
+        // Less than one cell of detail is not stretched to the geometry (issue 14: a clear
+        // error instead of a descriptor of upscaled nothing).
+        assert!(matches!(
+            fitted.extract(&textured(3, 7)),
+            Err(Error::Image { .. })
+        ));
         // Stretch of a 2x image is the HOG of its resize; crop cuts first.
         let big = textured(128, 80);
         let stretched = HogSpec::new(HogOptions {

@@ -151,13 +151,20 @@ pub fn check_fan_out(fan_out: usize) -> Result<()> {
     Ok(())
 }
 
-/// Fails unless `w` is a finite number > 0. The one check of the hidden cost: the offline
-/// solver, the confidence, the online solver and trip parameters all call it.
+/// Largest accepted hidden cost `W`. A path's cost adds `W` once per hidden run, so an
+/// unbounded `W` overflows to infinity (1e308 with 8 flows did), and every path then costs
+/// the same; 1e12 already means "never hidden" next to match costs `1/ĉ` of real data, and
+/// keeps every cost finite for any realistic sequence length and flow count.
+pub const MAX_HIDDEN_COST: f64 = 1e12;
+
+/// Fails unless `w` is a finite number in `(0, MAX_HIDDEN_COST]`. The one check of the hidden
+/// cost: the offline solver, the confidence, the online solver and trip parameters all call
+/// it.
 pub fn check_hidden_cost(w: f64) -> Result<()> {
-    if !(w.is_finite() && w > 0.0) {
+    if !(w.is_finite() && w > 0.0 && w <= MAX_HIDDEN_COST) {
         return Err(Error::param(
             "hidden_cost",
-            format!("must be a finite number > 0, got {w}"),
+            format!("must be a finite number > 0 and at most {MAX_HIDDEN_COST:e}, got {w}"),
         ));
     }
     Ok(())

@@ -36,7 +36,7 @@ mod shortest_path;
 /// Node cost of a matching node: `1/ĉ`, or `+inf` when `ĉ <= 0` (unusable). Every solver,
 /// the confidence and the online solver use this one definition.
 pub(crate) use graph::match_cost;
-pub use graph::{check_fan_out, check_hidden_cost, Blocked};
+pub use graph::{check_fan_out, check_hidden_cost, Blocked, MAX_HIDDEN_COST};
 pub(crate) use kernel::{forward_values_row, Scratch as RowScratch};
 pub use marginals::{row_alternatives, RowAlternatives};
 pub use shortest_path::shortest_path;
@@ -248,6 +248,29 @@ mod tests {
             flows,
             exact,
             ..SolverParams::default()
+        }
+    }
+
+    #[test]
+    fn the_largest_hidden_cost_keeps_every_cost_finite() {
+        // 1e308 with 8 flows once overflowed to an infinite (JSON null) total cost.
+        let chat = Matrix::from_vec(6, 5, vec![0.01f32; 30]).unwrap();
+        for exact in [false, true] {
+            let params = SolverParams {
+                hidden_cost: HiddenCost::Fixed(graph::MAX_HIDDEN_COST),
+                flows: 8,
+                exact,
+                ..SolverParams::default()
+            };
+            let s = solve(&chat, &params).unwrap();
+            assert!(s.total_cost().is_finite(), "{}", s.total_cost());
+            assert!(s.hypotheses.iter().all(|h| h.cost.is_finite()));
+            let too_big = SolverParams {
+                hidden_cost: HiddenCost::Fixed(1e308),
+                ..params
+            };
+            let e = solve(&chat, &too_big).unwrap_err().to_string();
+            assert!(e.contains("hidden_cost") && e.contains("1e12"), "{e}");
         }
     }
 

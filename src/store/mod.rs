@@ -14,7 +14,10 @@
 //!   it replaces ([`CoocWrite::previous`]); a stale write fails with
 //!   [`StoreError::TripConflict`] / [`StoreError::Conflict`] and changes nothing, so two
 //!   replicas can never both apply a batch computed from one state.
-//! * **Ids are allocated by the engine** (`create_*`), increasing with creation time.
+//! * **Ids are chosen by the caller** (`NewMap::id`, `NewLocalization::id`, `NewTrip::id`:
+//!   the use-case layer's random, time-ordered ids, see `crate::app::ids`); an engine stores a
+//!   new object under exactly that id, or fails with [`StoreError::IdTaken`] and writes nothing
+//!   when the id exists. Ids grow with creation time, so listings can go newest first.
 //! * **A map's descriptors are versioned by its `image_count`**: images are append-only, rows
 //!   `0..image_count` never change, so a reader that caches a map's matrix checks the map's
 //!   current count ([`Store::get_map`]) and reads only the new rows ([`Store::descriptors`]).
@@ -123,6 +126,10 @@ pub enum StoreError {
         /// Frames the batch assumed.
         expected: u64,
     },
+    /// A new object was given an id that another object of its kind already has (two
+    /// processes drew the same random id); nothing was written, the caller draws another.
+    #[error("id {0:016x} is taken")]
+    IdTaken(u64),
     /// A map cannot grow further (more than `u32::MAX` images).
     #[error("map {0:016x} is full")]
     MapFull(u64),
@@ -186,6 +193,8 @@ pub struct CnnSettings {
 /// What a client gives to create a map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewMap {
+    /// The new map's id (must not exist yet).
+    pub id: u64,
     /// User-given name.
     pub name: String,
     /// Validated descriptor settings.
@@ -369,7 +378,7 @@ pub struct CoocWrite {
 /// A stored localization result.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LocalizationRecord {
-    /// Localization id (increasing with creation time).
+    /// Localization id (growing with creation time).
     pub id: u64,
     /// The map it was computed against.
     pub map_id: u64,
@@ -382,6 +391,8 @@ pub struct LocalizationRecord {
 /// A result to store with [`Store::create_localization`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewLocalization {
+    /// The new result's id (must not exist yet).
+    pub id: u64,
     /// The map it was computed against (must exist).
     pub map_id: u64,
     /// The result; the engine adds the id, map id and creation time to its document.
@@ -394,7 +405,7 @@ pub struct NewLocalization {
 /// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TripRecord {
-    /// Trip id (increasing with creation time).
+    /// Trip id (growing with creation time).
     pub id: u64,
     /// The map it localizes against.
     pub map_id: u64,
@@ -415,6 +426,8 @@ pub struct TripRecord {
 /// A trip to open with [`Store::create_trip`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewTrip {
+    /// The new trip's id (must not exist yet).
+    pub id: u64,
     /// The map (must exist).
     pub map_id: u64,
     /// The map's image count the trip localizes against.
@@ -488,7 +501,8 @@ pub trait Store: Send + Sync + 'static {
     /// Makes everything durable (at shutdown; every acknowledged write already is).
     async fn flush(&self) -> StoreResult<()>;
 
-    /// Creates an empty map (a new id) and returns it.
+    /// Creates an empty map under `new.id` and returns it ([`StoreError::IdTaken`] when a map
+    /// has that id).
     async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord>;
 
     /// One map.
@@ -525,8 +539,9 @@ pub trait Store: Send + Sync + 'static {
     /// Returns the indices of the new images.
     async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>>;
 
-    /// Stores a localization result under a new id, atomically with its index entry. Fails
-    /// with [`StoreError::MapNotFound`] when the map is gone.
+    /// Stores a localization result under `new.id`, atomically with its index entry. Fails
+    /// with [`StoreError::MapNotFound`] when the map is gone, [`StoreError::IdTaken`] when a
+    /// result has that id.
     async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord>;
 
     /// One stored result.
@@ -543,7 +558,8 @@ pub trait Store: Send + Sync + 'static {
         page: PageRequest,
     ) -> StoreResult<Page<LocalizationRecord>>;
 
-    /// Opens a trip (a new id) with its initial state; fails when the map is gone.
+    /// Opens a trip under `new.id` with its initial state; fails when the map is gone or a
+    /// trip has that id ([`StoreError::IdTaken`]).
     async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord>;
 
     /// One trip's record.
@@ -579,4 +595,12 @@ pub fn now_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+/// Distinct, increasing ids for the engines' unit tests (the service draws random ones in
+/// `crate::app::ids`).
+#[cfg(test)]
+pub(crate) fn test_id() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
 }

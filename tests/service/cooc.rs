@@ -220,6 +220,127 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     assert!(p.terminate());
 }
 
+/// Predictions of a `--predictions` CSV: `(query, ref, confidence)` per row.
+fn csv_predictions(path: &std::path::Path) -> Vec<(i64, i64, f64)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (
+                f[0].parse().unwrap(),
+                f[1].parse().unwrap(),
+                f[2].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+/// A map fused over HTTP (first `/images` batch, then `POST /drives` with a time) is the map
+/// `seasonloc eval` fuses from the same drives (`--reference` twice with `--reference-time`):
+/// both answer every query with the same location and confidence, for `cooc` and `cooc-seq`.
+#[test]
+fn drives_over_http_fuse_the_same_map_as_eval() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(30, 13);
+    let refs: Vec<Vec<u8>> = (0..30).map(|i| route.reference_png(i)).collect();
+    let night: Vec<Vec<u8>> = (0..30).map(|i| route.query_png(i)).collect();
+    // Queries: a third appearance of locations 4..26 (the night frames brightened).
+    let queries: Vec<Vec<u8>> = (4..26)
+        .map(|i| {
+            let mut img = image::load_from_memory(&night[i]).unwrap().to_luma8();
+            for p in img.pixels_mut() {
+                p.0[0] = p.0[0].saturating_add(25);
+            }
+            crate::common::png(&img)
+        })
+        .collect();
+    let tmp = tempfile::tempdir().unwrap();
+    let write = |name: &str, pngs: &[Vec<u8>]| -> String {
+        let dir = tmp.path().join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        for (i, b) in pngs.iter().enumerate() {
+            std::fs::write(dir.join(format!("f{i:03}.png")), b).unwrap();
+        }
+        dir.to_str().unwrap().to_string()
+    };
+    let (day_dir, night_dir, query_dir) = (
+        write("day", &refs),
+        write("night", &night),
+        write("query", &queries),
+    );
+    let gt = tmp.path().join("gt.csv");
+    let rows: String = (0..22).map(|q| format!("{q},{}\n", q + 4)).collect();
+    std::fs::write(&gt, format!("query_index,ref_index\n{rows}")).unwrap();
+
+    // The service: the day drive builds the map, the night drive (time 22) is fused into it.
+    let map = create_cooc(c);
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs, None));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let locations: Vec<u32> = (0..30).collect();
+    let r = drive(
+        c,
+        &map,
+        &night,
+        json!({"locations": locations, "time": 22.0}),
+    );
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+
+    for method in ["cooc", "cooc-seq"] {
+        let preds = tmp.path().join(format!("{method}.csv"));
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_seasonloc"))
+            .args(["eval", "--reference", &day_dir, "--reference", &night_dir])
+            .args(["--reference-time", "0", "--reference-time", "22"])
+            .args([
+                "--query",
+                &query_dir,
+                "--ground-truth",
+                gt.to_str().unwrap(),
+            ])
+            .args(["--method", method, "--cooc-branching", "8"])
+            .args(["--predictions", preds.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let offline = csv_predictions(&preds);
+        let online = localize(c, &map, &queries, json!({"method": method}));
+        let online: Vec<(i64, i64, f64)> = online["predictions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| {
+                (
+                    p["query"].as_i64().unwrap(),
+                    p["ref"].as_i64().unwrap(),
+                    p["confidence"].as_f64().unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(offline.len(), online.len(), "{method}");
+        assert!(offline.len() >= 20, "{method}: {offline:?}");
+        for (a, b) in offline.iter().zip(&online) {
+            assert_eq!(
+                (a.0, a.1),
+                (b.0, b.1),
+                "{method}: eval {a:?}, service {b:?}"
+            );
+            assert!(
+                (a.2 - b.2).abs() <= 1e-4 * a.2.abs().max(1.0),
+                "{method}: {a:?} {b:?}"
+            );
+        }
+        // Not a vacuous agreement: the fused map finds most queries.
+        let found = online.iter().filter(|p| (p.1 - p.0 - 4).abs() <= 1).count();
+        assert!(found >= 15, "{method}: {found} of 22 found: {online:?}");
+    }
+}
+
 /// The latest estimates and status of a batch (what two identical trips must agree on).
 fn trip_answer(v: &Value) -> Value {
     json!({"estimates": v["estimates"], "status": v["status"], "window": v["window"],

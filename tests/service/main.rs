@@ -12,6 +12,7 @@ mod docker;
 mod durability;
 mod errors;
 mod flow;
+mod hardening;
 mod http;
 mod idempotency;
 mod spec;

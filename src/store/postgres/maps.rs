@@ -103,6 +103,7 @@ impl PgStore {
             | DescriptorSettings::Cnn(_)
             | DescriptorSettings::Cooc(_) => None,
         };
+        let key = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
         let created_ms = now_ms();
         // Only the settings of this encoding are read back (see the schema).
         let settings = codec::encode_map(&MapRecord {
@@ -117,7 +118,7 @@ impl PgStore {
         let stmt = client
             .prepare_cached(
                 "INSERT INTO maps (id, name, settings, dim, image_count, created_ms)
-                 VALUES (nextval('seasonloc_ids'), $1, $2, $3, 0, $4) RETURNING id",
+                 VALUES ($5, $1, $2, $3, 0, $4) RETURNING id",
             )
             .await?;
         let row = client
@@ -128,9 +129,17 @@ impl PgStore {
                     &settings,
                     &dim.map(i64::from),
                     &i64::try_from(created_ms).unwrap_or(i64::MAX),
+                    &key,
                 ],
             )
-            .await?;
+            .await
+            .map_err(|e| {
+                if is_duplicate(&e) {
+                    StoreError::IdTaken(new.id)
+                } else {
+                    e.into()
+                }
+            })?;
         let id: i64 = row.get(0);
         Ok(MapRecord {
             id: unsigned("maps", id, id)?,
@@ -479,6 +488,11 @@ impl PgStore {
         tx.commit().await?;
         Ok(start..end)
     }
+}
+
+/// Whether a database error is a primary-key violation (the id is taken).
+pub(super) fn is_duplicate(e: &tokio_postgres::Error) -> bool {
+    e.code() == Some(&SqlState::UNIQUE_VIOLATION)
 }
 
 /// Whether a database error is a foreign-key violation (the parent row is gone).

@@ -8,7 +8,7 @@
 
 use tokio_postgres::Row;
 
-use super::maps::is_missing_parent;
+use super::maps::{is_duplicate, is_missing_parent};
 use super::{before, corrupt, db_id, fetch, paged, small, unsigned, PgStore};
 use crate::store::{
     now_ms, FrameRecord, LocalizationDocument, LocalizationRecord, NewLocalization, NewTrip, Page,
@@ -90,11 +90,8 @@ impl PgStore {
         new: NewLocalization,
     ) -> StoreResult<LocalizationRecord> {
         let map = db_id(new.map_id).ok_or(StoreError::MapNotFound(new.map_id))?;
+        let id = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
         let client = self.client().await?;
-        let id: i64 = client
-            .query_one("SELECT nextval('seasonloc_ids')", &[])
-            .await?
-            .get(0);
         let created_ms = now_ms();
         let record = LocalizationRecord {
             id: unsigned("localizations", id, id)?,
@@ -120,6 +117,7 @@ impl PgStore {
         {
             Ok(_) => Ok(record),
             Err(e) if is_missing_parent(&e) => Err(StoreError::MapNotFound(new.map_id)),
+            Err(e) if is_duplicate(&e) => Err(StoreError::IdTaken(new.id)),
             Err(e) => Err(e.into()),
         }
     }
@@ -178,6 +176,7 @@ impl PgStore {
 
     pub(super) async fn insert_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
         let map = db_id(new.map_id).ok_or(StoreError::MapNotFound(new.map_id))?;
+        let id = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
         let created_ms = now_ms();
         let params = new.params.to_json()?;
         let client = self.client().await?;
@@ -185,7 +184,7 @@ impl PgStore {
             .prepare_cached(
                 "INSERT INTO trips (id, map_id, created_ms, closed_ms, frame_count,
                                     reference_count, status, params, state)
-                 VALUES (nextval('seasonloc_ids'), $1, $2, NULL, 0, $3, 0, $4, $5) RETURNING id",
+                 VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5) RETURNING id",
             )
             .await?;
         let row = client
@@ -197,12 +196,15 @@ impl PgStore {
                     &i64::from(new.reference_count),
                     &params,
                     &new.state,
+                    &id,
                 ],
             )
             .await
             .map_err(|e| {
                 if is_missing_parent(&e) {
                     StoreError::MapNotFound(new.map_id)
+                } else if is_duplicate(&e) {
+                    StoreError::IdTaken(new.id)
                 } else {
                     e.into()
                 }

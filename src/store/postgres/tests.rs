@@ -21,6 +21,7 @@ fn rows(n: usize, dim: usize, base: f32) -> Matrix {
 
 fn precomputed(dim: u32) -> NewMap {
     NewMap {
+        id: crate::store::test_id(),
         name: "m".into(),
         descriptor: DescriptorSettings::Precomputed { dim },
     }
@@ -140,6 +141,7 @@ async fn batches_read_back_across_their_boundaries() {
     assert_eq!(store.get_map(map.id).await.unwrap().image_count, 7);
     // Settings survive the round trip.
     let hog = NewMap {
+        id: crate::store::test_id(),
         name: "h".into(),
         descriptor: DescriptorSettings::Hog {
             cell_size: 8,
@@ -152,6 +154,12 @@ async fn batches_read_back_across_their_boundaries() {
     assert_eq!(listed[1], h);
     assert_eq!(listed[1].descriptor, hog.descriptor);
     assert!(h.id > map.id);
+    // A taken id is refused and nothing is written (the use-case layer draws another).
+    assert!(matches!(
+        store.create_map(hog.clone()).await,
+        Err(StoreError::IdTaken(id)) if id == h.id
+    ));
+    assert_eq!(store.list_maps().await.unwrap().len(), 2);
     // Deleting a map takes everything under it.
     store.delete_map(map.id).await.unwrap();
     assert!(matches!(
@@ -217,6 +225,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
     };
     let plain = store
         .create_localization(NewLocalization {
+            id: crate::store::test_id(),
             map_id: map.id,
             result: result.clone(),
             picture: None,
@@ -225,6 +234,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
         .unwrap();
     let pictured = store
         .create_localization(NewLocalization {
+            id: crate::store::test_id(),
             map_id: map.id,
             result,
             picture: Some(b"png".to_vec()),
@@ -257,6 +267,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
     let map = store.create_map(precomputed(1)).await.unwrap();
     let trip = store
         .create_trip(NewTrip {
+            id: crate::store::test_id(),
             map_id: map.id,
             reference_count: 5,
             params: TripParamsDocument::from(&TripParams::default()),
@@ -324,6 +335,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
 
     let cooc = store
         .create_map(NewMap {
+            id: crate::store::test_id(),
             name: "c".into(),
             descriptor: DescriptorSettings::Cooc(Box::default()),
         })

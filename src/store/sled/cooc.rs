@@ -82,6 +82,7 @@ mod tests {
         let store = SledStore::open(dir.path()).unwrap();
         let m = store
             .create_map(NewMap {
+                id: crate::store::test_id(),
                 name: "c".into(),
                 descriptor: DescriptorSettings::Cooc(Box::default()),
             })

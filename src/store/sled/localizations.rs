@@ -13,7 +13,10 @@ impl SledStore {
     pub fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
         let _guard = self.lock();
         self.get_map(new.map_id)?;
-        let id = self.next_id()?;
+        let id = new.id;
+        if self.db.contains_key(codec::localization_key(id))? {
+            return Err(StoreError::IdTaken(id));
+        }
         let created_ms = now_ms();
         let record = LocalizationRecord {
             id,
@@ -106,6 +109,7 @@ mod tests {
 
     fn put(store: &SledStore, map_id: u64, k: u8) -> StoreResult<LocalizationRecord> {
         store.create_localization(NewLocalization {
+            id: crate::store::test_id(),
             map_id,
             result: result(k),
             picture: None,

@@ -14,8 +14,11 @@ impl SledStore {
     /// Creates an empty map and returns it.
     pub fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
         let _guard = self.lock();
+        if self.db.contains_key(codec::map_key(new.id))? {
+            return Err(StoreError::IdTaken(new.id));
+        }
         let record = MapRecord {
-            id: self.next_id()?,
+            id: new.id,
             name: new.name,
             dim: match new.descriptor {
                 DescriptorSettings::Precomputed { dim } => Some(dim),
@@ -222,6 +225,7 @@ mod tests {
 
     fn hog() -> NewMap {
         NewMap {
+            id: crate::store::test_id(),
             name: "route".into(),
             descriptor: DescriptorSettings::Hog {
                 cell_size: 8,
@@ -310,6 +314,7 @@ mod tests {
         let store = SledStore::open(dir.path()).unwrap();
         let map = store
             .create_map(NewMap {
+                id: crate::store::test_id(),
                 name: "own".into(),
                 descriptor: DescriptorSettings::Precomputed { dim: 2 },
             })
@@ -396,12 +401,25 @@ mod tests {
     }
 
     #[test]
-    fn ids_increase() {
+    fn maps_keep_the_callers_id_and_a_taken_id_writes_nothing() {
         let dir = tempfile::tempdir().unwrap();
         let store = SledStore::open(dir.path()).unwrap();
-        let a = store.create_map(hog()).unwrap();
-        let b = store.create_map(hog()).unwrap();
-        assert!(b.id > a.id);
+        let b = store
+            .create_map(NewMap {
+                id: 0x00c0_ffee_0000_0002,
+                ..hog()
+            })
+            .unwrap();
+        let a = store.create_map(NewMap { id: 7, ..hog() }).unwrap();
+        assert_eq!((a.id, b.id), (7, 0x00c0_ffee_0000_0002));
+        let again = store.create_map(NewMap {
+            id: 7,
+            name: "other".into(),
+            ..hog()
+        });
+        assert!(matches!(again, Err(StoreError::IdTaken(7))), "{again:?}");
+        assert_eq!(store.get_map(7).unwrap().name, "route");
+        // Listed oldest (smallest id) first.
         let listed: Vec<u64> = store.list_maps().unwrap().iter().map(|m| m.id).collect();
         assert_eq!(listed, vec![a.id, b.id]);
     }

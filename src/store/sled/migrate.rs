@@ -247,6 +247,7 @@ mod tests {
         }));
         let created = store
             .create_map(crate::store::NewMap {
+                id: 0x1000,
                 name: "cnn".into(),
                 descriptor: cnn.clone(),
             })
@@ -256,6 +257,7 @@ mod tests {
         // Trips work on an upgraded store, and deleting the map still removes everything.
         let trip = store
             .create_trip(NewTrip {
+                id: 0x1001,
                 map_id,
                 reference_count: 2,
                 params: TripParamsDocument::from(&crate::trip::TripParams::default()),

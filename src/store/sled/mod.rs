@@ -101,10 +101,6 @@ impl SledStore {
         self.write.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn next_id(&self) -> StoreResult<u64> {
-        Ok(self.db.generate_id()?)
-    }
-
     /// The newest-first page of the index keys in `lo..hi` (each holding an id at
     /// `key[at..at + 8]`): at most `limit` records read with `get`, and the `before` of the
     /// next page. `hi` is exclusive, so an id of `u64::MAX` (never issued) is never listed.
@@ -307,6 +303,7 @@ impl Store for SledStore {
 pub(crate) fn test_map(store: &SledStore) -> u64 {
     store
         .create_map(NewMap {
+            id: super::test_id(),
             name: "m".into(),
             descriptor: super::DescriptorSettings::Precomputed { dim: 1 },
         })

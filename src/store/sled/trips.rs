@@ -18,8 +18,11 @@ impl SledStore {
     pub fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
         let _guard = self.lock();
         self.get_map(new.map_id)?;
+        if self.db.contains_key(codec::trip_key(new.id))? {
+            return Err(StoreError::IdTaken(new.id));
+        }
         let record = TripRecord {
-            id: self.next_id()?,
+            id: new.id,
             map_id: new.map_id,
             created_ms: now_ms(),
             closed_ms: None,
@@ -150,6 +153,7 @@ mod tests {
 
     fn new_trip(map_id: u64, reference_count: u32, state: Vec<u8>) -> NewTrip {
         NewTrip {
+            id: crate::store::test_id(),
             map_id,
             reference_count,
             params: TripParamsDocument::from(&TripParams::default()),
