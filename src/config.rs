@@ -15,9 +15,14 @@ pub struct ServeArgs {
     /// Address to listen on (`HOST:PORT`; port 0 picks a free port).
     #[arg(long, env = "SEASONLOC_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
-    /// Folder of the embedded store (created when missing).
+    /// Folder of the embedded store (created when missing; unused with `--database-url`).
     #[arg(long, env = "SEASONLOC_DATA_DIR", default_value = "./seasonloc-data")]
     pub data_dir: PathBuf,
+    /// PostgreSQL database holding all state instead of the embedded store
+    /// (`postgres://user:password@host:port/database`); any number of replicas may serve one
+    /// database. Its schema is created or upgraded at start-up.
+    #[arg(long, env = "SEASONLOC_DATABASE_URL", hide_env_values = true)]
+    pub database_url: Option<String>,
     /// Largest accepted request body in bytes (uploads included); larger bodies get 413.
     #[arg(long, env = "SEASONLOC_MAX_BODY_BYTES", default_value_t = 64 * 1024 * 1024)]
     pub max_body_bytes: usize,
@@ -109,6 +114,7 @@ impl Default for ServeArgs {
         ServeArgs {
             addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("./seasonloc-data"),
+            database_url: None,
             max_body_bytes: 64 * 1024 * 1024,
             max_batch_images: 4096,
             max_image_pixels: 16_000_000,
@@ -138,8 +144,10 @@ impl Default for ServeArgs {
 pub struct Settings {
     /// Listen address.
     pub addr: SocketAddr,
-    /// Store folder.
+    /// Store folder (the embedded engine).
     pub data_dir: PathBuf,
+    /// The shared PostgreSQL database, when set (instead of `data_dir`).
+    pub database_url: Option<DatabaseUrl>,
     /// Body limit in bytes, > 0.
     pub max_body_bytes: usize,
     /// Batch limit, > 0.
@@ -178,6 +186,16 @@ pub struct Settings {
     pub cors_origins: Vec<String>,
     /// Accepted `Host` header values (lowercase); empty = any.
     pub allowed_hosts: Vec<String>,
+}
+
+/// A database URL. It may carry a password, so it is never printed: `Debug` shows `***`.
+#[derive(Clone, PartialEq, Eq)]
+pub struct DatabaseUrl(pub String);
+
+impl std::fmt::Debug for DatabaseUrl {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("DatabaseUrl(***)")
+    }
 }
 
 /// A configuration value that cannot work.
@@ -277,9 +295,23 @@ impl ServeArgs {
         } else {
             self.worker_threads
         };
+        // An empty value (e.g. `SEASONLOC_DATABASE_URL=` in `.env`) means "the embedded store".
+        let database_url = match self.database_url.as_deref().map(str::trim) {
+            None | Some("") => None,
+            Some(url) if url.starts_with("postgres://") || url.starts_with("postgresql://") => {
+                Some(DatabaseUrl(url.to_string()))
+            }
+            Some(_) => {
+                return Err(ConfigError {
+                    name: "database_url",
+                    reason: "must start with postgres:// or postgresql://".into(),
+                })
+            }
+        };
         Ok(Settings {
             addr: self.addr,
             data_dir: self.data_dir.clone(),
+            database_url,
             max_body_bytes: self.max_body_bytes,
             max_batch_images: self.max_batch_images,
             max_image_pixels: self.max_image_pixels,
@@ -419,6 +451,22 @@ mod tests {
             };
             assert_eq!(args.validate().unwrap_err().name, "cors_origin", "{bad}");
         }
+    }
+
+    #[test]
+    fn database_urls_are_checked_and_never_printed() {
+        let with = |url: &str| ServeArgs {
+            database_url: Some(url.into()),
+            ..ServeArgs::default()
+        };
+        let s = with("postgres://u:secret@db:5432/x").validate().unwrap();
+        assert!(s.database_url.is_some());
+        assert!(!format!("{s:?}").contains("secret"));
+        assert_eq!(with("").validate().unwrap().database_url, None);
+        assert_eq!(
+            with("mysql://x").validate().unwrap_err().name,
+            "database_url"
+        );
     }
 
     #[test]

@@ -22,7 +22,7 @@ use tokio::net::TcpListener;
 use crate::api::{self, AppState};
 use crate::app::{App, AppConfig};
 use crate::config::{ServeArgs, Settings};
-use crate::store::{SledStore, Store};
+use crate::store::{PgStore, SledStore, Store};
 
 /// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
 /// `info`), and serves until SIGTERM or Ctrl-C.
@@ -59,14 +59,21 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let dir = settings.data_dir.clone();
-    let store = tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
-        std::fs::create_dir_all(&dir)
-            .with_context(|| format!("cannot create the data folder {}", dir.display()))?;
-        Ok(SledStore::open(&dir)?)
-    })
-    .await??;
-    let store: Arc<dyn Store> = Arc::new(store);
+    let store: Arc<dyn Store> = match &settings.database_url {
+        Some(url) => Arc::new(PgStore::connect(&url.0).await?),
+        None => {
+            let dir = settings.data_dir.clone();
+            Arc::new(
+                tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
+                    std::fs::create_dir_all(&dir).with_context(|| {
+                        format!("cannot create the data folder {}", dir.display())
+                    })?;
+                    Ok(SledStore::open(&dir)?)
+                })
+                .await??,
+            )
+        }
+    };
     let drain = settings.shutdown_timeout;
     let use_cases = Arc::new(App::new(
         store,
@@ -96,7 +103,7 @@ pub async fn serve(
     let header_timeout = state.settings.header_read_timeout;
     let app = api::app(state);
     let addr = listener.local_addr()?;
-    tracing::info!(data_dir = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
+    tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
 
     let http = http1_builder(header_timeout);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();

@@ -85,6 +85,9 @@ pub enum ApiError {
     /// 409 `map_full`.
     #[error("map `{0}` cannot hold more images")]
     MapFull(String),
+    /// 409 `idempotency_key_reused`: an `Idempotency-Key` sent again with a different request.
+    #[error("{0}")]
+    IdempotencyKeyReused(String),
     /// 413 `payload_too_large`: the body exceeds the configured size limit.
     #[error("request body is larger than the configured limit of {0} bytes")]
     PayloadTooLarge(usize),
@@ -187,6 +190,7 @@ impl ApiError {
             ApiError::ModelMismatch(_) => (S::CONFLICT, "model_mismatch", false),
             ApiError::MapKind(_) => (S::CONFLICT, "map_kind", false),
             ApiError::MapChanged(_) => (S::CONFLICT, "map_changed", false),
+            ApiError::IdempotencyKeyReused(_) => (S::CONFLICT, "idempotency_key_reused", false),
             ApiError::PayloadTooLarge(_) => (S::PAYLOAD_TOO_LARGE, "payload_too_large", false),
             ApiError::ImageTooLarge { .. } => (S::PAYLOAD_TOO_LARGE, "image_too_large", false),
             ApiError::UnsupportedMediaType(_) => {
@@ -307,6 +311,7 @@ impl From<AppError> for ApiError {
             AppError::DescriptorLength(m) => ApiError::DescriptorLength(m),
             AppError::NonFinite(m) => ApiError::NonFinite(m),
             AppError::ShapeMismatch(m) => ApiError::ShapeMismatch(m),
+            AppError::IdempotencyKeyReused(m) => ApiError::IdempotencyKeyReused(m),
             AppError::Unavailable(cause) => ApiError::NotReady(cause),
             AppError::Internal(cause) => ApiError::Internal(cause),
         }

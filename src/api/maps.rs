@@ -287,7 +287,9 @@ fn appended(state: &AppState, outcome: &AppendOutcome) -> AppendResponse {
     if let Some(s) = outcome.store_seconds {
         m.observe_stage("store", s);
     }
-    m.add_images_ingested(outcome.indices.len() as u64);
+    if !outcome.replayed {
+        m.add_images_ingested(outcome.indices.len() as u64);
+    }
     AppendResponse {
         indices: outcome.indices.clone().collect(),
         image_count: outcome.indices.end,
@@ -297,8 +299,9 @@ fn appended(state: &AppState, outcome: &AppendOutcome) -> AppendResponse {
 async fn append_images(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
-) -> Result<Json<AppendResponse>, ApiError> {
+) -> Result<(HeaderMap, Json<AppendResponse>), ApiError> {
     let map = state.app.map_for_images(map_id(&id)?).await?;
     let s = &state.settings;
     let batch = upload::read(
@@ -309,8 +312,13 @@ async fn append_images(
     )
     .await?;
     let metas = metadata(batch.json.as_deref(), batch.images.len())?;
-    let outcome = state.app.append_images(map, batch.images, metas).await?;
-    Ok(Json(appended(&state, &outcome)))
+    let key = super::idempotency::from_request(&headers, &batch)?;
+    let outcome = state
+        .app
+        .append_images_once(map, batch.images, metas, key)
+        .await?;
+    let headers = super::idempotency::headers(outcome.replayed);
+    Ok((headers, Json(appended(&state, &outcome))))
 }
 
 /// Query of the raw-float form of `/descriptors`.

@@ -19,6 +19,7 @@ mod dashboard;
 pub mod dto;
 pub mod error;
 pub mod extract;
+pub mod idempotency;
 mod localize;
 mod maps;
 pub mod metrics;

@@ -301,8 +301,9 @@ async fn open(
 async fn frames(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
-) -> Result<Json<FramesResponse>, ApiError> {
+) -> Result<(HeaderMap, Json<FramesResponse>), ApiError> {
     let trip = trip_id(&id)?;
     let s = &state.settings;
     let batch = upload::read(
@@ -317,31 +318,38 @@ async fn frames(
             "frames take no `params` part: a trip's parameters are fixed when it is opened".into(),
         ));
     }
-    let outcome = state.app.post_frames(trip, batch.images).await?;
+    let key = super::idempotency::from_request(&headers, &batch)?;
+    let outcome = state.app.post_frames_once(trip, batch.images, key).await?;
     let t = &outcome.timings;
-    let m = &state.metrics;
-    m.observe_stage("features", t.features);
-    m.observe_stage("solve", t.solve);
-    m.observe_stage("store", t.store);
+    if !outcome.replayed {
+        let m = &state.metrics;
+        m.observe_stage("features", t.features);
+        m.observe_stage("solve", t.solve);
+        m.observe_stage("store", t.store);
+    }
     let update = &outcome.update;
-    Ok(Json(FramesResponse {
-        trip_id: format_id(trip),
-        frame_count: outcome.trip.frame_count,
-        estimates: update
-            .estimates
-            .iter()
-            .map(FrameEstimateDto::from)
-            .collect(),
-        status: status_name(update.status),
-        window: update.window.iter().map(FrameEstimateDto::from).collect(),
-        hidden_cost: outcome.hidden_cost,
-        timings: BatchTimings {
-            load: t.load,
-            features: t.features,
-            solve: t.solve,
-            store: t.store,
-        },
-    }))
+    let headers = super::idempotency::headers(outcome.replayed);
+    Ok((
+        headers,
+        Json(FramesResponse {
+            trip_id: format_id(trip),
+            frame_count: outcome.trip.frame_count,
+            estimates: update
+                .estimates
+                .iter()
+                .map(FrameEstimateDto::from)
+                .collect(),
+            status: status_name(update.status),
+            window: update.window.iter().map(FrameEstimateDto::from).collect(),
+            hidden_cost: outcome.hidden_cost,
+            timings: BatchTimings {
+                load: t.load,
+                features: t.features,
+                solve: t.solve,
+                store: t.store,
+            },
+        }),
+    ))
 }
 
 /// Query of `GET /v1/trips/{id}`.

@@ -26,7 +26,7 @@ use super::maps::AppendOutcome;
 use super::App;
 use crate::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
 use crate::localize::{Localization, LocalizeOptions};
-use crate::store::{CoocWrite, ImageMeta, MapRecord};
+use crate::store::{CoocWrite, IdempotencyRecord, ImageMeta, MapRecord};
 use crate::Matrix;
 
 /// How many of a map's own images [`App::cooc_trip_prior`] scores (as for descriptor maps).
@@ -102,6 +102,7 @@ impl App {
         params: CoocParams,
         images: Vec<ImageInput>,
         metas: Vec<ImageMeta>,
+        idempotency: Option<IdempotencyRecord>,
     ) -> AppResult<AppendOutcome> {
         let id = map.id;
         if map.image_count > 0 {
@@ -129,6 +130,7 @@ impl App {
                 previous: None,
                 encoded,
                 new_images: metas,
+                idempotency,
             })
             .await?;
         tracing::info!(map = %format!("{id:016x}"), images = indices.len(), "co-occurrence map built");
@@ -136,6 +138,7 @@ impl App {
             indices,
             features_seconds: Some(started.elapsed().as_secs_f64()),
             store_seconds: None,
+            replayed: false,
         })
     }
 
@@ -202,6 +205,7 @@ impl App {
                 previous: Some(previous),
                 encoded,
                 new_images: Vec::new(),
+                idempotency: None,
             })
             .await?;
         tracing::info!(map = %format!("{id:016x}"), images, drives, "drive added");

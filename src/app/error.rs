@@ -89,6 +89,9 @@ pub enum AppError {
     /// Inputs whose shapes do not fit together.
     #[error("{0}")]
     ShapeMismatch(String),
+    /// An `Idempotency-Key` sent again with a different request.
+    #[error("{0}")]
+    IdempotencyKeyReused(String),
     /// The store cannot be reached now; retrying later may succeed.
     #[error("the store is unavailable: {0}")]
     Unavailable(String),
@@ -130,7 +133,9 @@ impl From<StoreError> for AppError {
             StoreError::TripClosed(id) => AppError::TripClosed(id),
             StoreError::MapFull(id) => AppError::MapFull(id),
             StoreError::DimensionMismatch { .. } => AppError::DescriptorLength(e.to_string()),
-            StoreError::Conflict(_) => AppError::MapChanged(e.to_string()),
+            StoreError::Conflict(_) | StoreError::IdempotencyKeyTaken { .. } => {
+                AppError::MapChanged(e.to_string())
+            }
             StoreError::TripConflict { .. } => AppError::TripConflict(e.to_string()),
             StoreError::Unavailable(cause) => AppError::Unavailable(cause),
             StoreError::Open { .. }

@@ -8,11 +8,14 @@ use std::ops::Range;
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
+use super::idempotency::Idempotency;
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
 use crate::features::cnn::{CnnOptions, CnnSpec};
-use crate::store::{CnnSettings, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap};
+use crate::store::{
+    CnnSettings, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
+};
 use crate::Matrix;
 
 /// A map to create.
@@ -42,6 +45,9 @@ pub struct AppendOutcome {
     pub features_seconds: Option<f64>,
     /// Seconds of the store write, when it was a separate stage.
     pub store_seconds: Option<f64>,
+    /// Whether this is the stored answer of an earlier request with the same idempotency key
+    /// (nothing was appended).
+    pub replayed: bool,
 }
 
 /// A CNN settings error at creation, naming the map spec's field.
@@ -187,6 +193,69 @@ impl App {
         images: Vec<ImageInput>,
         metas: Vec<ImageMeta>,
     ) -> AppResult<AppendOutcome> {
+        self.append_images_once(map, images, metas, None).await
+    }
+
+    /// [`App::append_images`] with an optional idempotency key: a batch whose key was applied
+    /// already (by any process) is not appended again but answered with the indices it got
+    /// ([`super::idempotency`]).
+    pub async fn append_images_once(
+        &self,
+        map: MapRecord,
+        images: Vec<ImageInput>,
+        metas: Vec<ImageMeta>,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<AppendOutcome> {
+        let scope = IdempotencyRecord::images_scope(map.id);
+        let Some(key) = idempotency else {
+            return self.append_keyed(map, images, metas, None).await;
+        };
+        if let Some(done) = self.replayed_append(&key, &scope).await? {
+            return Ok(done);
+        }
+        let record = key.record(scope.clone(), Vec::new());
+        match self.append_keyed(map, images, metas, Some(record)).await {
+            // A concurrent request with the same key may have stored first.
+            Err(e @ AppError::MapChanged(_)) => match self.replayed_append(&key, &scope).await? {
+                Some(done) => Ok(done),
+                None => Err(e),
+            },
+            other => other,
+        }
+    }
+
+    /// The stored answer of an append made with `key`, if there was one.
+    async fn replayed_append(
+        &self,
+        key: &Idempotency,
+        scope: &str,
+    ) -> AppResult<Option<AppendOutcome>> {
+        let stored = self.store.idempotency_record(scope, key.key()).await?;
+        let Some(record) = key.replay(stored)? else {
+            return Ok(None);
+        };
+        let indices = record.indices.ok_or_else(|| {
+            AppError::Internal(format!(
+                "the stored append of key `{}` has no indices",
+                record.key
+            ))
+        })?;
+        tracing::info!(%scope, key = %record.key, "idempotent retry answered from the stored append");
+        Ok(Some(AppendOutcome {
+            indices,
+            features_seconds: None,
+            store_seconds: None,
+            replayed: true,
+        }))
+    }
+
+    async fn append_keyed(
+        &self,
+        map: MapRecord,
+        images: Vec<ImageInput>,
+        metas: Vec<ImageMeta>,
+        idempotency: Option<IdempotencyRecord>,
+    ) -> AppResult<AppendOutcome> {
         if images.len() != metas.len() {
             return Err(AppError::ShapeMismatch(format!(
                 "{} metadata entries for {} images",
@@ -196,7 +265,9 @@ impl App {
         }
         if let Kind::Cooc(params) = kind(&map) {
             let params = params.clone();
-            return self.build_cooc(map, params, images, metas).await;
+            return self
+                .build_cooc(map, params, images, metas, idempotency)
+                .await;
         }
         let started = Instant::now();
         let max_pixels = self.config.max_image_pixels;
@@ -226,7 +297,8 @@ impl App {
         let features_seconds = started.elapsed().as_secs_f64();
         let batch = ImageBatch::new(id, descriptors, metas)?
             .with_thumbnails(thumbnails)?
-            .with_geometry(geometry);
+            .with_geometry(geometry)
+            .with_idempotency(idempotency);
         let mut outcome = self.store_batch(batch).await?;
         outcome.features_seconds = Some(features_seconds);
         Ok(outcome)
@@ -280,6 +352,7 @@ impl App {
             indices,
             features_seconds: None,
             store_seconds: Some(store_seconds),
+            replayed: false,
         })
     }
 }

@@ -1,7 +1,7 @@
-//! Two `App`s over one real sled store: two replicas of the service sharing one database, in
-//! one process. What a shared engine must make true is checked here on the embedded one:
-//! caches follow the store's versions, and batches of one trip apply one at a time wherever
-//! they arrive.
+//! Two `App`s over one real store: two replicas of the service sharing one database, in one
+//! process. What a shared engine must make true is checked on both engines (each test runs
+//! once on sled and once on PostgreSQL, see [`on_both_engines`]): caches follow the store's
+//! versions, and batches of one trip apply one at a time wherever they arrive.
 
 use std::io::Cursor;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -50,6 +50,62 @@ fn frame(i: u32, dark: bool) -> ImageInput {
     }
 }
 
+/// A store engine the tests run on.
+#[derive(Clone, Copy, Debug)]
+enum Engine {
+    Sled,
+    Postgres,
+}
+
+/// A fresh, empty store and what keeps it alive; `None` when PostgreSQL is not installed (the
+/// test is skipped, except under `CI=true` where it fails).
+async fn fresh(engine: Engine) -> Option<(Arc<dyn Store>, Option<tempfile::TempDir>)> {
+    match engine {
+        Engine::Sled => {
+            let dir = tempfile::tempdir().unwrap();
+            let store = SledStore::open(dir.path()).unwrap();
+            Some((Arc::new(store), Some(dir)))
+        }
+        Engine::Postgres => {
+            let url = tokio::task::spawn_blocking(|| {
+                crate::store::postgres::testing::database("app test on PostgreSQL")
+            })
+            .await
+            .unwrap()?;
+            Some((Arc::new(PgStore::connect(&url).await.unwrap()), None))
+        }
+    }
+}
+
+/// One `#[tokio::test]` per engine for each named `async fn(Engine)`, in modules `sled` and
+/// `postgres`.
+macro_rules! on_both_engines {
+    ($($name:ident),* $(,)?) => {
+        mod sled {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() {
+                    super::$name(super::Engine::Sled).await
+                }
+            )*
+        }
+        mod postgres {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() {
+                    super::$name(super::Engine::Postgres).await
+                }
+            )*
+        }
+    };
+}
+
+on_both_engines!(
+    an_append_on_one_replica_is_seen_by_the_next_localize_on_another,
+    a_trip_alternating_between_replicas_equals_one_replica,
+    concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other,
+);
+
 fn app(store: Arc<dyn Store>) -> App {
     App::new(
         store,
@@ -97,10 +153,10 @@ fn queries(range: std::ops::Range<u32>) -> LocalizeInput {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another() {
-    let dir = tempfile::tempdir().unwrap();
-    let store: Arc<dyn Store> = Arc::new(SledStore::open(dir.path()).unwrap());
+async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine: Engine) {
+    let Some((store, _dir)) = fresh(engine).await else {
+        return;
+    };
     let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
     let map = hog_map(&a, 0..20).await;
     // B caches the 20-image matrix.
@@ -139,10 +195,10 @@ async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another() {
     ));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_trip_alternating_between_replicas_equals_one_replica() {
-    let dir = tempfile::tempdir().unwrap();
-    let store: Arc<dyn Store> = Arc::new(SledStore::open(dir.path()).unwrap());
+async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) {
+    let Some((store, _dir)) = fresh(engine).await else {
+        return;
+    };
     let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
     let map = hog_map(&a, 0..40).await;
     let params = TripParams {
@@ -171,7 +227,7 @@ async fn a_trip_alternating_between_replicas_equals_one_replica() {
 /// replicas then compute their batches from the same state, and one of the conditional writes
 /// must lose.
 struct BothReadFirst {
-    inner: SledStore,
+    inner: Arc<dyn Store>,
     reads: AtomicUsize,
     barrier: tokio::sync::Barrier,
 }
@@ -182,98 +238,104 @@ impl Store for BothReadFirst {
         self.inner.location()
     }
     async fn check(&self) -> StoreResult<()> {
-        Store::check(&self.inner).await
+        self.inner.check().await
     }
     async fn flush(&self) -> StoreResult<()> {
-        Store::flush(&self.inner).await
+        self.inner.flush().await
     }
     async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
-        Store::create_map(&self.inner, new).await
+        self.inner.create_map(new).await
     }
     async fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
-        Store::get_map(&self.inner, id).await
+        self.inner.get_map(id).await
     }
     async fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
-        Store::list_maps(&self.inner).await
+        self.inner.list_maps().await
     }
     async fn delete_map(&self, id: u64) -> StoreResult<()> {
-        Store::delete_map(&self.inner, id).await
+        self.inner.delete_map(id).await
     }
     async fn append_images(&self, batch: ImageBatch) -> StoreResult<std::ops::Range<u32>> {
-        Store::append_images(&self.inner, batch).await
+        self.inner.append_images(batch).await
     }
     async fn descriptors(&self, map: u64, rows: std::ops::Range<u32>) -> StoreResult<Matrix> {
-        Store::descriptors(&self.inner, map, rows).await
+        self.inner.descriptors(map, rows).await
     }
     async fn image_metadata(
         &self,
         map: u64,
         rows: std::ops::Range<u32>,
     ) -> StoreResult<Vec<ImageMeta>> {
-        Store::image_metadata(&self.inner, map, rows).await
+        self.inner.image_metadata(map, rows).await
     }
     async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
-        Store::cooc_map(&self.inner, map).await
+        self.inner.cooc_map(map).await
     }
     async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<std::ops::Range<u32>> {
-        Store::put_cooc_map(&self.inner, write).await
+        self.inner.put_cooc_map(write).await
     }
     async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
-        Store::create_localization(&self.inner, new).await
+        self.inner.create_localization(new).await
     }
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
-        Store::get_localization(&self.inner, id).await
+        self.inner.get_localization(id).await
     }
     async fn list_localizations(
         &self,
         map: Option<u64>,
         page: PageRequest,
     ) -> StoreResult<Page<LocalizationRecord>> {
-        Store::list_localizations(&self.inner, map, page).await
+        self.inner.list_localizations(map, page).await
     }
     async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
-        Store::create_trip(&self.inner, new).await
+        self.inner.create_trip(new).await
     }
     async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
-        Store::get_trip(&self.inner, id).await
+        self.inner.get_trip(id).await
     }
     async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
-        let state = Store::trip_state(&self.inner, id).await;
+        let state = self.inner.trip_state(id).await;
         if self.reads.fetch_add(1, Ordering::SeqCst) < 2 {
             self.barrier.wait().await;
         }
         state
     }
     async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
-        Store::put_trip_batch(&self.inner, id, batch).await
+        self.inner.put_trip_batch(id, batch).await
     }
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
-        Store::close_trip(&self.inner, id).await
+        self.inner.close_trip(id).await
     }
     async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
-        Store::trip_estimates(&self.inner, id, from).await
+        self.inner.trip_estimates(id, from).await
     }
     async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
-        Store::thumbnail(&self.inner, map, index).await
+        self.inner.thumbnail(map, index).await
     }
     async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
-        Store::localization_picture(&self.inner, id).await
+        self.inner.localization_picture(id).await
     }
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
-        Store::list_trips(&self.inner, map, page).await
+        self.inner.list_trips(map, page).await
+    }
+    async fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>> {
+        self.inner.idempotency_record(scope, key).await
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other() {
-    let dir = tempfile::tempdir().unwrap();
-    let sled = SledStore::open(dir.path()).unwrap();
+async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other(engine: Engine) {
+    let Some((plain, _dir)) = fresh(engine).await else {
+        return;
+    };
     let gated: Arc<dyn Store> = Arc::new(BothReadFirst {
-        inner: sled.clone(),
+        inner: Arc::clone(&plain),
         reads: AtomicUsize::new(0),
         barrier: tokio::sync::Barrier::new(2),
     });
-    let plain: Arc<dyn Store> = Arc::new(sled);
     let (a, b) = (app(Arc::clone(&gated)), app(Arc::clone(&gated)));
     let map = hog_map(&app(Arc::clone(&plain)), 0..30).await;
     let trip = a.open_trip(map.id, TripParams::default()).await.unwrap();

@@ -16,13 +16,14 @@ use std::time::Instant;
 
 use super::cooc::RowSource;
 use super::error::{AppError, AppResult};
+use super::idempotency::{self, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
 use crate::similarity;
 use crate::store::{
-    FrameRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripParamsDocument,
-    TripRecord,
+    FrameRecord, IdempotencyRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch,
+    TripParamsDocument, TripRecord,
 };
 use crate::trip::{column_prior, BatchUpdate, Trip, TripParams};
 
@@ -51,8 +52,11 @@ pub struct FramesOutcome {
     pub update: BatchUpdate,
     /// The hidden cost `W` in use.
     pub hidden_cost: f64,
-    /// Seconds per stage.
+    /// Seconds per stage (all zero for a replay).
     pub timings: FramesTimings,
+    /// Whether this is the stored answer of an earlier request with the same idempotency key
+    /// (nothing was applied).
+    pub replayed: bool,
 }
 
 impl App {
@@ -123,15 +127,38 @@ impl App {
 
     /// Extends trip `id` by a batch of frames (in driving order).
     pub async fn post_frames(&self, id: u64, frames: Vec<ImageInput>) -> AppResult<FramesOutcome> {
+        self.post_frames_once(id, frames, None).await
+    }
+
+    /// [`App::post_frames`] with an optional idempotency key: a batch whose key was applied
+    /// already (by any process) is not applied again but answered as the first time
+    /// ([`super::idempotency`]).
+    pub async fn post_frames_once(
+        &self,
+        id: u64,
+        frames: Vec<ImageInput>,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<FramesOutcome> {
         if frames.is_empty() {
             return Err(AppError::EmptyBatch("the batch has no frames".into()));
         }
         let lock = self.trip_locks.of(id);
         let _order = lock.lock().await;
         let frames = std::sync::Arc::new(frames);
+        let scope = IdempotencyRecord::trip_scope(id);
         let mut attempt = 0;
         loop {
-            match self.apply_batch(id, std::sync::Arc::clone(&frames)).await {
+            if let Some(key) = &idempotency {
+                let stored = self.store.idempotency_record(&scope, key.key()).await?;
+                if let Some(record) = key.replay(stored)? {
+                    return self.replayed_frames(id, &record).await;
+                }
+            }
+            let keyed = idempotency.as_ref().map(|k| (k, scope.clone()));
+            match self
+                .apply_batch(id, std::sync::Arc::clone(&frames), keyed)
+                .await
+            {
                 Err(AppError::TripConflict(why)) if attempt < CONFLICT_RETRIES => {
                     attempt += 1;
                     tracing::info!(trip = %format!("{id:016x}"), attempt, %why, "trip changed meanwhile; recomputing the batch");
@@ -141,10 +168,30 @@ impl App {
         }
     }
 
+    /// The stored answer of an applied batch, with the trip as it is now.
+    async fn replayed_frames(
+        &self,
+        id: u64,
+        record: &IdempotencyRecord,
+    ) -> AppResult<FramesOutcome> {
+        let (frame_count, update, hidden_cost) = idempotency::decode_frames(&record.response)?;
+        let mut trip = self.store.get_trip(id).await?;
+        trip.frame_count = frame_count;
+        tracing::info!(trip = %format!("{id:016x}"), key = %record.key, "idempotent retry answered from the stored batch");
+        Ok(FramesOutcome {
+            trip,
+            update,
+            hidden_cost,
+            timings: FramesTimings::default(),
+            replayed: true,
+        })
+    }
+
     async fn apply_batch(
         &self,
         id: u64,
         frames: std::sync::Arc<Vec<ImageInput>>,
+        idempotency: Option<(&Idempotency, String)>,
     ) -> AppResult<FramesOutcome> {
         let started = Instant::now();
         let (record, bytes) = self.store.trip_state(id).await?;
@@ -222,17 +269,28 @@ impl App {
                 })
             })
             .collect::<AppResult<Vec<_>>>()?;
+        let frame_count = record.frame_count + update.estimates.len() as u64;
+        let idempotency = match idempotency {
+            Some((key, scope)) => Some(key.record(
+                scope,
+                idempotency::encode_frames(frame_count, &update, hidden_cost)?,
+            )),
+            None => None,
+        };
         let batch = TripBatch {
             expected_frames: record.frame_count,
-            frame_count: record.frame_count + update.estimates.len() as u64,
+            frame_count,
             status: update.status,
             state,
             estimates,
+            idempotency,
         };
         let t = Instant::now();
         let trip = match self.store.put_trip_batch(id, batch).await {
             Ok(r) => r,
-            Err(e @ StoreError::TripConflict { .. }) => {
+            // Another process applied a batch (maybe this one, under the same key) meanwhile:
+            // recompute, or replay what it stored.
+            Err(e @ (StoreError::TripConflict { .. } | StoreError::IdempotencyKeyTaken { .. })) => {
                 return Err(AppError::TripConflict(e.to_string()))
             }
             Err(e) => return Err(e.into()),
@@ -244,6 +302,7 @@ impl App {
             update,
             hidden_cost,
             timings,
+            replayed: false,
         })
     }
 

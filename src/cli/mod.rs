@@ -33,7 +33,8 @@ pub enum Command {
     Solve(solve::SolveArgs),
     /// Localize a query image folder against a reference folder and score it against ground truth.
     Eval(Box<eval::EvalArgs>),
-    /// Run the HTTP service on the embedded store (see docs/service.md).
+    /// Run the HTTP service on the embedded store, or on PostgreSQL with `--database-url`
+    /// (see docs/service.md).
     Serve(Box<crate::config::ServeArgs>),
 }
 

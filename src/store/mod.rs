@@ -1,5 +1,6 @@
 //! The service's storage seam: the [`Store`] trait, the records it reads and writes, and its one
-//! error type. Engines live in submodules ([`sled`], the embedded default); the use-case layer
+//! error type. Engines live in submodules ([`sled`], the embedded default; [`postgres`], shared by
+//! any number of replicas); the use-case layer
 //! (`crate::app`) holds an `Arc<dyn Store>` and is the only caller.
 //!
 //! The trait is shaped for engines shared by many processes at once (a PostgreSQL database
@@ -35,6 +36,7 @@
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
 pub mod document;
+pub mod postgres;
 pub mod sled;
 
 use std::ops::Range;
@@ -44,6 +46,7 @@ use async_trait::async_trait;
 use crate::trip::TripStatus;
 use crate::Matrix;
 
+pub use self::postgres::PgStore;
 pub use self::sled::SledStore;
 pub use document::{LocalizationDocument, LocalizationResult, StoredPicture, TripParamsDocument};
 
@@ -130,6 +133,15 @@ pub enum StoreError {
     /// A map cannot grow further (more than `u32::MAX` images).
     #[error("map {0:016x} is full")]
     MapFull(u64),
+    /// A write carried an [`IdempotencyRecord`] whose key another write stored first (a
+    /// concurrent retry): nothing was written; read the stored record and answer from it.
+    #[error("idempotency key `{key}` of {scope} was used meanwhile")]
+    IdempotencyKeyTaken {
+        /// The key's scope.
+        scope: String,
+        /// The key.
+        key: String,
+    },
 }
 
 impl StoreError {
@@ -220,6 +232,38 @@ pub struct ImageMeta {
     pub label: Option<String>,
 }
 
+/// What a request sent with an `Idempotency-Key` did (decision D5), stored in the same atomic
+/// write as the change itself, so that a retry — on any replica, after a crash of the first —
+/// finds either both or neither.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IdempotencyRecord {
+    /// What the key is scoped to ([`IdempotencyRecord::trip_scope`],
+    /// [`IdempotencyRecord::images_scope`]); the map or trip it names owns the record (deleting
+    /// the map deletes it).
+    pub scope: String,
+    /// The client's key.
+    pub key: String,
+    /// A hash of the request; a retry with another one is refused.
+    pub fingerprint: Vec<u8>,
+    /// The answer to replay, opaque to the store (encoded by the use-case layer).
+    pub response: Vec<u8>,
+    /// For image appends: the indices the write gave the images (set by the engine when it
+    /// writes; `None` otherwise).
+    pub indices: Option<Range<u32>>,
+}
+
+impl IdempotencyRecord {
+    /// The scope of the keys of trip `id`'s batches.
+    pub fn trip_scope(id: u64) -> String {
+        format!("trip/{id:016x}/frames")
+    }
+
+    /// The scope of the keys of map `id`'s image batches.
+    pub fn images_scope(id: u64) -> String {
+        format!("map/{id:016x}/images")
+    }
+}
+
 /// A batch of reference images for [`Store::append_images`]: one metadata entry per
 /// descriptor row (checked by [`ImageBatch::new`]), and optionally one JPEG thumbnail per row
 /// ([`ImageBatch::with_thumbnails`]; precomputed descriptors come without images).
@@ -230,6 +274,7 @@ pub struct ImageBatch {
     metas: Vec<ImageMeta>,
     geometry: Option<(u32, u32)>,
     thumbnails: Vec<Vec<u8>>,
+    idempotency: Option<IdempotencyRecord>,
 }
 
 impl ImageBatch {
@@ -248,6 +293,7 @@ impl ImageBatch {
             descriptors,
             metas,
             thumbnails: Vec::new(),
+            idempotency: None,
             geometry: None,
         })
     }
@@ -264,6 +310,18 @@ impl ImageBatch {
         }
         self.thumbnails = thumbnails;
         Ok(self)
+    }
+
+    /// The batch, stored together with `record` (whose `indices` the engine sets); the write
+    /// fails with [`StoreError::IdempotencyKeyTaken`] when the key is stored already.
+    pub fn with_idempotency(mut self, record: Option<IdempotencyRecord>) -> Self {
+        self.idempotency = record;
+        self
+    }
+
+    /// The idempotency record to store with the batch.
+    pub fn idempotency(&self) -> Option<&IdempotencyRecord> {
+        self.idempotency.as_ref()
     }
 
     /// The input geometry `(width, height)` of a HOG map's first batch (the size of its first
@@ -313,6 +371,8 @@ pub struct CoocWrite {
     pub encoded: Vec<u8>,
     /// Metadata of the reference images the write adds (no descriptor rows).
     pub new_images: Vec<ImageMeta>,
+    /// Stored in the same write (its `indices` set by the engine), when the request had a key.
+    pub idempotency: Option<IdempotencyRecord>,
 }
 
 /// A stored localization result.
@@ -392,6 +452,8 @@ pub struct TripBatch {
     pub state: Vec<u8>,
     /// New or revised estimates (the batch's frames and the re-traced lag window).
     pub estimates: Vec<FrameRecord>,
+    /// Stored in the same write, when the request had an idempotency key.
+    pub idempotency: Option<IdempotencyRecord>,
 }
 
 /// The latest estimate of one frame of a trip.
@@ -519,6 +581,13 @@ pub trait Store: Send + Sync + 'static {
 
     /// A page of `map`'s trips, newest first (the map must exist).
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>>;
+
+    /// The record stored under an idempotency key, if any.
+    async fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>>;
 }
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).

@@ -28,6 +28,7 @@ impl Server {
         let dir = tempfile::tempdir().unwrap();
         let mut args = ServeArgs {
             data_dir: dir.path().to_path_buf(),
+            database_url: engine_database(),
             worker_threads: 2,
             ..ServeArgs::default()
         };
@@ -83,6 +84,31 @@ impl Drop for Server {
             let _ = t.join();
         }
     }
+}
+
+/// Whether this test binary runs the service on PostgreSQL: the same test files are compiled
+/// twice, as `service` (the embedded store) and `service_pg` (tests/service_pg/main.rs), so
+/// every in-process server test runs against both engines.
+pub fn on_postgres() -> bool {
+    env!("CARGO_CRATE_NAME") == "service_pg"
+}
+
+/// A new database on this binary's PostgreSQL server when [`on_postgres`] (one server per test
+/// process, one database per server started); `None` for the embedded store.
+pub fn engine_database() -> Option<String> {
+    if !on_postgres() {
+        return None;
+    }
+    // Skips (ends this test process successfully, after saying why) when PostgreSQL is not
+    // installed, except under CI=true, where `require` panics.
+    if seasonloc::store::postgres::testing::require("this service_pg test").is_none() {
+        std::process::exit(0);
+    }
+    Some(
+        seasonloc::store::postgres::testing::shared()
+            .and_then(|s| s.database())
+            .unwrap_or_else(|e| panic!("cannot start the test PostgreSQL server: {e}")),
+    )
 }
 
 /// The real `seasonloc serve` binary as a child process.

@@ -139,6 +139,17 @@ impl Client {
         self.request("POST", path, Some(&ct), &multipart_body(parts))
     }
 
+    /// A multipart POST with extra request headers (e.g. `Idempotency-Key`).
+    pub fn post_multipart_with(
+        &self,
+        path: &str,
+        parts: &[Part],
+        headers: &[(&str, &str)],
+    ) -> std::io::Result<Response> {
+        let ct = format!("multipart/form-data; boundary={BOUNDARY}");
+        self.try_request_with("POST", path, headers, Some(&ct), &multipart_body(parts))
+    }
+
     pub fn request(
         &self,
         method: &str,

@@ -14,6 +14,7 @@ mod errors;
 mod flow;
 mod hardening;
 mod http;
+mod idempotency;
 mod spec;
 mod trips;
 mod views;

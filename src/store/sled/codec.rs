@@ -15,6 +15,7 @@
 //! | `S` + trip id (`u64` BE) | the trip's solver state, opaque bytes from `crate::trip` |
 //! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`]: the frame's latest estimate |
 //! | `t` + map id (`u64` BE) + trip id (`u64` BE) | empty (index of a map's trips) |
+//! | `K` + scope + `0x00` + key | [`IdempotencyRecord`] of a request sent with an `Idempotency-Key` (additive: older stores have none) |
 //!
 //! Big-endian integers make sled's lexicographic order the numeric order, so a map's images
 //! iterate in route order, localizations in creation order and a trip's frames in driving
@@ -26,8 +27,9 @@ use crate::cooc::keypoints::KeypointParams;
 use crate::cooc::CoocParams;
 use crate::features::cnn::{CnnOptions, CnnResize, ModelIdentity};
 use crate::store::{
-    CnnSettings, DescriptorSettings, FrameRecord, ImageMeta, LocalizationDocument,
-    LocalizationRecord, MapRecord, StoreError, TripParamsDocument, TripRecord,
+    CnnSettings, DescriptorSettings, FrameRecord, IdempotencyRecord, ImageMeta,
+    LocalizationDocument, LocalizationRecord, MapRecord, StoreError, TripParamsDocument,
+    TripRecord,
 };
 use crate::trip::TripStatus;
 
@@ -57,6 +59,66 @@ pub const TRIP_STATE_PREFIX: u8 = b'S';
 pub const TRIP_FRAME_PREFIX: u8 = b'F';
 /// Prefix of the by-map trip index.
 pub const TRIP_BY_MAP_PREFIX: u8 = b't';
+
+/// Prefix of idempotency records.
+pub const IDEMPOTENCY_PREFIX: u8 = b'K';
+
+/// `K` + scope + `0x00`: every idempotency record of one scope.
+pub fn idempotency_prefix(scope: &str) -> Vec<u8> {
+    let mut k = Vec::with_capacity(scope.len() + 2);
+    k.push(IDEMPOTENCY_PREFIX);
+    k.extend_from_slice(scope.as_bytes());
+    k.push(0);
+    k
+}
+
+/// `K` + scope + `0x00` + key.
+pub fn idempotency_key(scope: &str, key: &str) -> Vec<u8> {
+    let mut k = idempotency_prefix(scope);
+    k.extend_from_slice(key.as_bytes());
+    k
+}
+
+/// Encodes an idempotency record (its scope and key are in the record's key).
+pub fn encode_idempotency(r: &IdempotencyRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.bytes(&r.fingerprint);
+    w.bytes(&r.response);
+    match &r.indices {
+        None => w.u8(0),
+        Some(range) => {
+            w.u8(1);
+            w.u32(range.start);
+            w.u32(range.end);
+        }
+    }
+    w.into_bytes()
+}
+
+/// Decodes the idempotency record of `scope` and `key` stored under `k`.
+pub fn decode_idempotency(
+    k: &[u8],
+    scope: &str,
+    key: &str,
+    value: &[u8],
+) -> Result<IdempotencyRecord, StoreError> {
+    let mut r = Reader::new(k, value)?;
+    let fingerprint = r.bytes()?.to_vec();
+    let response = r.bytes()?.to_vec();
+    let indices = match r.u8()? {
+        0 => None,
+        1 => Some(r.u32()?..r.u32()?),
+        t => return Err(StoreError::corrupt(k, format!("bad option tag {t}"))),
+    };
+    r.finish()?;
+    Ok(IdempotencyRecord {
+        scope: scope.to_string(),
+        key: key.to_string(),
+        fingerprint,
+        response,
+        indices,
+    })
+}
 
 fn id_key(prefix: u8, id: u64) -> [u8; 9] {
     let mut k = [prefix; 9];

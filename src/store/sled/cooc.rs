@@ -29,6 +29,7 @@ impl SledStore {
             previous,
             encoded,
             new_images,
+            idempotency,
         } = write;
         let previous = previous.as_deref();
         let _guard = self.lock();
@@ -53,6 +54,7 @@ impl SledStore {
         record.image_count = end;
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
         batch.insert(&codec::cooc_key(map), encoded);
+        self.claim_key(idempotency.as_ref(), Some(start..end), &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(start..end)
@@ -70,6 +72,7 @@ mod tests {
             previous: previous.map(<[u8]>::to_vec),
             encoded: encoded.to_vec(),
             new_images: vec![ImageMeta::default(); n],
+            idempotency: None,
         }
     }
 

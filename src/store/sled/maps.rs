@@ -5,7 +5,8 @@ use std::ops::Range;
 
 use super::{codec, SledStore};
 use crate::store::{
-    now_ms, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap, StoreError, StoreResult,
+    now_ms, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
+    StoreError, StoreResult,
 };
 use crate::Matrix;
 
@@ -76,6 +77,7 @@ impl SledStore {
             batch.remove(k);
         }
         self.remove_trips(id, &mut batch)?;
+        self.remove_keys(&IdempotencyRecord::images_scope(id), &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(())
@@ -87,6 +89,7 @@ impl SledStore {
     /// Fails without writing anything when the map is gone or the descriptor length differs
     /// from the map's.
     pub fn append_images(&self, batch: &ImageBatch) -> StoreResult<Range<u32>> {
+        let batch_in = batch;
         let (map, descriptors, metas) = (batch.map(), batch.descriptors(), batch.metas());
         let geometry = batch.geometry();
         let batch_thumbnails = batch.thumbnails();
@@ -133,6 +136,7 @@ impl SledStore {
         record.dim = Some(dim);
         record.image_count = end;
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
+        self.claim_key(batch_in.idempotency(), Some(start..end), &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(start..end)

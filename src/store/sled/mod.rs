@@ -33,8 +33,9 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use async_trait::async_trait;
 
 use super::{
-    CoocWrite, FrameRecord, ImageBatch, ImageMeta, LocalizationRecord, MapRecord, NewLocalization,
-    NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult, TripBatch, TripRecord,
+    CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
+    MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
+    TripBatch, TripRecord,
 };
 use crate::Matrix;
 
@@ -123,6 +124,53 @@ impl SledStore {
         };
         let items = ids.into_iter().map(get).collect::<StoreResult<Vec<_>>>()?;
         Ok(Page { items, next })
+    }
+
+    /// The record stored under an idempotency key, if any.
+    pub fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>> {
+        let k = codec::idempotency_key(scope, key);
+        self.db
+            .get(&k)?
+            .map(|v| codec::decode_idempotency(&k, scope, key, &v))
+            .transpose()
+    }
+
+    /// Adds `record` (with `indices`, for appends) to `batch`; fails when its key is stored
+    /// already. Call under the write lock.
+    fn claim_key(
+        &self,
+        record: Option<&IdempotencyRecord>,
+        indices: Option<Range<u32>>,
+        batch: &mut sled::Batch,
+    ) -> StoreResult<()> {
+        let Some(record) = record else {
+            return Ok(());
+        };
+        let k = codec::idempotency_key(&record.scope, &record.key);
+        if self.db.contains_key(&k)? {
+            return Err(StoreError::IdempotencyKeyTaken {
+                scope: record.scope.clone(),
+                key: record.key.clone(),
+            });
+        }
+        let stored = IdempotencyRecord {
+            indices,
+            ..record.clone()
+        };
+        batch.insert(k, codec::encode_idempotency(&stored));
+        Ok(())
+    }
+
+    /// Adds the removal of every idempotency record of `scope` to `batch`.
+    fn remove_keys(&self, scope: &str, batch: &mut sled::Batch) -> StoreResult<()> {
+        for kv in self.db.scan_prefix(codec::idempotency_prefix(scope)) {
+            batch.remove(kv?.0);
+        }
+        Ok(())
     }
 
     /// Runs a blocking method on tokio's blocking threads.
@@ -238,6 +286,15 @@ impl Store for SledStore {
 
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
         self.run(move |s| s.list_trips(map, page)).await
+    }
+
+    async fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>> {
+        let (scope, key) = (scope.to_string(), key.to_string());
+        self.run(move |s| s.idempotency_record(&scope, &key)).await
     }
 }
 

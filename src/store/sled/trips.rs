@@ -9,7 +9,8 @@
 
 use super::{codec, SledStore};
 use crate::store::{
-    now_ms, FrameRecord, NewTrip, Page, PageRequest, StoreError, StoreResult, TripBatch, TripRecord,
+    now_ms, FrameRecord, IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, StoreResult,
+    TripBatch, TripRecord,
 };
 
 impl SledStore {
@@ -87,6 +88,7 @@ impl SledStore {
         for e in &write.estimates {
             batch.insert(&codec::trip_frame_key(id, e.frame), codec::encode_frame(e));
         }
+        self.claim_key(write.idempotency.as_ref(), None, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
@@ -135,6 +137,7 @@ impl SledStore {
             for kv in self.db.scan_prefix(codec::trip_frames_prefix(trip)) {
                 batch.remove(kv?.0);
             }
+            self.remove_keys(&IdempotencyRecord::trip_scope(trip), batch)?;
             batch.remove(k);
         }
         Ok(())
@@ -175,6 +178,7 @@ mod tests {
                     confidence: f as f64 / 10.0,
                 })
                 .collect(),
+            idempotency: None,
         }
     }
 

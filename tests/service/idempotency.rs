@@ -1,0 +1,166 @@
+//! `Idempotency-Key` on `POST /v1/trips/{id}/frames` and `POST /v1/maps/{id}/images` (on the
+//! embedded store in `service`, on PostgreSQL in `service_pg`): a retry with the same key and
+//! parts is applied once and answered as the first time; the key with other parts is 409.
+
+use serde_json::{json, Value};
+
+use crate::common::{create_hog_map, Route, Server};
+use crate::http::{Client, Part, Response};
+use crate::spec::check;
+
+fn body(r: &Response) -> String {
+    String::from_utf8_lossy(&r.body).into_owned()
+}
+
+fn frames(route: &Route, range: std::ops::Range<u32>) -> Vec<Part> {
+    range
+        .map(|i| Part::image(&format!("q{i}.png"), route.query_png(i)))
+        .collect()
+}
+
+fn refs(route: &Route, range: std::ops::Range<u32>) -> Vec<Part> {
+    range
+        .map(|i| Part::image(&format!("r{i}.png"), route.reference_png(i)))
+        .collect()
+}
+
+fn post(c: &Client, path: &str, parts: &[Part], key: &str) -> Response {
+    c.post_multipart_with(path, parts, &[("Idempotency-Key", key)])
+        .unwrap()
+}
+
+/// The answer without its timings (a replay reports none).
+fn without_timings(v: &Value) -> Value {
+    let mut v = v.clone();
+    v.as_object_mut().unwrap().remove("timings");
+    v
+}
+
+#[test]
+fn a_retried_batch_of_frames_is_applied_once_and_answered_the_same() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(40, 21);
+    let map = create_hog_map(c, "idem", 8);
+    assert_eq!(
+        c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..40))
+            .status,
+        200
+    );
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({"lag": 8}));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let path = format!("/v1/trips/{trip}/frames");
+
+    let first = post(c, &path, &frames(&route, 5..10), "batch-1");
+    check("POST", "/v1/trips/{id}/frames", &first);
+    assert_eq!(first.status, 200, "{}", body(&first));
+    assert_eq!(first.header("idempotent-replayed"), None);
+    let again = post(c, &path, &frames(&route, 5..10), "batch-1");
+    check("POST", "/v1/trips/{id}/frames", &again);
+    assert_eq!(again.status, 200, "{}", body(&again));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(
+        without_timings(&again.json()),
+        without_timings(&first.json())
+    );
+    assert_eq!(again.json()["frame_count"], 5);
+
+    // The next batch continues from 5 frames, and the old key still answers the old batch.
+    let second = post(c, &path, &frames(&route, 10..15), "batch-2");
+    assert_eq!(second.json()["frame_count"], 10);
+    let late = post(c, &path, &frames(&route, 5..10), "batch-1");
+    assert_eq!(late.json()["frame_count"], 5);
+    let t = c.get(&format!("/v1/trips/{trip}")).json();
+    assert_eq!(t["frame_count"], 10);
+    assert_eq!(t["estimates"].as_array().unwrap().len(), 10);
+
+    // The key of another batch: refused, nothing applied.
+    let reused = post(c, &path, &frames(&route, 15..20), "batch-2");
+    check("POST", "/v1/trips/{id}/frames", &reused);
+    assert_eq!(
+        (reused.status, reused.code().as_str()),
+        (409, "idempotency_key_reused"),
+        "{}",
+        body(&reused)
+    );
+    assert_eq!(
+        c.get(&format!("/v1/trips/{trip}")).json()["frame_count"],
+        10
+    );
+    // A malformed key.
+    let bad = post(c, &path, &frames(&route, 15..20), "two words");
+    check("POST", "/v1/trips/{id}/frames", &bad);
+    assert_eq!(
+        (bad.status, bad.code().as_str()),
+        (400, "invalid_parameter")
+    );
+    assert_eq!(
+        c.get(&format!("/v1/trips/{trip}")).json()["frame_count"],
+        10
+    );
+}
+
+#[test]
+fn a_retried_batch_of_images_is_stored_once() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(30, 22);
+    let map = create_hog_map(c, "idem-images", 8);
+    let path = format!("/v1/maps/{map}/images");
+    let first = post(c, &path, &refs(&route, 0..10), "upload-a");
+    check("POST", "/v1/maps/{id}/images", &first);
+    assert_eq!(first.status, 200, "{}", body(&first));
+    let second = post(c, &path, &refs(&route, 10..20), "upload-b");
+    assert_eq!(second.json()["image_count"], 20);
+    let again = post(c, &path, &refs(&route, 0..10), "upload-a");
+    check("POST", "/v1/maps/{id}/images", &again);
+    assert_eq!(again.status, 200, "{}", body(&again));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    let map_now = c.get(&format!("/v1/maps/{map}")).json();
+    assert_eq!(map_now["image_count"], 20);
+    let reused = post(c, &path, &refs(&route, 20..30), "upload-a");
+    assert_eq!(
+        (reused.status, reused.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    // Keys are per map: the same key on another map is a new request.
+    let other = create_hog_map(c, "other", 8);
+    let r = post(
+        c,
+        &format!("/v1/maps/{other}/images"),
+        &refs(&route, 0..10),
+        "upload-a",
+    );
+    assert_eq!(r.header("idempotent-replayed"), None);
+    assert_eq!(r.json()["image_count"], 10);
+}
+
+#[test]
+fn concurrent_retries_of_one_batch_apply_it_once() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(40, 23);
+    let map = create_hog_map(c, "idem-race", 8);
+    c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..40));
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    let trip = r.json()["id"].as_str().unwrap().to_string();
+    let path = format!("/v1/trips/{trip}/frames");
+    let parts = frames(&route, 0..6);
+    let answers: Vec<Response> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4)
+            .map(|_| s.spawn(|| post(c, &path, &parts, "same")))
+            .collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    for a in &answers {
+        assert_eq!(a.status, 200, "{}", body(a));
+        assert_eq!(a.json()["frame_count"], 6);
+    }
+    let replays = answers
+        .iter()
+        .filter(|a| a.header("idempotent-replayed").is_some())
+        .count();
+    assert_eq!(replays, 3);
+    assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 6);
+}
