@@ -31,6 +31,8 @@
 
 use rayon::prelude::*;
 
+mod discounted;
+
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
 use crate::window::leading_min_in_place;
 use crate::{Error, Matrix, Result};
@@ -42,6 +44,10 @@ pub struct ConfidenceParams {
     pub half_window: usize,
     /// `r`: alternatives within `r` reference frames of the match count as the same place.
     pub radius: usize,
+    /// `g` in `(0, 1)`: score with the discounted min-marginal ratio instead of the box window
+    /// (rows weighted `g^|t-i|` over the whole route, `O(Q·D)` in total; `discounted.rs`).
+    /// `None`: the box window of `half_window`. Offline only: trips keep the causal window.
+    pub discount: Option<f64>,
 }
 
 impl Default for ConfidenceParams {
@@ -49,6 +55,7 @@ impl Default for ConfidenceParams {
         ConfidenceParams {
             half_window: 5,
             radius: 2,
+            discount: None,
         }
     }
 }
@@ -104,6 +111,24 @@ pub fn score_hypothesis(
             chat.rows(),
             chat.cols()
         )));
+    }
+    if let Some(g) = params.discount {
+        if g.is_nan() || g <= 0.0 || g >= 1.0 {
+            return Err(Error::param(
+                "discount",
+                format!("must be within (0, 1), got {g}"),
+            ));
+        }
+        let ratios = discounted::discounted_ratios(chat, graph, g, params.radius, &targets);
+        return Ok(targets
+            .iter()
+            .zip(ratios)
+            .map(|(&(i, j), confidence)| RowConfidence {
+                query: i,
+                reference: j,
+                confidence,
+            })
+            .collect());
     }
     Ok(targets
         .par_iter()
@@ -322,7 +347,7 @@ mod tests {
         ) {
             let chat = Matrix::from_vec(q, d, seed[..q * d].to_vec()).unwrap();
             let g = GraphParams { fan_out: k, horizontal, hidden_cost: w };
-            let p = ConfidenceParams { half_window: hw, radius: r };
+            let p = ConfidenceParams { half_window: hw, radius: r, discount: None };
             for i in 0..q {
                 for js in 0..d {
                     let fast = local_ratio(&chat, &g, &p, i, js);
@@ -373,6 +398,7 @@ mod tests {
         let p = ConfidenceParams {
             half_window: 1,
             radius: 1,
+            discount: None,
         };
         let h = hypothesis(&(0..8).map(|i| Some((i, 2.0))).collect::<Vec<_>>());
         let conf = score_hypothesis(&chat, &g, &h, &p).unwrap();

@@ -26,6 +26,7 @@ use serde_json::{json, Value};
 use super::cooc::CoocArgs;
 use super::{DescriptorArgs, SolverArgs};
 use crate::baselines::{best_match, seqslam, SeqSlamParams};
+use crate::confidence::ConfidenceParams;
 use crate::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use crate::eval::{
     evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
@@ -139,6 +140,14 @@ pub struct EvalArgs {
     /// half the median column mean), `eq2` (the paper's Eq. 2 exactly) or `none`.
     #[arg(long, value_enum, default_value_t = NormalizationArg::Floored)]
     pub normalization: NormalizationArg,
+    /// Flow confidence: alternatives within this many reference frames of a prediction
+    /// count as the same place (`r`).
+    #[arg(long, default_value_t = 2)]
+    pub confidence_radius: usize,
+    /// Flow confidence: score with the discounted min-marginal ratio, rows weighted
+    /// `G^|t-i|` (0 < G < 1; `O(Q·D)` in total), instead of the 11-row window.
+    #[arg(long)]
+    pub confidence_discount: Option<f64>,
     /// Descriptor settings.
     #[command(flatten)]
     pub descriptor: DescriptorArgs,
@@ -268,7 +277,11 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     let options = LocalizeOptions {
         solver,
         normalization: args.normalization.into(),
-        ..LocalizeOptions::default()
+        confidence: ConfidenceParams {
+            radius: args.confidence_radius,
+            discount: args.confidence_discount,
+            ..ConfidenceParams::default()
+        },
     };
     let cooc_options = CoocOptions {
         sequence,

@@ -273,6 +273,8 @@ impl Trip {
             confidence: ConfidenceParams {
                 half_window: r.usize()?,
                 radius: r.usize()?,
+                // Trips score with the causal box window (the discounted ratio is offline).
+                discount: None,
             },
         };
         let d = r.usize()?;
