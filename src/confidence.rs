@@ -28,6 +28,14 @@
 //!
 //! Cost: `2L+1` row updates of `D` columns per matched query row, rows in parallel (rayon); the
 //! forward updates use the solver's row kernel.
+//!
+//! **The default offline is the discounted ratio** (`discounted.rs`, [`DEFAULT_DISCOUNT`]): the
+//! same inside/outside ratio on the whole query, each row's node costs weighted `g^|t-i|` by
+//! its distance to the scored row instead of the box window's 1 inside / 0 outside. It is one
+//! forward and one backward pass for all rows (`O(Q·D)` in total instead of `(2L+1)·Q·D`), and it
+//! has no window edge: evidence fades with distance instead of stopping at `L`. Measured effect
+//! and held-out results: ARCHITECTURE.md ("Confidence"). Trips keep the box window in its causal
+//! form (the scored frame last, [`window_ratio`]), [`ConfidenceParams::window`].
 
 use rayon::prelude::*;
 
@@ -38,7 +46,7 @@ use crate::window::leading_min_in_place;
 use crate::{Error, Matrix, Result};
 
 /// Parameters of the local min-marginal ratio.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ConfidenceParams {
     /// `L`: rows on each side of the scored row that form its window.
     pub half_window: usize,
@@ -50,12 +58,30 @@ pub struct ConfidenceParams {
     pub discount: Option<f64>,
 }
 
+/// The default discount `g = 1 - 1/(L+1)` for `L = 5`: a row `L` frames away still weighs
+/// `g^L = 0.40`, as the box window of half-width `L` gave its edge rows full weight and
+/// nothing beyond (not tuned: `g` in 0.75..=0.9 measured in ARCHITECTURE.md).
+pub const DEFAULT_DISCOUNT: f64 = 5.0 / 6.0;
+
 impl Default for ConfidenceParams {
+    /// The discounted ratio with `g` = [`DEFAULT_DISCOUNT`], `r = 2` (offline default). Trips
+    /// use [`ConfidenceParams::window`] (causal box window).
     fn default() -> Self {
         ConfidenceParams {
             half_window: 5,
             radius: 2,
+            discount: Some(DEFAULT_DISCOUNT),
+        }
+    }
+}
+
+impl ConfidenceParams {
+    /// The box window of half-width 5, `r = 2`: the trips' confidence (its causal form) and
+    /// the offline default of earlier versions (`eval --confidence window`).
+    pub fn window() -> Self {
+        ConfidenceParams {
             discount: None,
+            ..ConfidenceParams::default()
         }
     }
 }

@@ -80,6 +80,15 @@ impl Method {
     }
 }
 
+/// `--confidence` values (flow method).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ConfidenceArg {
+    /// The discounted min-marginal ratio (default; `O(Q·D)` in total).
+    Discounted,
+    /// The local min-marginal ratio on the 11-row box window (the trips' confidence).
+    Window,
+}
+
 /// `--normalization` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum NormalizationArg {
@@ -144,10 +153,14 @@ pub struct EvalArgs {
     /// count as the same place (`r`).
     #[arg(long, default_value_t = 2)]
     pub confidence_radius: usize,
-    /// Flow confidence: score with the discounted min-marginal ratio, rows weighted
-    /// `G^|t-i|` (0 < G < 1; `O(Q·D)` in total), instead of the 11-row window.
-    #[arg(long)]
-    pub confidence_discount: Option<f64>,
+    /// Flow confidence: `discounted` (the min-marginal ratio with rows weighted `G^|t-i|`,
+    /// `O(Q·D)` in total) or `window` (the 11-row box window of earlier versions, the trips'
+    /// confidence; `12·D` work per matched row).
+    #[arg(long, value_enum, default_value_t = ConfidenceArg::Discounted)]
+    pub confidence: ConfidenceArg,
+    /// Flow confidence `discounted`: the weight `G` of a row one frame further away, 0 < G < 1.
+    #[arg(long, default_value_t = crate::confidence::DEFAULT_DISCOUNT)]
+    pub confidence_discount: f64,
     /// Descriptor settings.
     #[command(flatten)]
     pub descriptor: DescriptorArgs,
@@ -279,7 +292,10 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         normalization: args.normalization.into(),
         confidence: ConfidenceParams {
             radius: args.confidence_radius,
-            discount: args.confidence_discount,
+            discount: match args.confidence {
+                ConfidenceArg::Discounted => Some(args.confidence_discount),
+                ConfidenceArg::Window => None,
+            },
             ..ConfidenceParams::default()
         },
     };

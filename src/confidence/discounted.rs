@@ -87,7 +87,15 @@ impl Passes<'_> {
         };
         let Forward { x, h, m } = out;
         let out = (&mut x[..], &mut h[..], &mut m[..]);
-        forward_values_row(self.chat.row(i), prev, self.k, self.horizontal, self.w, out, s);
+        forward_values_row(
+            self.chat.row(i),
+            prev,
+            self.k,
+            self.horizontal,
+            self.w,
+            out,
+            s,
+        );
     }
 
     /// Row `i`'s backward values from row `i+1`'s (`None` for the last row: the sink).
@@ -184,7 +192,13 @@ pub(super) fn discounted_ratios(
             let mut prev = cur.m.clone();
             let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
             for i in 0..q.saturating_sub(1) {
-                p.forward(i, (i > 0).then_some(&prev[..]), &mut cur, &mut scaled, &mut scratch);
+                p.forward(
+                    i,
+                    (i > 0).then_some(&prev[..]),
+                    &mut cur,
+                    &mut scaled,
+                    &mut scratch,
+                );
                 std::mem::swap(&mut prev, &mut cur.m);
                 if (i + 1) % s == 0 {
                     marks[(i + 1) / s] = Some(prev.clone());
@@ -246,7 +260,13 @@ pub(super) fn discounted_ratios(
             let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
             let mut out = Vec::new();
             for i in a..e {
-                p.forward(i, (i > 0).then_some(&prev[..]), &mut cur, &mut scaled, &mut scratch);
+                p.forward(
+                    i,
+                    (i > 0).then_some(&prev[..]),
+                    &mut cur,
+                    &mut scaled,
+                    &mut scratch,
+                );
                 for &(t, j) in &wanted[i] {
                     out.push((t, ratio(&cur, &back[i - a], radius, j)));
                 }
@@ -372,7 +392,7 @@ mod tests {
             w: 1.1,
             g: 0.8,
         };
-        let mut fw = Vec::new();
+        let mut fw: Vec<Forward> = Vec::new();
         let mut cur = Forward {
             x: vec![0.0; d],
             h: vec![0.0; d],
@@ -380,7 +400,11 @@ mod tests {
         };
         let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
         for i in 0..q {
-            let prev = if i > 0 { Some(fw[i - 1].m.clone()) } else { None };
+            let prev = if i > 0 {
+                Some(fw[i - 1].m.clone())
+            } else {
+                None
+            };
             p.forward(i, prev.as_deref(), &mut cur, &mut scaled, &mut scratch);
             fw.push(cur.clone());
         }

@@ -109,7 +109,7 @@ impl Default for TripParams {
             relocalization: Some(DEFAULT_RELOCALIZATION_COST),
             prior_weight: 100.0,
             normalize: true,
-            confidence: ConfidenceParams::default(),
+            confidence: ConfidenceParams::window(),
         }
     }
 }
