@@ -92,6 +92,26 @@ fn bench_batch(c: &mut Criterion, dir: &Path, image: &DynamicImage) {
     g.finish();
 }
 
+/// The end-to-end case: the first 400 Nordland winter frames read, decoded, stretched
+/// to 224x224 and run to `block10` by `extract_files` on the global rayon pool (both cores).
+/// Compare with `benches/onnxruntime_cnn.py` (same frames, same work, two threads).
+fn bench_nordland400(c: &mut Criterion, dir: &Path) {
+    let folder = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32/winter");
+    let Ok(mut paths) = seasonloc::features::list_images(&folder) else {
+        eprintln!("skipping cnn_nordland400: {} not found", folder.display());
+        return;
+    };
+    paths.truncate(400);
+    let spec = CnnSpec::new(options(dir, "block10")).expect("model loads");
+    let mut g = c.benchmark_group("cnn_nordland400");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(paths.len() as u64));
+    g.bench_function("block10_stretch_extract_files", |b| {
+        b.iter(|| seasonloc::features::extract_files(&spec, &paths, &|| {}).expect("extracts"))
+    });
+    g.finish();
+}
+
 fn main() {
     let Some(dir) = shared_models() else {
         eprintln!("skipping cnn benches: ../shared/models is absent");
@@ -110,5 +130,6 @@ fn main() {
     bench_load(&mut c, &dir);
     bench_single(&mut c, &dir, &images);
     bench_batch(&mut c, &dir, &images[0].1);
+    bench_nordland400(&mut c, &dir);
     c.final_summary();
 }

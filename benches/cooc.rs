@@ -1,6 +1,6 @@
 //! Co-occurrence map benches: simultaneous matching with the maximum-potential-score bound
 //! (lockstep as in the paper, and best-first) against matching every location separately, on a
-//! generated map of 2,400 locations; keypoint extraction on a 64x32 frame.
+//! generated map of 2,400 locations; keypoint extraction on a 64x32 and a 960x540 frame.
 //!
 //! Run: `cargo bench --bench cooc -- --warm-up-time 1 --measurement-time 3`.
 
@@ -208,10 +208,39 @@ fn bench_keypoints(c: &mut Criterion) {
     });
 }
 
+/// Extraction on a 960x540 camera frame (Gardens Point `day_right/Image000.jpg`, or a
+/// generated frame of that size when the shared data is absent), default settings: the frame
+/// is reduced to the 640 px working width first.
+fn bench_keypoints_960x540(c: &mut Criterion) {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let path = ["../shared", "../../shared"]
+        .iter()
+        .map(|s| {
+            root.join(s)
+                .join("data/gardenspoint_dev/day_right/Image000.jpg")
+        })
+        .find(|p| p.is_file());
+    let image: GrayImage = match path.as_ref().map(image::open) {
+        Some(Ok(img)) => img.to_luma8(),
+        _ => {
+            eprintln!("Gardens Point frame not found: using a generated 960x540 frame");
+            let mut rng = Rng(9);
+            GrayImage::from_fn(960, 540, |x, y| {
+                Luma([((x / 9 * 7 + y / 7 * 13) as u64 % 200 + rng.below(40)) as u8])
+            })
+        }
+    };
+    let params = KeypointParams::default();
+    c.bench_function("cooc_keypoints_960x540_default", |b| {
+        b.iter(|| extract("bench", std::hint::black_box(&image), &params).expect("valid image"))
+    });
+}
+
 criterion_group!(
     benches,
     bench_recognition,
     bench_keypoints,
+    bench_keypoints_960x540,
     bench_recognition_nordland
 );
 criterion_main!(benches);

@@ -53,6 +53,19 @@ fn single(c: &mut Criterion) {
             image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
         };
         let decode_only = || load_image_file(&path).expect("decodes");
+        // The two stages after decoding, alone (where the time goes).
+        let decoded = load_image_file(&path).expect("decodes");
+        g.bench_function("gray_only_768x576", |b| {
+            b.iter(|| seasonloc::features::to_gray(&decoded).into_owned())
+        });
+        let gray = prepare_gray(&decoded, None).expect("gray").into_owned();
+        g.bench_function("resize_gray_only_768x576_to_1024x768", |b| {
+            b.iter(|| {
+                seasonloc::features::resize_gray(&gray, 1024, 768)
+                    .expect("resizes")
+                    .into_owned()
+            })
+        });
         g.bench_function("jpeg_decode_gray_resize_1024x768", |b| b.iter(prepare));
         g.bench_function("jpeg_decode_gray_resize_1024x768_image_crate", |b| {
             b.iter(prepare_image_crate)

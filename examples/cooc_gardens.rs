@@ -155,8 +155,10 @@ fn run(
         "day" => vec![(vec![1], 0), (vec![0], 1)],
         other => panic!("unknown maps={other}"),
     };
-    println!("| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | build s | score s |");
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!(
+        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | size AP | margin AP | ratio AP | build s | score s |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for (map_drives, query) in sets {
         let started = Instant::now();
         let drives: Vec<DriveFeatures> = map_drives.iter().map(|&t| drive(t)).collect();
@@ -185,6 +187,13 @@ fn run(
                 row.push(format!("{:.2}", m.correct as f64 / n as f64));
             }
         }
+        // Single image from the full scores with three confidences: the group size (the paper's),
+        // and its margin over the best location more than 10 locations away (difference, ratio).
+        for mode in [0, 1, 2] {
+            let preds = margin_predictions(queries.scores(), 10, mode);
+            let m = evaluate(&preds, &gt, n, 2, &Exclusions::none()).expect("metrics");
+            row.push(format!("{:.3}", m.ap));
+        }
         let name: Vec<&str> = map_drives.iter().map(|&t| TRAVERSALS[t]).collect();
         println!(
             "| {} | {} | {} | {build:.1} | {:.2} |",
@@ -194,4 +203,39 @@ fn run(
             queries.score_seconds()
         );
     }
+}
+
+fn margin_predictions(
+    scores: &seasonloc::Matrix,
+    exclusion: usize,
+    mode: u8,
+) -> Vec<seasonloc::eval::Prediction> {
+    (0..scores.rows())
+        .filter_map(|q| {
+            let row = scores.row(q);
+            let (best, &s1) = row
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
+            if s1 <= 0.0 {
+                return None;
+            }
+            let s2 = row
+                .iter()
+                .enumerate()
+                .filter(|(l, _)| l.abs_diff(best) > exclusion)
+                .map(|(_, &s)| s)
+                .fold(0.0f32, f32::max);
+            let confidence = match mode {
+                0 => f64::from(s1),
+                1 => f64::from(s1 - s2),
+                _ => f64::from(s1) / f64::from(s2.max(1.0)),
+            };
+            Some(seasonloc::eval::Prediction {
+                query: q,
+                reference: best,
+                confidence,
+            })
+        })
+        .collect()
 }

@@ -76,7 +76,7 @@ pub enum ApiError {
     #[error("{0}")]
     ModelMismatch(String),
     /// 409 `map_kind`: the request does not apply to this kind of map (e.g. a second batch of
-    /// reference images or a trip on a `cooc` map, drives on a non-`cooc` map).
+    /// reference images on a `cooc` map, drives on a non-`cooc` map).
     #[error("{0}")]
     MapKind(String),
     /// 409 `map_changed`: a concurrent request changed the map first; retrying is safe.

@@ -10,7 +10,13 @@
 //! change writes the whole encoded map (`CoocMap::to_bytes`) with the map record in one atomic
 //! store write, conditional on the bytes it was computed from ([`AppError::MapChanged`] when a
 //! concurrent request won).
+//!
+//! Trips on a co-occurrence map ([`RowSource::Cooc`]): each batch of frames is quantised and
+//! scored against every location, and the score rows (`s + 1`, as `cooc-flow` offline) feed
+//! the same online graph, status and confidence as a HOG/CNN trip; the prior column means come
+//! from the map's own images ([`CoocMap::trip_prior`]).
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
@@ -21,6 +27,33 @@ use super::App;
 use crate::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
 use crate::localize::{Localization, LocalizeOptions};
 use crate::store::{CoocWrite, ImageMeta, MapRecord};
+use crate::Matrix;
+
+/// How many of a map's own images [`App::cooc_trip_prior`] scores (as for descriptor maps).
+const TRIP_PRIOR_SAMPLE: usize = 256;
+
+/// Where a trip's similarity rows come from: the map's reference descriptors (cosine rows), or
+/// its co-occurrence model (score rows `s + 1`, as `cooc-flow` offline). Either feeds the same
+/// online graph ([`crate::trip::Trip::push_batch`]).
+pub(super) enum RowSource {
+    /// Reference descriptors of a HOG/CNN map.
+    Descriptors(Arc<Matrix>),
+    /// The decoded co-occurrence map.
+    Cooc(Box<CoocMap>),
+}
+
+impl RowSource {
+    /// The rows of a batch of frames on a co-occurrence map: quantised with its vocabulary and
+    /// scored against every location ([`CoocMap::trip_rows`]).
+    pub(super) fn cooc_rows(
+        map: &CoocMap,
+        frames: &[ImageInput],
+        max_pixels: u64,
+    ) -> AppResult<Matrix> {
+        let words = map.quantize_all(&decode_gray(frames, max_pixels)?)?;
+        Ok(map.trip_rows(&words))
+    }
+}
 
 /// A further drive of a co-occurrence map's route.
 #[derive(Clone, Debug)]
@@ -44,7 +77,7 @@ pub struct DriveOutcome {
 
 impl App {
     /// The encoded and decoded co-occurrence map of `map`, decoded on the CPU pool.
-    async fn load_cooc(&self, map: &MapRecord) -> AppResult<(Vec<u8>, CoocMap)> {
+    pub(super) async fn load_cooc(&self, map: &MapRecord) -> AppResult<(Vec<u8>, CoocMap)> {
         let id = map.id;
         let Some(bytes) = self.store.cooc_map(id).await? else {
             return Err(AppError::MapEmpty(id));
@@ -173,6 +206,19 @@ impl App {
             .await?;
         tracing::info!(map = %format!("{id:016x}"), images, drives, "drive added");
         Ok(DriveOutcome { drives, images })
+    }
+
+    /// A trip's prior column means on a co-occurrence map ([`CoocMap::trip_prior`]); computed
+    /// at every opening (not cached: a further drive changes it without changing the image
+    /// count).
+    pub(super) async fn cooc_trip_prior(&self, map: &MapRecord) -> AppResult<Arc<Vec<f32>>> {
+        if map.image_count == 0 {
+            return Err(AppError::MapEmpty(map.id));
+        }
+        let (_, cooc) = self.load_cooc(map).await?;
+        self.pool
+            .run(move || Ok(Arc::new(cooc.trip_prior(TRIP_PRIOR_SAMPLE)?)))
+            .await
     }
 
     /// Quantises the query images and localizes them on a `cooc` map with `method` (the one

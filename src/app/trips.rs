@@ -14,12 +14,15 @@
 
 use std::time::Instant;
 
+use super::cooc::RowSource;
 use super::error::{AppError, AppResult};
 use super::images::{self, ImageInput};
+use super::kind::{kind, Kind};
 use super::{map_extractor, App};
 use crate::similarity;
 use crate::store::{
-    FrameRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripParamsDocument, TripRecord,
+    FrameRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripParamsDocument,
+    TripRecord,
 };
 use crate::trip::{column_prior, BatchUpdate, Trip, TripParams};
 
@@ -56,6 +59,10 @@ impl App {
     /// Opens a trip on map `id` with validated parameters.
     pub async fn open_trip(&self, id: u64, params: TripParams) -> AppResult<TripRecord> {
         let map = self.get_map(id).await?;
+        if let Kind::Cooc(_) = kind(&map) {
+            let prior = self.cooc_trip_prior(&map).await?;
+            return self.create_trip(&map, prior, params).await;
+        }
         let checked = map.clone();
         let has_extractor = self
             .pool
@@ -86,6 +93,17 @@ impl App {
                 prior
             }
         };
+        self.create_trip(&map, prior, params).await
+    }
+
+    /// Stores a new trip on `map` (all its current images) with the map's prior column means.
+    async fn create_trip(
+        &self,
+        map: &MapRecord,
+        prior: std::sync::Arc<Vec<f32>>,
+        params: TripParams,
+    ) -> AppResult<TripRecord> {
+        let (id, count) = (map.id, map.image_count);
         let state = self
             .pool
             .run(move || Ok(Trip::new(prior.as_ref().clone(), params)?.to_bytes()))
@@ -134,15 +152,19 @@ impl App {
             return Err(AppError::TripClosed(id));
         }
         let map = self.get_map(record.map_id).await?;
-        let references = self
-            .references
-            .get(
-                self.store.as_ref(),
-                &self.pool,
-                &map,
-                record.reference_count,
-            )
-            .await?;
+        let source = match kind(&map) {
+            Kind::Cooc(_) => RowSource::Cooc(Box::new(self.load_cooc(&map).await?.1)),
+            Kind::Descriptors(_) => RowSource::Descriptors(
+                self.references
+                    .get(
+                        self.store.as_ref(),
+                        &self.pool,
+                        &map,
+                        record.reference_count,
+                    )
+                    .await?,
+            ),
+        };
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
         let (update, state, hidden_cost, mut timings) = self
@@ -151,17 +173,28 @@ impl App {
                 let mut trip = Trip::from_bytes(&bytes)?;
                 let load = started.elapsed().as_secs_f64();
                 let t = Instant::now();
-                let Some(extractor) = map_extractor(&map)? else {
-                    return Err(AppError::MapKind(format!(
-                        "map `{:016x}` cannot describe images",
-                        map.id
-                    )));
+                let c = match &source {
+                    RowSource::Descriptors(references) => {
+                        let Some(extractor) = map_extractor(&map)? else {
+                            return Err(AppError::MapKind(format!(
+                                "map `{:016x}` cannot describe images",
+                                map.id
+                            )));
+                        };
+                        let queries = images::describe(
+                            extractor.as_ref(),
+                            &frames,
+                            max_pixels,
+                            max_len,
+                            map.dim,
+                        )?;
+                        similarity::cosine_matrix(&queries, references)?
+                    }
+                    RowSource::Cooc(cooc) => RowSource::cooc_rows(cooc, &frames, max_pixels)?,
                 };
-                let queries =
-                    images::describe(extractor.as_ref(), &frames, max_pixels, max_len, map.dim)?;
+                // Features and scores for cooc maps (their rows come from the images at once).
                 let features = t.elapsed().as_secs_f64();
                 let t = Instant::now();
-                let c = similarity::cosine_matrix(&queries, &references)?;
                 let update = trip.push_batch(&c)?;
                 let hidden_cost = trip.hidden_cost().ok_or_else(|| {
                     AppError::Internal("the first batch did not resolve the hidden cost".into())

@@ -1,11 +1,13 @@
 //! The co-occurrence methods of `seasonloc eval` (`cooc`, `cooc-seq`, `cooc-flow`): their flags,
 //! and the map and scores they are computed from.
 //!
-//! These methods work on the images themselves, not on a global descriptor: the reference
-//! folder is the single mapping drive (image `k` = location `k`), from which the vocabulary and
-//! the location models are learned ([`CoocMap::build`]); the queries are quantised with that
-//! vocabulary and localized by the one co-occurrence entry point ([`crate::cooc::CoocQueries`]). Every flag left unset keeps the library default ([`CoocParams::default`],
-//! [`SequenceParams::default`]), so the CLI never carries a second copy of the defaults.
+//! These methods work on the images themselves, not on a global descriptor: each `--reference`
+//! folder is one mapping drive of the route (image `k` of every drive = location `k`), from
+//! which the vocabulary and the location models are learned ([`build_map`]); the queries are
+//! quantised with that vocabulary and localized by the one co-occurrence entry point
+//! ([`crate::cooc::CoocQueries`]). Every flag left unset keeps the library default
+//! ([`CoocParams::default`], [`SequenceParams::default`]), so the CLI never carries a second
+//! copy of the defaults.
 
 use std::path::PathBuf;
 
@@ -101,15 +103,29 @@ impl CoocArgs {
     }
 }
 
-/// Builds the map from the reference images (one drive, image `k` = location `k`) and returns
-/// it with the query images, both loaded in parallel.
+/// Builds the map from the mapping drives `(image files, time)` and returns it with the query
+/// images, all loaded in parallel. Image `k` of every drive is location `k`.
+///
+/// The map is built exactly as the service builds one (`POST /v1/maps/{id}/images`, then
+/// `POST /v1/maps/{id}/drives` per further drive): the vocabulary is learned from the **first**
+/// drive given and the others are added with [`CoocMap::add_drive`], so their words keep the
+/// first drive's meaning and a fused map from `eval` is the model the service would hold.
+/// `time` orders the drives for the interpolation between drives adjacent in time (paper
+/// II-E); the order given only decides which drive trains the vocabulary.
 pub fn build_map(
     params: &CoocParams,
-    references: &[PathBuf],
+    drives: &[(&[PathBuf], f64)],
     queries: &[PathBuf],
 ) -> Result<(CoocMap, Vec<GrayImage>)> {
-    let references = load_gray(references)?;
-    let map = CoocMap::build(params, &[Drive::sequential(0.0, references)?])?;
+    let Some(((first, time), rest)) = drives.split_first() else {
+        return Err(crate::Error::Empty(
+            "a co-occurrence map needs at least one mapping drive".into(),
+        ));
+    };
+    let mut map = CoocMap::build(params, &[Drive::sequential(*time, load_gray(first)?)?])?;
+    for (files, time) in rest {
+        map.add_drive(&Drive::sequential(*time, load_gray(files)?)?)?;
+    }
     Ok((map, load_gray(queries)?))
 }
 

@@ -14,6 +14,15 @@
 //!
 //! The co-occurrence methods use the images (see [`super::cooc`]), not `--descriptor`; the
 //! descriptor (and a CNN model) is only loaded when a descriptor method is scored.
+//!
+//! **Several mapping drives** (co-occurrence methods only): `--reference` may be repeated, one
+//! folder per drive of the same route; image `k` of every drive is location `k` (so every drive
+//! must hold the same number of images; the error names the drive that differs), and the ground
+//! truth's `ref_index` is a location. `--reference-time` (once per drive) gives each drive's
+//! time of day for the interpolation between drives adjacent in time (paper II-E); by default
+//! the drives are in the order given. `--leave-one-out` runs the paper's protocol over the
+//! `--reference` folders (all traversals of the route): each in turn is the query, the others
+//! form the map; the report holds every fold and the mean of each metric over the folds.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -34,6 +43,7 @@ use crate::eval::{
 use crate::features::{extract_files, image_file_size, list_images, Extractor};
 use crate::localize::{solve_with_confidence, LocalizeOptions};
 use crate::similarity::{cosine_matrix, Normalization};
+use crate::Error;
 use crate::Matrix;
 
 /// Localization methods `eval` can score.
@@ -113,15 +123,27 @@ impl From<NormalizationArg> for Normalization {
 /// Flags of `seasonloc eval`.
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Folder of reference (map) images, taken in file-name order.
-    #[arg(long)]
-    pub reference: PathBuf,
+    /// Folder of reference (map) images, taken in file-name order. The co-occurrence methods
+    /// fuse several mapping drives of one route: repeat the flag (image k of every drive =
+    /// location k).
+    #[arg(long, required = true)]
+    pub reference: Vec<PathBuf>,
+    /// Time of day of each `--reference` drive (repeat once per drive, same order; any number
+    /// whose order is the drives' order in time, e.g. hours), for the co-occurrence map's
+    /// interpolation between drives adjacent in time. Default: the order given.
+    #[arg(long, allow_negative_numbers = true)]
+    pub reference_time: Vec<f64>,
     /// Folder of query images, taken in file-name order.
     #[arg(long)]
-    pub query: PathBuf,
-    /// Ground-truth CSV with a header holding at least `query_index,ref_index`.
+    pub query: Option<PathBuf>,
+    /// Ground-truth CSV with a header holding at least `query_index,ref_index`. Optional with
+    /// `--leave-one-out`, where it defaults to query k -> location k.
     #[arg(long)]
-    pub ground_truth: PathBuf,
+    pub ground_truth: Option<PathBuf>,
+    /// The co-occurrence paper's protocol over the `--reference` folders (all traversals of one
+    /// route, at least two): each traversal in turn is the query, the others form the map.
+    #[arg(long, conflicts_with = "query")]
+    pub leave_one_out: bool,
     /// Method to score.
     #[arg(long, value_enum, default_value_t = Method::Flow)]
     pub method: Method,
@@ -180,33 +202,226 @@ struct Inputs<'m> {
     cooc: Option<CoocQueries<'m>>,
 }
 
+/// One mapping drive: its folder, its images in file-name order and its time key.
+struct ReferenceDrive {
+    folder: PathBuf,
+    files: Vec<PathBuf>,
+    time: f64,
+}
+
+/// One evaluation: the mapping drives, the queries and their ground truth.
+struct Job<'a> {
+    references: Vec<&'a ReferenceDrive>,
+    query: &'a Path,
+    query_files: &'a [PathBuf],
+    ground_truth: &'a GroundTruth,
+}
+
+/// Metric fields averaged over the folds of `--leave-one-out`.
+const METRIC_FIELDS: [&str; 5] = [
+    "ap",
+    "recall_at_100p",
+    "recall_at_99p",
+    "max_f1",
+    "precision_at_full",
+];
+
 /// Runs `eval` and returns the JSON report.
 pub fn run(args: &EvalArgs) -> Result<Value> {
     let started = Instant::now();
-    let solver = args.solver.to_params()?;
-    let exclusions = Exclusions::parse(&args.exclude)?;
+    args.solver.to_params()?;
+    Exclusions::parse(&args.exclude)?;
     for out in [&args.predictions, &args.plot, &args.save_similarity]
         .into_iter()
         .flatten()
     {
         check_output_location(out)?;
     }
-    let ground_truth = GroundTruth::from_csv(&args.ground_truth)?;
-    let reference_files = list_images(&args.reference)?;
-    let query_files = list_images(&args.query)?;
-    if let Some(q) = ground_truth.max_query_index() {
-        if q >= query_files.len() {
+    let mut methods = vec![args.method];
+    methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));
+    if args.reference.len() > 1 {
+        if let Some(m) = methods.iter().find(|m| !m.is_cooc()) {
             bail!(
-                "{}: names query {q} but {} has only {} images",
-                args.ground_truth.display(),
-                args.query.display(),
-                query_files.len()
+                "--reference is given {} times, but `{}` localizes against one reference \
+                 folder; only the co-occurrence methods (cooc, cooc-seq, cooc-flow) fuse \
+                 several mapping drives",
+                args.reference.len(),
+                m.name()
             );
         }
     }
+    if !args.reference_time.is_empty() && args.reference_time.len() != args.reference.len() {
+        bail!(
+            "--reference-time is given {} times for {} --reference folders: give one time per \
+             drive, in the same order, or none",
+            args.reference_time.len(),
+            args.reference.len()
+        );
+    }
+    if let Some(t) = args.reference_time.iter().find(|t| !t.is_finite()) {
+        bail!("--reference-time must be a finite number, got {t}");
+    }
+    let drives = reference_drives(args)?;
+    if args.leave_one_out {
+        return leave_one_out(args, &drives, started);
+    }
+    let (Some(query), Some(gt_path)) = (&args.query, &args.ground_truth) else {
+        bail!("--query and --ground-truth are required (unless --leave-one-out)");
+    };
+    let ground_truth = GroundTruth::from_csv(gt_path)?;
+    let query_files = list_images(query)?;
+    check_ground_truth(&ground_truth, gt_path, query, query_files.len())?;
+    let job = Job {
+        references: drives.iter().collect(),
+        query,
+        query_files: &query_files,
+        ground_truth: &ground_truth,
+    };
+    run_job(args, &methods, &job, started)
+}
 
+/// The `--reference` folders with their images and times, every drive with the same count.
+fn reference_drives(args: &EvalArgs) -> Result<Vec<ReferenceDrive>> {
+    let mut drives: Vec<ReferenceDrive> = Vec::with_capacity(args.reference.len());
+    for (k, folder) in args.reference.iter().enumerate() {
+        let files = list_images(folder)?;
+        if let Some(first) = drives.first() {
+            if files.len() != first.files.len() {
+                return Err(Error::Shape(format!(
+                    "--reference {}: {} images, but the first drive {} has {}; image k of \
+                     every mapping drive is location k, so all drives need the same count",
+                    folder.display(),
+                    files.len(),
+                    first.folder.display(),
+                    first.files.len()
+                ))
+                .into());
+            }
+        }
+        drives.push(ReferenceDrive {
+            folder: folder.clone(),
+            files,
+            time: args.reference_time.get(k).copied().unwrap_or(k as f64),
+        });
+    }
+    Ok(drives)
+}
+
+fn check_ground_truth(gt: &GroundTruth, path: &Path, query: &Path, queries: usize) -> Result<()> {
+    if let Some(q) = gt.max_query_index() {
+        if q >= queries {
+            bail!(
+                "{}: names query {q} but {} has only {queries} images",
+                path.display(),
+                query.display(),
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The paper's protocol: each `--reference` folder in turn is the query, the others the map.
+fn leave_one_out(args: &EvalArgs, drives: &[ReferenceDrive], started: Instant) -> Result<Value> {
     let mut methods = vec![args.method];
     methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));
+    if let Some(m) = methods.iter().find(|m| !m.is_cooc()) {
+        bail!(
+            "--leave-one-out fuses the other traversals into one map: only the co-occurrence \
+             methods (cooc, cooc-seq, cooc-flow) can, not `{}`",
+            m.name()
+        );
+    }
+    if drives.len() < 2 {
+        bail!("--leave-one-out needs at least two --reference traversals of the route");
+    }
+    if args.predictions.is_some() || args.plot.is_some() {
+        bail!("--predictions and --plot describe one evaluation; not with --leave-one-out");
+    }
+    let locations = drives[0].files.len();
+    let ground_truth = match &args.ground_truth {
+        Some(path) => {
+            let gt = GroundTruth::from_csv(path)?;
+            check_ground_truth(&gt, path, &drives[0].folder, locations)?;
+            gt
+        }
+        None => GroundTruth::from_pairs((0..locations).map(|k| (k, k))),
+    };
+    let mut folds = Vec::with_capacity(drives.len());
+    for (q, query) in drives.iter().enumerate() {
+        let job = Job {
+            references: drives
+                .iter()
+                .enumerate()
+                .filter(|&(k, _)| k != q)
+                .map(|(_, d)| d)
+                .collect(),
+            query: &query.folder,
+            query_files: &query.files,
+            ground_truth: &ground_truth,
+        };
+        folds.push(run_job(args, &methods, &job, Instant::now())?);
+    }
+    let mut report = json!({
+        "protocol": "leave-one-out",
+        "method": args.method.name(),
+        "descriptor": "cooc",
+        "queries": locations * drives.len(),
+        "references": locations,
+        "tolerance": args.tolerance,
+        "exclude": args.exclude,
+    });
+    let mut compared = Vec::new();
+    for (i, m) in methods.iter().enumerate().skip(1) {
+        let mut c = json!({"method": m.name()});
+        for field in METRIC_FIELDS {
+            c[field] = json!(fold_mean(&folds, Some(i - 1), field));
+        }
+        compared.push(c);
+    }
+    for field in METRIC_FIELDS {
+        report[field] = json!(fold_mean(&folds, None, field));
+    }
+    let sum_seconds = |stage: &str| -> f64 {
+        folds
+            .iter()
+            .filter_map(|f| f["seconds"][stage].as_f64())
+            .sum()
+    };
+    report["seconds"] = json!({
+        "features": sum_seconds("features"),
+        "similarity": sum_seconds("similarity"),
+        "solve": sum_seconds("solve"),
+        "total": started.elapsed().as_secs_f64(),
+    });
+    report["compared"] = Value::Array(compared);
+    report["folds"] = Value::Array(folds);
+    Ok(report)
+}
+
+/// The mean of `field` over the folds' reports: of the main method (`compared = None`) or of
+/// the `compared[k]` method.
+fn fold_mean(folds: &[Value], compared: Option<usize>, field: &str) -> f64 {
+    let sum: f64 = folds
+        .iter()
+        .filter_map(|f| {
+            let report = match compared {
+                Some(k) => f.get("compared")?.get(k)?,
+                None => f,
+            };
+            report.get(field)?.as_f64()
+        })
+        .sum();
+    sum / folds.len().max(1) as f64
+}
+
+/// Scores `methods` on one evaluation and returns its JSON report.
+fn run_job(args: &EvalArgs, methods: &[Method], job: &Job, started: Instant) -> Result<Value> {
+    let solver = args.solver.to_params()?;
+    let exclusions = Exclusions::parse(&args.exclude)?;
+    let ground_truth = job.ground_truth;
+    let query_files = job.query_files;
+    let reference_files = &job.references[0].files;
+    let methods = methods.to_vec();
     let needs_descriptors = methods.iter().any(|m| !m.is_cooc());
     let cooc_params = methods
         .iter()
@@ -246,8 +461,8 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
                 }
             )
         })?;
-        let references = extract("reference", extractor.as_ref(), &reference_files)?;
-        let queries = extract("query", extractor.as_ref(), &query_files)?;
+        let references = extract("reference", extractor.as_ref(), reference_files)?;
+        let queries = extract("query", extractor.as_ref(), query_files)?;
         shapes = json!({"descriptor": args.descriptor.label(), "descriptor_dim": queries.cols()});
         if args.descriptor.descriptor == super::DescriptorKind::Hog {
             let (w, h) = args.descriptor.resize.unwrap_or(first);
@@ -264,11 +479,14 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         inputs.descriptors = Some((c, chat));
     }
     let cooc_map = match &cooc_params {
-        Some(params) => Some(super::cooc::build_map(
-            params,
-            &reference_files,
-            &query_files,
-        )?),
+        Some(params) => {
+            let drives: Vec<(&[PathBuf], f64)> = job
+                .references
+                .iter()
+                .map(|d| (d.files.as_slice(), d.time))
+                .collect();
+            Some(super::cooc::build_map(params, &drives, query_files)?)
+        }
         None => None,
     };
     if let Some((map, query_images)) = &cooc_map {
@@ -310,7 +528,7 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         let solve_seconds = t.elapsed().as_secs_f64();
         let metrics = evaluate(
             &predictions,
-            &ground_truth,
+            ground_truth,
             query_files.len(),
             args.tolerance,
             &exclusions,
@@ -333,8 +551,12 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
             .collect();
         let title = format!(
             "{} vs {} ({})",
-            dir_name(&args.query),
-            dir_name(&args.reference),
+            dir_name(job.query),
+            job.references
+                .iter()
+                .map(|d| dir_name(&d.folder))
+                .collect::<Vec<_>>()
+                .join("+"),
             shapes["descriptor"].as_str().unwrap_or("cooc")
         );
         plot_pr(path, &title, &curves)?;
@@ -355,6 +577,15 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     }
     obj.insert("queries".into(), json!(query_files.len()));
     obj.insert("references".into(), json!(reference_files.len()));
+    obj.insert("query".into(), json!(job.query.display().to_string()));
+    obj.insert(
+        "drives".into(),
+        json!(job
+            .references
+            .iter()
+            .map(|d| json!({"folder": d.folder.display().to_string(), "time": d.time}))
+            .collect::<Vec<_>>()),
+    );
     obj.insert(
         "normalization".into(),
         json!(format!("{:?}", args.normalization).to_lowercase()),

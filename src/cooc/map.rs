@@ -237,6 +237,38 @@ impl CoocMap {
         m
     }
 
+    /// The rows an online trip feeds its graph with: [`flow_similarity`] of the score matrix
+    /// of the quantised frames (`Q x L`), the same similarity `cooc-flow` solves offline.
+    pub fn trip_rows(&self, frames: &[Vec<Word>]) -> Matrix {
+        flow_similarity(&self.score_matrix_words(frames))
+    }
+
+    /// A trip's prior column means for this map (the counterpart of `trip::column_prior` for
+    /// descriptor maps): per location, the mean of [`CoocMap::trip_rows`] over at most
+    /// `sample` of the map's own images, spread evenly over its drives in time order.
+    pub fn trip_prior(&self, sample: usize) -> Result<Vec<f32>> {
+        let images: Vec<&Vec<Word>> = self
+            .locations
+            .drives()
+            .iter()
+            .flat_map(|d| d.images.iter().map(|(_, w)| w))
+            .collect();
+        let n = images.len();
+        if n == 0 || self.location_count() == 0 {
+            return Err(Error::Empty("the map has no reference images".into()));
+        }
+        let take = n.min(sample.max(1));
+        let picked: Vec<Vec<Word>> = (0..take).map(|s| images[s * n / take].clone()).collect();
+        let rows = self.trip_rows(&picked);
+        let mut prior = vec![0.0f64; rows.cols()];
+        for row in rows.iter_rows() {
+            for (p, v) in prior.iter_mut().zip(row) {
+                *p += f64::from(*v);
+            }
+        }
+        Ok(prior.iter().map(|p| (p / take as f64) as f32).collect())
+    }
+
     /// The best location of one quantised query.
     pub fn recognize_words(&self, query: &[Word], schedule: Schedule) -> Option<Recognition> {
         recognition::recognize_query(&self.locations, query, schedule)

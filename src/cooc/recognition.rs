@@ -227,12 +227,18 @@ pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
 
 /// Best-first search: candidate *counts* come from the inverted index (no grouping of the
 /// correspondences), and an entity's candidates and `J` are only materialised when its bound
-/// is the highest of all. Returns `((score, entity), evaluated)`.
+/// is the highest of all. Returns `((score, entity), runner-up, evaluated)`.
+///
+/// With `exclusion = Some(x)` the search goes on after the answer until the best entity whose
+/// location is more than `x` locations from the answer's finishes: the runner-up score (0 when
+/// there is none). Entities near the answer are dropped unbuilt; the bound still prunes the
+/// rest, since the first entity to finish outside the window has the highest score there.
 fn best_first(
     map: &LocationMap,
     query: &[Word],
     geo: &QueryGeometry,
-) -> (Option<(usize, u32)>, usize) {
+    exclusion: Option<usize>,
+) -> (Option<(usize, u32)>, usize, usize) {
     let mut counts = vec![0u32; map.entities()];
     let mut touched = Vec::new();
     for f in query {
@@ -250,7 +256,13 @@ fn best_first(
         .collect();
     let mut states: HashMap<u32, Elimination> = HashMap::new();
     let mut evaluated = 0;
+    let mut winner: Option<(usize, u32)> = None;
     while let Some((_, Reverse(entity))) = heap.pop() {
+        if let (Some((_, w)), Some(x)) = (winner, exclusion) {
+            if map.entity_location(w).abs_diff(map.entity_location(entity)) <= x {
+                continue;
+            }
+        }
         let e = states.entry(entity).or_insert_with(|| {
             evaluated += 1;
             let model = map.entity_model(entity);
@@ -264,8 +276,16 @@ fn best_first(
         // Keep eliminating while this entity stays at the top (same as push + pop).
         loop {
             if !e.step() {
-                // Highest bound of all, ties to the lowest entity: this is the answer.
-                return (Some((e.bound(), entity)), evaluated);
+                // Highest bound of all, ties to the lowest entity: this is the answer (or,
+                // after it, the runner-up outside the exclusion window).
+                if winner.is_some() {
+                    return (winner, e.bound(), evaluated);
+                }
+                winner = Some((e.bound(), entity));
+                if exclusion.is_none() {
+                    return (winner, 0, evaluated);
+                }
+                break;
             }
             let key = (e.bound(), Reverse(entity));
             if heap.peek().is_some_and(|&top| top > key) {
@@ -274,7 +294,29 @@ fn best_first(
             }
         }
     }
-    (None, evaluated)
+    (winner, 0, evaluated)
+}
+
+/// The best location for `query` (best-first) and the score of the best location more than
+/// `exclusion` locations away from it (0 when none shares a word with the query): the
+/// distinctiveness of the answer. `None` when no location shares a visual word with `query`.
+pub fn recognize_with_runner_up(
+    map: &LocationMap,
+    query: &[Word],
+    exclusion: usize,
+) -> Option<(Recognition, usize)> {
+    let geo = QueryGeometry::new(map, query);
+    let (best, runner_up, evaluated) = best_first(map, query, &geo, Some(exclusion));
+    best.map(|(score, entity)| {
+        (
+            Recognition {
+                location: map.entity_location(entity),
+                score,
+                evaluated,
+            },
+            runner_up,
+        )
+    })
 }
 
 /// `better(score, entity, best)`: higher score wins, ties go to the lower entity (entities are
@@ -294,7 +336,10 @@ pub fn recognize_query(
 ) -> Option<Recognition> {
     let geo = QueryGeometry::new(map, query);
     let (best, evaluated) = match schedule {
-        Schedule::BestFirst => best_first(map, query, &geo),
+        Schedule::BestFirst => {
+            let (best, _, evaluated) = best_first(map, query, &geo, None);
+            (best, evaluated)
+        }
         Schedule::Exhaustive => {
             let cands = Candidates::gather(map, query);
             let mut best = None;
@@ -496,6 +541,26 @@ mod tests {
             }
             if let (Some(e), Some(b)) = (ex, bf) {
                 prop_assert!(b.evaluated <= e.evaluated);
+            }
+        }
+
+        #[test]
+        fn runner_up_is_the_best_score_outside_the_window(seed in 0u64..1000, loc in 0usize..60, vocab in 20u32..200, x in 0usize..6) {
+            let (map, scenes) = random_map(60, 12, vocab, seed);
+            let q = noisy_query(&scenes[loc], vocab, seed + 7);
+            let s = scores(&map, &q);
+            let plain = recognize_query(&map, &q, Schedule::BestFirst);
+            let with = recognize_with_runner_up(&map, &q, x);
+            prop_assert_eq!(plain.map(|r| (r.location, r.score)), with.map(|(r, _)| (r.location, r.score)));
+            if let Some((r, runner_up)) = with {
+                let outside = s
+                    .iter()
+                    .enumerate()
+                    .filter(|(l, _)| l.abs_diff(r.location) > x)
+                    .map(|(_, &v)| v as usize)
+                    .max()
+                    .unwrap_or(0);
+                prop_assert_eq!(runner_up, outside);
             }
         }
     }

@@ -7,19 +7,24 @@
 //! content, never by file name. Every error names the image (file path or multipart part name).
 //!
 //! Preparation, and why it is fast (BENCHMARKS.md, "Image preparation"):
-//! * decoding is `image`'s, which decodes JPEG with `zune-jpeg` (SIMD IDCT and colour
-//!   conversion) and PNG with `png`/`fdeflate`;
+//! * JPEG is decoded by `zune-jpeg` (SIMD IDCT and colour conversion; the decoder `image`
+//!   wraps) called directly in strict mode, so truncated or corrupt frames are rejected rather
+//!   than padded with grey ([`decode_image`]); PNG by `image` (`png`/`fdeflate`);
 //! * [`to_gray`] is `image`'s `to_luma8` (Rec. 709 weights, `round(255 (kr R + kg G + kb B))`
 //!   on channels scaled to `0..=1` in `f32`) bit for bit, but computed in one branch-free loop
 //!   over RGB8 instead of `image`'s generic per-pixel conversion with a libm `roundf`;
 //! * [`resize_gray`] / [`resize_rgb`] use `fast_image_resize`'s bilinear convolution (the
 //!   triangle filter, widened when shrinking so that it antialiases: the same filter as `image`'s
-//!   `FilterType::Triangle`, Pillow's and torchvision's antialiased bilinear), in 16-bit fixed
-//!   point with AVX2/SSE4.1 kernels picked at run time: ~15x faster than `image`'s `f32`
-//!   `imageops::resize`, whose output it matches within one grey level (documented tolerance:
-//!   every pixel within +-1, checked by a test).
+//!   `FilterType::Triangle`, Pillow's and torchvision's antialiased bilinear), with AVX2/SSE4.1
+//!   kernels picked at run time. Gray (HOG, co-occurrence) runs in 16-bit fixed point, ~15x
+//!   faster than `image`'s `f32` `imageops::resize`, whose output it matches within one grey
+//!   level (documented tolerance, checked by a test). RGB (the CNN input) runs in `f32` and
+//!   rounds once at the end like `image`, because a CNN descriptor moves by up to 2e-3 when its
+//!   input moves by one level; it matches `image` at all but 1 in 1,000 values when shrinking
+//!   and under 1 % when enlarging, each within one level (test).
 
 use std::borrow::Cow;
+use std::cell::RefCell;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
@@ -58,18 +63,78 @@ pub fn decode_image(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Dynamic
             )))
         }
     };
+    if format == ImageFormat::Jpeg {
+        return decode_jpeg(bytes, max_pixels).map_err(fail);
+    }
     let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
         .into_dimensions()
         .map_err(|e| fail(format!("cannot read the {format:?} header: {e}")))?;
-    let pixels = u64::from(w) * u64::from(h);
-    if pixels > max_pixels {
-        return Err(fail(format!(
-            "{w}x{h} px = {pixels} pixels exceeds the limit of {max_pixels} pixels"
-        )));
-    }
+    check_pixel_limit(w, h, max_pixels).map_err(fail)?;
     ImageReader::with_format(Cursor::new(bytes), format)
         .decode()
         .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))
+}
+
+fn check_pixel_limit(w: u32, h: u32, max_pixels: u64) -> std::result::Result<(), String> {
+    let pixels = u64::from(w) * u64::from(h);
+    if pixels > max_pixels {
+        return Err(format!(
+            "{w}x{h} px = {pixels} pixels exceeds the limit of {max_pixels} pixels"
+        ));
+    }
+    Ok(())
+}
+
+/// JPEG with `zune-jpeg` directly (the decoder `image` wraps), in *strict* mode: `image` runs
+/// it lenient, which decodes a truncated or corrupt entropy stream into an image padded with
+/// grey and no error; a localization service must reject such a frame instead. Going direct
+/// also decodes without `image`'s copy of the input. Gray JPEGs give
+/// `Luma8`, every other colour space `Rgb8` (as `image` does, alpha aside).
+fn decode_jpeg(bytes: &[u8], max_pixels: u64) -> std::result::Result<DynamicImage, String> {
+    use zune_jpeg::zune_core::bytestream::ZCursor;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+
+    let options = DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(usize::from(u16::MAX))
+        .set_max_height(usize::from(u16::MAX));
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    decoder
+        .decode_headers()
+        .map_err(|e| format!("cannot read the Jpeg header: {e}"))?;
+    let (w, h) = decoder
+        .dimensions()
+        .ok_or_else(|| "cannot read the Jpeg header: no frame size".to_string())?;
+    // JPEG sizes are 16-bit, so these conversions cannot fail.
+    let (w, h) = (
+        u32::try_from(w).unwrap_or(u32::MAX),
+        u32::try_from(h).unwrap_or(u32::MAX),
+    );
+    check_pixel_limit(w, h, max_pixels)?;
+    let gray = matches!(
+        decoder.input_colorspace(),
+        Some(ColorSpace::Luma | ColorSpace::LumaA)
+    );
+    let out = if gray {
+        ColorSpace::Luma
+    } else {
+        ColorSpace::RGB
+    };
+    // A fresh decoder with the output colour space set before its headers are read (as
+    // `image` does); the headers are a few hundred bytes.
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
+        ZCursor::new(bytes),
+        options.jpeg_set_out_colorspace(out),
+    );
+    let failed = |e: &dyn std::fmt::Display| format!("cannot decode the {w}x{h} Jpeg image: {e}");
+    let pixels = decoder.decode().map_err(|e| failed(&e))?;
+    let image = if gray {
+        GrayImage::from_raw(w, h, pixels).map(DynamicImage::ImageLuma8)
+    } else {
+        RgbImage::from_raw(w, h, pixels).map(DynamicImage::ImageRgb8)
+    };
+    image.ok_or_else(|| failed(&"the decoder returned a buffer of the wrong size"))
 }
 
 /// Reads and decodes one JPEG/PNG file (at most [`DEFAULT_MAX_PIXELS`] pixels); errors name
@@ -116,29 +181,55 @@ const LUMA_WEIGHTS: [f32; 3] = [
 /// here it is one branch-free loop (the rounding is done with selects, which SSE2 has).
 /// A test compares all 2^24 RGB values with `to_luma8`.
 fn rgb_to_luma(rgb: &RgbImage) -> GrayImage {
-    const SCALE: f32 = 1.0 / 255.0;
-    let [kr, kg, kb] = LUMA_WEIGHTS;
+    /// Pixels per block: fixed-size arrays let the compiler turn the strided RGB loads and the
+    /// arithmetic into vector code (a plain per-pixel loop stays scalar).
+    const BLOCK: usize = 16;
     let (w, h) = rgb.dimensions();
     let mut gray = GrayImage::new(w, h);
-    for (out, px) in gray.iter_mut().zip(rgb.as_raw().chunks_exact(3)) {
-        let y = f32::from(px[0]) * SCALE * kr
-            + f32::from(px[1]) * SCALE * kg
-            + f32::from(px[2]) * SCALE * kb;
-        *out = round_half_away_to_u8(y * 255.0);
+    let out: &mut [u8] = &mut gray;
+    let src = rgb.as_raw();
+    let mut out_blocks = out.chunks_exact_mut(BLOCK);
+    let mut src_blocks = src.chunks_exact(3 * BLOCK);
+    for (o, px) in (&mut out_blocks).zip(&mut src_blocks) {
+        let mut y = [0.0f32; BLOCK];
+        for (i, y) in y.iter_mut().enumerate() {
+            *y = luma_f32(px[3 * i], px[3 * i + 1], px[3 * i + 2]);
+        }
+        for (o, y) in o.iter_mut().zip(y) {
+            *o = round_half_away_to_u8(y);
+        }
+    }
+    for (o, px) in out_blocks
+        .into_remainder()
+        .iter_mut()
+        .zip(src_blocks.remainder().chunks_exact(3))
+    {
+        *o = round_half_away_to_u8(luma_f32(px[0], px[1], px[2]));
     }
     gray
 }
 
-/// `x.round() as u8` for `0 <= x < 2^22`, without a libm call: `2^23` added and removed rounds
-/// to nearest-even, the compare turns that into `floor`, and the fraction decides the half.
+/// `255 y` of one pixel, with `image`'s operations in `image`'s order.
+#[inline(always)]
+fn luma_f32(r: u8, g: u8, b: u8) -> f32 {
+    const SCALE: f32 = 1.0 / 255.0;
+    let [kr, kg, kb] = LUMA_WEIGHTS;
+    (f32::from(r) * SCALE * kr + f32::from(g) * SCALE * kg + f32::from(b) * SCALE * kb) * 255.0
+}
+
+/// `x.round() as u8` for `0 <= x <= 255.5`, without a libm call or a saturating conversion:
+/// `2^23` added and removed rounds to nearest-even, the compare turns that into `floor`, the
+/// fraction decides the half, and the integer is read from the mantissa of `2^23 + n` (all
+/// selects and bit operations, which SSE2 has).
 #[inline(always)]
 fn round_half_away_to_u8(x: f32) -> u8 {
     const MAGIC: f32 = 8_388_608.0; // 2^23
     let nearest = (x + MAGIC) - MAGIC;
     let floor = if nearest > x { nearest - 1.0 } else { nearest };
     let rounded = if x - floor >= 0.5 { floor + 1.0 } else { floor };
-    // Saturating: the weights sum to 1.0000002, so white can give 255.00005 -> 255.
-    rounded as u8
+    // The weights sum to 1.0000002, so white gives 255.00005 -> 255; the min is a safeguard.
+    // For an integer n < 2^23, the low mantissa bits of 2^23 + n are n.
+    ((rounded.min(255.0) + MAGIC).to_bits() & 0xff) as u8
 }
 
 /// Resizes a gray image to `width x height` with the triangle (bilinear, antialiased when
@@ -155,21 +246,40 @@ pub fn resize_gray(image: &GrayImage, width: u32, height: u32) -> Result<Cow<'_,
         .ok_or_else(|| buffer_error(width, height))
 }
 
-/// [`resize_gray`] for 8-bit RGB images.
+/// Resizes an 8-bit RGB image (the CNN input) with the same triangle filter, in `f32`: the
+/// channels are filtered unrounded and rounded to 8 bits once at the end, as `image`'s resize
+/// does, so the network sees (nearly always) the same pixels as before; CNN descriptors are
+/// sensitive to one-level input changes, HOG is not. An image of the requested size is
+/// returned as is (borrowed).
 pub fn resize_rgb(image: &RgbImage, width: u32, height: u32) -> Result<Cow<'_, RgbImage>> {
     if image.dimensions() == (width, height) {
         return Ok(Cow::Borrowed(image));
     }
     let (w, h) = image.dimensions();
-    let out = resize_u8(
-        image.as_raw(),
-        (w, h),
-        (width, height),
-        fir::PixelType::U8x3,
-    )?;
-    RgbImage::from_raw(width, height, out)
-        .map(Cow::Owned)
-        .ok_or_else(|| buffer_error(width, height))
+    check_sizes((w, h), (width, height))?;
+    let src: Vec<fir::pixels::F32x3> = image
+        .as_raw()
+        .chunks_exact(3)
+        .map(|p| fir::pixels::F32x3::new([p[0], p[1], p[2]].map(f32::from)))
+        .collect();
+    let fail = |e: String| Error::Image {
+        name: "image".into(),
+        reason: format!("cannot resize {w}x{h} to {width}x{height}: {e}"),
+    };
+    let src = fir::images::ImageRef::from_pixels(w, h, &src).map_err(|e| fail(e.to_string()))?;
+    let mut dst = fir::images::Image::new(width, height, fir::PixelType::F32x3);
+    run_resizer(&src, &mut dst).map_err(|e| fail(e.to_string()))?;
+    let typed = dst
+        .typed_image::<fir::pixels::F32x3>()
+        .ok_or_else(|| fail("the resizer changed the pixel type".into()))?;
+    let mut out = RgbImage::new(width, height);
+    for (o, p) in out.chunks_exact_mut(3).zip(typed.pixels()) {
+        for (o, v) in o.iter_mut().zip(p.0) {
+            // `image`'s final step: clamp to 0..=255, round half away from zero.
+            *o = v.clamp(0.0, 255.0).round() as u8;
+        }
+    }
+    Ok(Cow::Owned(out))
 }
 
 /// Gray, then resized when `size` is given: the preparation of every gray descriptor (HOG,
@@ -184,11 +294,41 @@ pub fn prepare_gray(image: &DynamicImage, size: Option<(u32, u32)>) -> Result<Co
     }
 }
 
+thread_local! {
+    /// One resizer per thread: it keeps its scratch buffers (the intermediate image of the
+    /// two-pass convolution) and its CPU-feature choice between calls.
+    static RESIZER: RefCell<fir::Resizer> = RefCell::new(fir::Resizer::new());
+}
+
 fn buffer_error(width: u32, height: u32) -> Error {
     Error::Image {
         name: "image".into(),
         reason: format!("the resizer returned a buffer too small for {width}x{height}"),
     }
+}
+
+fn check_sizes((w, h): (u32, u32), (out_w, out_h): (u32, u32)) -> Result<()> {
+    if w == 0 || h == 0 || out_w == 0 || out_h == 0 {
+        return Err(Error::Image {
+            name: "image".into(),
+            reason: format!("cannot resize a {w}x{h} image to {out_w}x{out_h}: both need pixels"),
+        });
+    }
+    Ok(())
+}
+
+/// Bilinear (triangle) convolution from `src` into `dst` with this thread's resizer.
+fn run_resizer(
+    src: &impl fir::IntoImageView,
+    dst: &mut fir::images::Image<'_>,
+) -> std::result::Result<(), fir::ResizeError> {
+    let options = fir::ResizeOptions::new()
+        .resize_alg(fir::ResizeAlg::Convolution(fir::FilterType::Bilinear));
+    RESIZER.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut resizer) => resizer.resize(src, dst, &options),
+        // Not reachable (no re-entry), but a fresh resizer is as correct, only slower.
+        Err(_) => fir::Resizer::new().resize(src, dst, &options),
+    })
 }
 
 fn resize_u8(
@@ -197,22 +337,15 @@ fn resize_u8(
     (out_w, out_h): (u32, u32),
     pixel_type: fir::PixelType,
 ) -> Result<Vec<u8>> {
+    check_sizes((w, h), (out_w, out_h))?;
     let fail = |reason: String| Error::Image {
         name: "image".into(),
         reason,
     };
-    if w == 0 || h == 0 || out_w == 0 || out_h == 0 {
-        return Err(fail(format!(
-            "cannot resize a {w}x{h} image to {out_w}x{out_h}: both need pixels"
-        )));
-    }
     let src = fir::images::ImageRef::new(w, h, pixels, pixel_type)
         .map_err(|e| fail(format!("{w}x{h} pixel buffer: {e}")))?;
     let mut dst = fir::images::Image::new(out_w, out_h, pixel_type);
-    let options = fir::ResizeOptions::new()
-        .resize_alg(fir::ResizeAlg::Convolution(fir::FilterType::Bilinear));
-    fir::Resizer::new()
-        .resize(&src, &mut dst, &options)
+    run_resizer(&src, &mut dst)
         .map_err(|e| fail(format!("cannot resize {w}x{h} to {out_w}x{out_h}: {e}")))?;
     Ok(dst.into_vec())
 }
@@ -318,6 +451,43 @@ mod tests {
             reason(decode_image("cut.png", &bytes[..bytes.len() / 2], 10_000).unwrap_err());
         assert_eq!(name, "cut.png");
         assert!(why.contains("cannot decode the 40x40 Png"), "{why}");
+    }
+
+    #[test]
+    fn truncated_or_corrupt_jpeg_is_an_image_error() {
+        let bytes = encode(&noisy_rgb(64, 48, 5), ImageFormat::Jpeg);
+        // Cut in the entropy-coded data: `image`'s lenient decoding would pad it with grey.
+        let (name, why) =
+            reason(decode_image("cut.jpg", &bytes[..bytes.len() * 2 / 3], 10_000).unwrap_err());
+        assert_eq!(name, "cut.jpg");
+        assert!(why.contains("cannot decode the 64x48 Jpeg"), "{why}");
+        // A marker in the middle of the entropy-coded data.
+        let mut corrupt = bytes.clone();
+        let at = corrupt.len() / 2;
+        corrupt[at..at + 2].copy_from_slice(&[0xff, 0xc0]);
+        let (_, why) = reason(decode_image("bad.jpg", &corrupt, 10_000).unwrap_err());
+        assert!(why.contains("cannot decode the 64x48 Jpeg"), "{why}");
+        // Only the start of the headers.
+        let (_, why) = reason(decode_image("hdr.jpg", &bytes[..20], 10_000).unwrap_err());
+        assert!(why.contains("cannot read the Jpeg header"), "{why}");
+        // The pixel limit comes from the header, before decoding.
+        let (_, why) = reason(decode_image("big.jpg", &bytes, 3071).unwrap_err());
+        assert!(why.contains("64x48 px = 3072 pixels exceeds"), "{why}");
+    }
+
+    #[test]
+    fn jpeg_decoding_matches_image_and_keeps_gray_jpegs_gray() {
+        let rgb = noisy_rgb(61, 37, 9);
+        let bytes = encode(&rgb, ImageFormat::Jpeg);
+        let ours = decode_image("c.jpg", &bytes, 10_000).unwrap();
+        let theirs = image::load_from_memory_with_format(&bytes, ImageFormat::Jpeg).unwrap();
+        assert_eq!(ours.as_rgb8().unwrap(), theirs.as_rgb8().unwrap());
+        let gray = DynamicImage::ImageRgb8(rgb).to_luma8();
+        let mut out = Cursor::new(Vec::new());
+        gray.write_to(&mut out, ImageFormat::Jpeg).unwrap();
+        let ours = decode_image("g.jpg", out.get_ref(), 10_000).unwrap();
+        let theirs = image::load_from_memory_with_format(out.get_ref(), ImageFormat::Jpeg).unwrap();
+        assert_eq!(ours.as_luma8().unwrap(), theirs.as_luma8().unwrap());
     }
 
     #[test]
@@ -433,6 +603,22 @@ mod tests {
                     .unwrap();
                 assert!(worst <= 1, "{w}x{h} -> {ow}x{oh}: off by {worst} levels");
             }
+            // The f32 RGB path rounds once, like `image`. Shrinking (the camera case), only
+            // values within float noise of a half level round the other way (at most 1 in
+            // 1,000); enlarging, the two libraries place the filter's taps slightly differently
+            // at the borders, which moves under 1 % of the values by one level (measured: 1,314
+            // of 150,528 for 64x32 -> 224x224).
+            let differing = got_rgb
+                .as_raw()
+                .iter()
+                .zip(want_rgb.as_raw())
+                .filter(|(a, b)| a != b)
+                .count();
+            let per_mille = if ow * oh > w * h { 10 } else { 1 };
+            assert!(
+                differing * 1000 <= per_mille * want_rgb.as_raw().len(),
+                "{w}x{h} -> {ow}x{oh}: {differing} RGB values differ"
+            );
         }
     }
 

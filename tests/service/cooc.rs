@@ -219,3 +219,112 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     );
     assert!(p.terminate());
 }
+
+/// The latest estimates and status of a batch (what two identical trips must agree on).
+fn trip_answer(v: &Value) -> Value {
+    json!({"estimates": v["estimates"], "status": v["status"], "window": v["window"],
+           "hidden_cost": v["hidden_cost"], "frame_count": v["frame_count"]})
+}
+
+fn post_frames(c: &Client, trip: &str, pngs: &[Vec<u8>]) -> Value {
+    let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &parts(pngs, None));
+    check("POST", "/v1/trips/{id}/frames", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    r.json()
+}
+
+fn open_trip(c: &Client, map: &str) -> String {
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({"lag": 12}));
+    check("POST", "/v1/maps/{id}/trips", &r);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    r.json()["id"].as_str().unwrap().to_string()
+}
+
+/// A trip on a co-occurrence map: each frame's score row feeds the same online graph as a HOG
+/// trip (estimates, status, confidence), and after SIGKILL and a restart it continues exactly
+/// as an uninterrupted trip over the same frames.
+#[test]
+fn a_trip_on_a_cooc_map_localizes_and_continues_after_sigkill() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let log = tmp.path().join("serve.log");
+    let args = [
+        "--addr",
+        "127.0.0.1:0",
+        "--data-dir",
+        data.to_str().unwrap(),
+    ];
+    let route = Route::new(40, 8);
+    let refs: Vec<Vec<u8>> = (0..40).map(|i| route.reference_png(i)).collect();
+    let batches: Vec<Vec<Vec<u8>>> = (0..4u32)
+        .map(|b| (b * 8..b * 8 + 8).map(|i| route.query_png(i)).collect())
+        .collect();
+
+    let p = Process::start(&args, &[], &log);
+    let map = create_cooc(&p.client);
+    let empty = open_trip_status(&p.client, &map);
+    assert_eq!(empty, (409, "map_empty".into()));
+    let r = p
+        .client
+        .post_multipart(&format!("/v1/maps/{map}/images"), &parts(&refs, None));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let trip = open_trip(&p.client, &map);
+    let mut before = Vec::new();
+    for b in &batches[..2] {
+        let v = post_frames(&p.client, &trip, b);
+        assert_eq!(v["estimates"].as_array().unwrap().len(), 8);
+        before.push(trip_answer(&v));
+    }
+    let read_before = p.client.get(&format!("/v1/trips/{trip}")).json();
+    assert_eq!(read_before["frame_count"], 16);
+    assert_eq!(read_before["reference_count"], 40);
+    p.kill();
+
+    let p = Process::start(&args, &[], &log);
+    let c = &p.client;
+    assert_eq!(c.get(&format!("/v1/trips/{trip}")).json(), read_before);
+    let mut continued = before;
+    let mut last = Value::Null;
+    for b in &batches[2..] {
+        last = post_frames(c, &trip, b);
+        continued.push(trip_answer(&last));
+    }
+    // The route is distinctive: the trip is localized and the latest frame found.
+    assert_eq!(last["status"], "localized", "{last}");
+    let latest = &last["estimates"][7];
+    let j = latest["ref"]
+        .as_i64()
+        .expect("the last frame is on the map");
+    assert!((j - 31).abs() <= 1, "{latest}");
+    assert!(latest["confidence"].as_f64().unwrap() > 1.0, "{latest}");
+    let t = c.get(&format!("/v1/trips/{trip}")).json();
+    let est = t["estimates"].as_array().unwrap();
+    assert_eq!(est.len(), 32);
+    let correct = est
+        .iter()
+        .enumerate()
+        .filter(|(i, e)| {
+            e["ref"]
+                .as_i64()
+                .is_some_and(|j| (j - *i as i64).abs() <= 1)
+        })
+        .count();
+    assert!(
+        correct >= 26,
+        "{correct} of 32 frames within one frame: {t}"
+    );
+    // An uninterrupted trip over the same frames answers the same, batch by batch.
+    let fresh = open_trip(c, &map);
+    let uninterrupted: Vec<Value> = batches
+        .iter()
+        .map(|b| trip_answer(&post_frames(c, &fresh, b)))
+        .collect();
+    assert_eq!(continued, uninterrupted);
+    assert!(p.terminate());
+}
+
+fn open_trip_status(c: &Client, map: &str) -> (u16, String) {
+    let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    check("POST", "/v1/maps/{id}/trips", &r);
+    (r.status, r.code())
+}

@@ -65,6 +65,13 @@ fn centre_offset(outer: u32, inner: u32) -> u32 {
     outer.saturating_sub(inner).div_ceil(2)
 }
 
+/// The README preprocessing's planar layout of an already sized image, for tests comparing
+/// resize paths.
+#[cfg(test)]
+pub(crate) fn to_planar_for_tests(rgb: &RgbImage) -> Vec<f32> {
+    to_planar(rgb, [127.0; 3], [128.0; 3])
+}
+
 fn to_planar(rgb: &RgbImage, mean: [f32; 3], scale: [f32; 3]) -> Vec<f32> {
     let plane = rgb.as_raw().len() / 3;
     let mut out = vec![0.0f32; 3 * plane];
