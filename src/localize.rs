@@ -99,18 +99,18 @@ fn localize_inspecting<T>(
 }
 
 /// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most
-/// one prediction per query, so that further flows only add where the first is not supported:
+/// one prediction per query, so that further flows only add:
 ///
-/// * every row the first (rank 1) hypothesis matches with a confidence above 1 keeps that
-///   prediction and confidence, whatever `F` is (greedy `F > 1` finds the `F = 1` path first);
-///   a ratio above 1 means no local route places the query elsewhere (or hides it) more cheaply;
-/// * a row the first hypothesis hides, or matches with a ratio of at most 1 (some local route
-///   elsewhere is at least as cheap: in a loop, the route through the second pass), takes the
-///   most confident further hypothesis whose own ratio ([`crate::confidence`], the same
-///   definition) is above 1; without one, the first hypothesis's prediction stays.
+/// * every row the first (rank 1) hypothesis matches keeps that hypothesis's prediction and
+///   confidence, whatever `F` is (greedy `F > 1` finds the `F = 1` path first, so `F = 2` never
+///   changes a prediction of `F = 1`);
+/// * a row the first hypothesis leaves hidden gets a further hypothesis's match only when that
+///   match is better supported than hiding the row: its confidence (the same local min-marginal
+///   ratio, [`crate::confidence`], whose "outside" includes every hidden route) is above 1.
+///   Among several such hypotheses the most confident wins.
 ///
 /// This is how a loop (a section driven twice) is recovered with `F = 2` without letting a
-/// second, weaker hypothesis overwrite the first one's supported answers on a single traversal.
+/// second, weaker hypothesis overwrite the first one's answers on a single traversal.
 pub fn solve_with_confidence(
     chat: &Matrix,
     options: &LocalizeOptions,
@@ -122,13 +122,23 @@ pub fn solve_with_confidence(
         hidden_cost: solution.hidden_cost,
     };
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
+    let mut first_matched = vec![false; chat.rows()];
+    if let Some(h) = solution.hypotheses.first() {
+        for r in h.rows.iter().filter(|r| !r.matches.is_empty()) {
+            if let Some(m) = first_matched.get_mut(r.query) {
+                *m = true;
+            }
+        }
+    }
     for (rank, hypothesis) in solution.hypotheses.iter().enumerate() {
+        let first = rank == 0;
         for row in score_hypothesis(chat, &graph, hypothesis, &options.confidence)? {
             let slot = &mut best[row.query];
-            let takes = rank == 0
+            let adds = first
                 || (row.confidence > 1.0
-                    && slot.is_none_or(|p| row.confidence > p.confidence.max(1.0)));
-            if takes {
+                    && !first_matched[row.query]
+                    && slot.is_none_or(|p| row.confidence > p.confidence));
+            if adds {
                 *slot = Some(Prediction {
                     query: row.query,
                     reference: row.reference,
@@ -186,8 +196,8 @@ mod tests {
         // F = 2 finds both passes.
         let (a2, b2) = (correct(&two, 0..30), correct(&two, 30..60));
         assert!(a2 >= 27 && b2 >= 27, "F=2: {a2} / {b2}");
-        // And changes none of F = 1's supported predictions.
-        for p in one.iter().filter(|p| p.confidence > 1.0) {
+        // And changes none of F = 1's predictions.
+        for p in &one {
             assert!(two.contains(p), "{p:?} changed with F = 2");
         }
     }
