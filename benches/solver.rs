@@ -14,6 +14,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use seasonloc::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
+use seasonloc::localize::{solve_with_confidence, LocalizeOptions};
 use seasonloc::solver::{row_alternatives, shortest_path, solve, HiddenCost, SolverParams};
 use seasonloc::Matrix;
 
@@ -119,6 +120,27 @@ fn big(c: &mut Criterion) {
             h.hidden_fraction()
         );
     }
+    // What `seasonloc solve` does (issue 14: within 1.5x the solve alone): the F = 1 solve plus
+    // the confidence of every matched row, with the box window and with the discounted ratio.
+    once("5392x30790 F=1 K=4 solve alone (solver::solve)", || {
+        solve(&chat, &params(1, false)).expect("valid input")
+    });
+    for (name, discount) in [
+        ("box window L=5", None),
+        ("discounted g=5/6", Some(5.0 / 6.0)),
+    ] {
+        let options = LocalizeOptions {
+            solver: params(1, false),
+            confidence: ConfidenceParams {
+                discount,
+                ..ConfidenceParams::default()
+            },
+            ..LocalizeOptions::default()
+        };
+        once(&format!("5392x30790 F=1 K=4 + confidence ({name})"), || {
+            solve_with_confidence(&chat, &options).expect("valid input")
+        });
+    }
     let mut g = c.benchmark_group("solver_5392x30790");
     g.sample_size(10);
     g.bench_function("f1_k4", |b| {
@@ -146,14 +168,20 @@ fn medium(c: &mut Criterion) {
     g.bench_function("row_alternatives_k4", |b| {
         b.iter(|| row_alternatives(&chat, 4, true, W, None, &h, 2).expect("valid input"))
     });
-    // The confidence pass of `seasonloc eval` (local min-marginal ratio of every matched row,
-    // L = 5, r = 2), rows in parallel.
+    // The confidence passes (ratio of every matched row, r = 2): the box window (L = 5, rows in
+    // parallel; the trips' confidence) and the discounted ratio (the default of `eval`, `solve`
+    // and the service; two forward and two backward passes).
     let graph = GraphParams {
         fan_out: 4,
         horizontal: true,
         hidden_cost: W,
     };
     g.bench_function("confidence_k4", |b| {
+        b.iter(|| {
+            score_hypothesis(&chat, &graph, &h, &ConfidenceParams::window()).expect("valid input")
+        })
+    });
+    g.bench_function("confidence_discounted_k4", |b| {
         b.iter(|| {
             score_hypothesis(&chat, &graph, &h, &ConfidenceParams::default()).expect("valid input")
         })

@@ -28,27 +28,60 @@
 //!
 //! Cost: `2L+1` row updates of `D` columns per matched query row, rows in parallel (rayon); the
 //! forward updates use the solver's row kernel.
+//!
+//! **The default offline is the discounted ratio** (`discounted.rs`, [`DEFAULT_DISCOUNT`]): the
+//! same inside/outside ratio on the whole query, each row's node costs weighted `g^|t-i|` by
+//! its distance to the scored row instead of the box window's 1 inside / 0 outside. It is one
+//! forward and one backward pass for all rows (`O(Q·D)` in total instead of `(2L+1)·Q·D`), and it
+//! has no window edge: evidence fades with distance instead of stopping at `L`. Measured effect
+//! and held-out results: ARCHITECTURE.md ("Confidence"). Trips keep the box window in its causal
+//! form (the scored frame last, [`window_ratio`]), [`ConfidenceParams::window`].
 
 use rayon::prelude::*;
+
+mod discounted;
 
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
 use crate::window::leading_min_in_place;
 use crate::{Error, Matrix, Result};
 
 /// Parameters of the local min-marginal ratio.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ConfidenceParams {
     /// `L`: rows on each side of the scored row that form its window.
     pub half_window: usize,
     /// `r`: alternatives within `r` reference frames of the match count as the same place.
     pub radius: usize,
+    /// `g` in `(0, 1)`: score with the discounted min-marginal ratio instead of the box window
+    /// (rows weighted `g^|t-i|` over the whole route, `O(Q·D)` in total; `discounted.rs`).
+    /// `None`: the box window of `half_window`. Offline only: trips keep the causal window.
+    pub discount: Option<f64>,
 }
 
+/// The default discount `g = 1 - 1/(L+1)` for `L = 5`: a row `L` frames away still weighs
+/// `g^L = 0.40`, as the box window of half-width `L` gave its edge rows full weight and
+/// nothing beyond (not tuned: `g` in 0.75..=0.9 measured in ARCHITECTURE.md).
+pub const DEFAULT_DISCOUNT: f64 = 5.0 / 6.0;
+
 impl Default for ConfidenceParams {
+    /// The discounted ratio with `g` = [`DEFAULT_DISCOUNT`], `r = 2` (offline default). Trips
+    /// use [`ConfidenceParams::window`] (causal box window).
     fn default() -> Self {
         ConfidenceParams {
             half_window: 5,
             radius: 2,
+            discount: Some(DEFAULT_DISCOUNT),
+        }
+    }
+}
+
+impl ConfidenceParams {
+    /// The box window of half-width 5, `r = 2`: the trips' confidence (its causal form) and
+    /// the offline default of earlier versions (`eval --confidence window`).
+    pub fn window() -> Self {
+        ConfidenceParams {
+            discount: None,
+            ..ConfidenceParams::default()
         }
     }
 }
@@ -104,6 +137,24 @@ pub fn score_hypothesis(
             chat.rows(),
             chat.cols()
         )));
+    }
+    if let Some(g) = params.discount {
+        if g.is_nan() || g <= 0.0 || g >= 1.0 {
+            return Err(Error::param(
+                "discount",
+                format!("must be within (0, 1), got {g}"),
+            ));
+        }
+        let ratios = discounted::discounted_ratios(chat, graph, g, params.radius, &targets);
+        return Ok(targets
+            .iter()
+            .zip(ratios)
+            .map(|(&(i, j), confidence)| RowConfidence {
+                query: i,
+                reference: j,
+                confidence,
+            })
+            .collect());
     }
     Ok(targets
         .par_iter()
@@ -322,7 +373,7 @@ mod tests {
         ) {
             let chat = Matrix::from_vec(q, d, seed[..q * d].to_vec()).unwrap();
             let g = GraphParams { fan_out: k, horizontal, hidden_cost: w };
-            let p = ConfidenceParams { half_window: hw, radius: r };
+            let p = ConfidenceParams { half_window: hw, radius: r, discount: None };
             for i in 0..q {
                 for js in 0..d {
                     let fast = local_ratio(&chat, &g, &p, i, js);
@@ -373,6 +424,7 @@ mod tests {
         let p = ConfidenceParams {
             half_window: 1,
             radius: 1,
+            discount: None,
         };
         let h = hypothesis(&(0..8).map(|i| Some((i, 2.0))).collect::<Vec<_>>());
         let conf = score_hypothesis(&chat, &g, &h, &p).unwrap();

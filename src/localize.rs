@@ -99,8 +99,18 @@ fn localize_inspecting<T>(
 }
 
 /// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most
-/// one prediction per query: for a query matched by several hypotheses, the one whose local
-/// min-marginal ratio ([`crate::confidence`]) is highest.
+/// one prediction per query, so that further flows only add:
+///
+/// * every row the first (rank 1) hypothesis matches keeps that hypothesis's prediction and
+///   confidence, whatever `F` is (greedy `F > 1` finds the `F = 1` path first, so `F = 2` never
+///   changes a prediction of `F = 1`);
+/// * a row the first hypothesis leaves hidden gets a further hypothesis's match only when that
+///   match is better supported than hiding the row: its confidence (the same local min-marginal
+///   ratio, [`crate::confidence`], whose "outside" includes every hidden route) is above 1.
+///   Among several such hypotheses the most confident wins.
+///
+/// This is how a loop (a section driven twice) is recovered with `F = 2` without letting a
+/// second, weaker hypothesis overwrite the first one's answers on a single traversal.
 pub fn solve_with_confidence(
     chat: &Matrix,
     options: &LocalizeOptions,
@@ -112,10 +122,23 @@ pub fn solve_with_confidence(
         hidden_cost: solution.hidden_cost,
     };
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
-    for hypothesis in &solution.hypotheses {
+    let mut first_matched = vec![false; chat.rows()];
+    if let Some(h) = solution.hypotheses.first() {
+        for r in h.rows.iter().filter(|r| !r.matches.is_empty()) {
+            if let Some(m) = first_matched.get_mut(r.query) {
+                *m = true;
+            }
+        }
+    }
+    for (rank, hypothesis) in solution.hypotheses.iter().enumerate() {
+        let first = rank == 0;
         for row in score_hypothesis(chat, &graph, hypothesis, &options.confidence)? {
             let slot = &mut best[row.query];
-            if slot.is_none_or(|p| row.confidence > p.confidence) {
+            let adds = first
+                || (row.confidence > 1.0
+                    && !first_matched[row.query]
+                    && slot.is_none_or(|p| row.confidence > p.confidence));
+            if adds {
                 *slot = Some(Prediction {
                     query: row.query,
                     reference: row.reference,
@@ -125,4 +148,57 @@ pub fn solve_with_confidence(
         }
     }
     Ok((solution, best.into_iter().flatten().collect()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solver::HiddenCost;
+
+    /// A route of `n` places driven twice (a loop): query rows `0..n` and `n..2n` both see
+    /// places `0..n` (similarity 2 on the true place, 1 elsewhere, a little texture).
+    fn loop_route(n: usize) -> Matrix {
+        let mut m = Matrix::zeros(2 * n, n);
+        for i in 0..2 * n {
+            for j in 0..n {
+                let texture = ((i * 7 + j * 13) % 5) as f32 * 0.02;
+                m.set(i, j, if j == i % n { 2.0 } else { 1.0 + texture });
+            }
+        }
+        m
+    }
+
+    fn options(flows: usize) -> LocalizeOptions {
+        LocalizeOptions {
+            solver: SolverParams {
+                flows,
+                hidden_cost: HiddenCost::Fixed(0.9),
+                ..SolverParams::default()
+            },
+            ..LocalizeOptions::default()
+        }
+    }
+
+    #[test]
+    fn a_second_flow_recovers_the_second_pass_of_a_loop_and_only_adds() {
+        let chat = loop_route(30);
+        let (_, one) = solve_with_confidence(&chat, &options(1)).unwrap();
+        let (solution, two) = solve_with_confidence(&chat, &options(2)).unwrap();
+        assert_eq!(solution.hypotheses.len(), 2);
+        // F = 1 follows one pass; the other pass is hidden (the route cannot go back).
+        let correct = |p: &[Prediction], rows: std::ops::Range<usize>| {
+            p.iter()
+                .filter(|p| rows.contains(&p.query) && p.reference == p.query % 30)
+                .count()
+        };
+        let (a1, b1) = (correct(&one, 0..30), correct(&one, 30..60));
+        assert!(a1.max(b1) >= 27 && a1.min(b1) <= 3, "F=1: {a1} / {b1}");
+        // F = 2 finds both passes.
+        let (a2, b2) = (correct(&two, 0..30), correct(&two, 30..60));
+        assert!(a2 >= 27 && b2 >= 27, "F=2: {a2} / {b2}");
+        // And changes none of F = 1's predictions.
+        for p in &one {
+            assert!(two.contains(p), "{p:?} changed with F = 2");
+        }
+    }
 }

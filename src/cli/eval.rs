@@ -35,6 +35,7 @@ use serde_json::{json, Value};
 use super::cooc::CoocArgs;
 use super::{DescriptorArgs, SolverArgs};
 use crate::baselines::{best_match, seqslam, SeqSlamParams};
+use crate::confidence::ConfidenceParams;
 use crate::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use crate::eval::{
     evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
@@ -87,6 +88,15 @@ impl Method {
     fn is_cooc(self) -> bool {
         self.cooc().is_some()
     }
+}
+
+/// `--confidence` values (flow method).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ConfidenceArg {
+    /// The discounted min-marginal ratio (default; `O(Q·D)` in total).
+    Discounted,
+    /// The local min-marginal ratio on the 11-row box window (the trips' confidence).
+    Window,
 }
 
 /// `--normalization` values.
@@ -161,6 +171,18 @@ pub struct EvalArgs {
     /// half the median column mean), `eq2` (the paper's Eq. 2 exactly) or `none`.
     #[arg(long, value_enum, default_value_t = NormalizationArg::Floored)]
     pub normalization: NormalizationArg,
+    /// Flow confidence: alternatives within this many reference frames of a prediction
+    /// count as the same place (`r`).
+    #[arg(long, default_value_t = 2)]
+    pub confidence_radius: usize,
+    /// Flow confidence: `discounted` (the min-marginal ratio with rows weighted `G^|t-i|`,
+    /// `O(Q·D)` in total) or `window` (the 11-row box window of earlier versions, the trips'
+    /// confidence; `12·D` work per matched row).
+    #[arg(long, value_enum, default_value_t = ConfidenceArg::Discounted)]
+    pub confidence: ConfidenceArg,
+    /// Flow confidence `discounted`: the weight `G` of a row one frame further away, 0 < G < 1.
+    #[arg(long, default_value_t = crate::confidence::DEFAULT_DISCOUNT)]
+    pub confidence_discount: f64,
     /// Descriptor settings.
     #[command(flatten)]
     pub descriptor: DescriptorArgs,
@@ -486,7 +508,14 @@ fn run_job(args: &EvalArgs, methods: &[Method], job: &Job, started: Instant) -> 
     let options = LocalizeOptions {
         solver,
         normalization: args.normalization.into(),
-        ..LocalizeOptions::default()
+        confidence: ConfidenceParams {
+            radius: args.confidence_radius,
+            discount: match args.confidence {
+                ConfidenceArg::Discounted => Some(args.confidence_discount),
+                ConfidenceArg::Window => None,
+            },
+            ..ConfidenceParams::default()
+        },
     };
     let cooc_options = CoocOptions {
         sequence,

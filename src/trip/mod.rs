@@ -109,7 +109,7 @@ impl Default for TripParams {
             relocalization: Some(DEFAULT_RELOCALIZATION_COST),
             prior_weight: 100.0,
             normalize: true,
-            confidence: ConfidenceParams::default(),
+            confidence: ConfidenceParams::window(),
         }
     }
 }
@@ -273,6 +273,8 @@ impl Trip {
             confidence: ConfidenceParams {
                 half_window: r.usize()?,
                 radius: r.usize()?,
+                // Trips score with the causal box window (the discounted ratio is offline).
+                discount: None,
             },
         };
         let d = r.usize()?;
