@@ -405,15 +405,21 @@ fn dashboard_pages_in_a_browser_on_nordland() {
              return a ? a.closest('tr').querySelector('.image-count').textContent : null; })()",
         );
         assert_eq!(count, "200", "{label} /");
-        let short = trip.trim_start_matches('0');
-        assert!(
-            b.text_of("#open-trips").unwrap().contains(short),
-            "{label} /: open trips"
+        let short = short_id(&trip);
+        assert_eq!(
+            b.text_of(&format!("#open-trips a[href='/trips/{trip}']"))
+                .as_deref(),
+            Some(short.as_str()),
+            "{label} /: the open trip is listed and linked"
         );
-        assert!(b
-            .text_of("#latest-localizations")
-            .unwrap()
-            .contains(loc_id.trim_start_matches('0')));
+        assert_eq!(
+            b.text_of(&format!(
+                "#latest-localizations a[href='/localizations/{loc_id}']"
+            ))
+            .as_deref(),
+            Some(short_id(&loc_id).as_str()),
+            "{label} /: the localization is listed and linked"
+        );
         assert_fits_width(&mut b, "/");
         shoot(&mut b, &format!("overview{suffix}"));
 
@@ -423,7 +429,7 @@ fn dashboard_pages_in_a_browser_on_nordland() {
         assert_eq!(b.text_of("#image-count").as_deref(), Some("200"));
         let text = b.text();
         assert!(
-            text.contains("HOG, 8 px cells") && text.contains(short),
+            text.contains("HOG, 8 px cells") && text.contains(&short),
             "{label} map: {text}"
         );
         b.wait_for(
@@ -582,4 +588,18 @@ fn dashboard_pages_in_a_browser_on_nordland() {
     shoot(&mut b, "trip-tablet");
     b.assert_no_script_errors("/trips/{id}");
     assert_same_origin(&b, &origin);
+}
+
+/// How the dashboard shows an id (`shortId` in `assets/dashboard/ui.js`): leading zeros dropped
+/// while four digits remain, then at most eight digits and an ellipsis.
+fn short_id(id: &str) -> String {
+    let mut s = id;
+    while s.len() > 4 && s.starts_with('0') {
+        s = &s[1..];
+    }
+    if s.len() > 8 {
+        format!("{}\u{2026}", &s[..8])
+    } else {
+        s.to_string()
+    }
 }

@@ -177,6 +177,7 @@ fn a_database_outage_answers_503_then_the_replica_recovers_by_itself() {
         move |s| {
             s.database_url = Some(url);
             s.request_timeout_secs = 20;
+            s.localize_max_wait_secs = 10;
         }
     });
     let route = Route::new(40, 3);
