@@ -34,7 +34,6 @@ use subtle::{ConditionallySelectable, ConstantTimeEq};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::error::ApiError;
-use super::state::AppState;
 
 /// What a key may do; each role includes the rights of the ones before it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Deserialize)]
@@ -328,8 +327,15 @@ fn bearer(req: &Request) -> Result<&[u8], ApiError> {
 /// Middleware: lets public routes through, otherwise authenticates the bearer key, checks its
 /// role against [`required_access`] and its in-flight limit. A service without a key file
 /// (loopback or `--allow-unauthenticated`) lets everything through.
-pub async fn authorize(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    let Some(auth) = state.auth.as_ref() else {
+///
+/// Its state is the service's access control alone (not the whole handler state), so this
+/// module does not depend on `state` (which holds an [`Auth`]).
+pub async fn authorize(
+    State(auth): State<Option<Arc<Auth>>>,
+    req: Request,
+    next: Next,
+) -> Response {
+    let Some(auth) = auth.as_ref() else {
         return next.run(req).await;
     };
     let route = req

@@ -277,7 +277,7 @@ impl From<crate::Error> for ApiError {
 
 impl From<AppError> for ApiError {
     fn from(e: AppError) -> Self {
-        use super::dto::format_id as id;
+        use super::wire::format_id as id;
         match e {
             AppError::MapNotFound(m) => ApiError::MapNotFound(id(m)),
             AppError::LocalizationNotFound(l) => ApiError::LocalizationNotFound(id(l)),

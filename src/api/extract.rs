@@ -1,4 +1,5 @@
-//! Extractors whose rejections use the API's error shape instead of axum's plain-text bodies.
+//! Extractors whose rejections use the API's error shape instead of axum's plain-text bodies,
+//! and the parsers of what every resource reads the same way (JSON documents, map ids).
 
 use axum::extract::rejection::{BytesRejection, JsonRejection};
 use axum::extract::{FromRequest, Request};
@@ -7,6 +8,7 @@ use serde::de::DeserializeOwned;
 
 use super::error::ApiError;
 use super::state::AppState;
+use super::wire::parse_id;
 
 /// `Json<T>` whose failures are [`ApiError`]s: syntax errors are 400 `bad_request`, unknown
 /// fields and wrong types 400 `invalid_parameter`, a missing JSON content type 415.
@@ -60,6 +62,11 @@ pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
     } else {
         ApiError::BadRequest(r.body_text())
     }
+}
+
+/// Parses a map id from a path or query; ids that cannot exist are 404.
+pub fn map_id(s: &str) -> Result<u64, ApiError> {
+    parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
 }
 
 /// Parses a JSON document already read. Type errors and unknown fields are 400

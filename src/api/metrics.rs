@@ -14,7 +14,7 @@
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
-use std::sync::{Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use axum::extract::{MatchedPath, Request, State};
@@ -22,7 +22,6 @@ use axum::middleware::Next;
 use axum::response::Response;
 
 use super::auth::KeyName;
-use super::state::AppState;
 
 /// Upper bounds of the latency buckets, in seconds.
 const BUCKETS: [f64; 14] = [
@@ -201,8 +200,9 @@ fn escape(s: &str) -> String {
     s.replace('\\', "\\\\").replace('"', "\\\"")
 }
 
-/// Middleware recording count and latency of every request under its matched route.
-pub async fn track(State(state): State<AppState>, req: Request, next: Next) -> Response {
+/// Middleware recording count and latency of every request under its matched route (its state
+/// is the metrics alone, so this module does not depend on `state`).
+pub async fn track(State(metrics): State<Arc<Metrics>>, req: Request, next: Next) -> Response {
     let started = Instant::now();
     let method = req.method().to_string();
     let route = req
@@ -211,11 +211,9 @@ pub async fn track(State(state): State<AppState>, req: Request, next: Next) -> R
         .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
     let response = next.run(req).await;
     if let Some(key) = response.extensions().get::<KeyName>() {
-        state
-            .metrics
-            .observe_key(&key.0, response.status().as_u16());
+        metrics.observe_key(&key.0, response.status().as_u16());
     }
-    state.metrics.observe_request(
+    metrics.observe_request(
         &method,
         &route,
         response.status().as_u16(),

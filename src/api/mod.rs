@@ -3,32 +3,46 @@
 //!
 //! Only this module knows axum and the JSON wire types. Handlers decode and validate the
 //! request, call one use case of [`crate::app::App`] (which runs CPU work on its pool and owns
-//! every store access), and convert its answer to wire types ([`dto`]) at the edge. One file
-//! per resource plus [`auth`] (API keys and roles): `maps` (maps and their reference images), `cooc` (drives), `localize`
-//! (localizations), [`trips`] (online trips), [`ops`] (health, metrics, OpenAPI),
-//! `dashboard` (the embedded web dashboard for people).
+//! every store access), and convert its answer to wire types at the edge.
+//!
+//! Layout (one convention for every resource; `tests/layering.rs` keeps it acyclic):
+//! * a resource is a directory: `<resource>/mod.rs` has its routes and handlers,
+//!   `<resource>/dto.rs` its wire types and their conversions. The resources are `maps` (maps
+//!   and their reference images), `views` (image pages, thumbnails, pictures), `cooc` (drives
+//!   and the co-occurrence method), `localize` (localizations), `trips` (online trips), `ops`
+//!   (health, metrics, OpenAPI) and `dashboard` (the embedded web dashboard for people);
+//! * the files directly in `api/` are the machinery the resources share ([`error`],
+//!   [`extract`], [`upload`], [`idempotency`], [`wire`] ids and page sizes, [`state`],
+//!   [`admission`], [`auth`], [`metrics`]); they never import a resource;
+//! * `router` composes the resources and the middleware; nothing imports it but this file.
 
 // Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
 // new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
+// Shared edge machinery: used by the resources, never using them.
 pub mod admission;
 pub mod auth;
-mod cooc;
-mod dashboard;
-pub mod dto;
 pub mod error;
 pub mod extract;
 pub mod idempotency;
+pub mod metrics;
+pub mod state;
+pub mod upload;
+pub mod wire;
+
+// Resources: `<resource>/mod.rs` holds the routes and handlers, `<resource>/dto.rs` the wire
+// types (when it has any).
+mod cooc;
+mod dashboard;
 mod localize;
 mod maps;
-pub mod metrics;
-pub mod ops;
-mod router;
-pub mod state;
-pub mod trips;
-pub mod upload;
+mod ops;
+mod trips;
 mod views;
+
+// Composes the resources and the middleware into the service.
+mod router;
 
 pub use error::ApiError;
 pub use router::{app, ROUTES};

@@ -101,13 +101,13 @@ pub fn app(state: AppState) -> Router {
         .layer(PropagateRequestIdLayer::new(REQUEST_ID))
         .layer(middleware::map_response(json_limit_errors))
         .layer(middleware::from_fn_with_state(
-            state.clone(),
+            state.metrics.clone(),
             metrics::track,
         ))
         .layer(middleware::from_fn_with_state(state.clone(), check_host))
         .option_layer(cors(&s.cors_origins))
         .layer(middleware::from_fn_with_state(
-            state.clone(),
+            state.auth.clone(),
             auth::authorize,
         ))
         .layer(limits)

@@ -22,8 +22,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 
-use super::error::ApiError;
-use super::state::AppState;
+use crate::api::error::ApiError;
+use crate::api::state::AppState;
 
 /// The routes of the dashboard.
 pub fn router() -> Router<AppState> {
@@ -71,7 +71,7 @@ const fn etag_of(bytes: &[u8]) -> [u8; 18] {
 
 macro_rules! asset {
     ($name:literal, $content_type:expr) => {{
-        const BODY: &[u8] = include_bytes!(concat!("../../assets/dashboard/", $name));
+        const BODY: &[u8] = include_bytes!(concat!("../../../assets/dashboard/", $name));
         const ETAG: [u8; 18] = etag_of(BODY);
         Asset {
             name: $name,

@@ -12,17 +12,19 @@ use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::Router;
-use serde::Deserialize;
+pub mod dto;
 
-use super::admission::Refusal;
-use super::dto::{
-    format_id, parse_id, LocalizationListResponse, LocalizationResponse,
-    LocalizeDescriptorsRequest, LocalizeParams,
+use self::dto::{
+    ListQuery, LocalizationListResponse, LocalizationResponse, LocalizeDescriptorsRequest,
+    LocalizeParams,
 };
-use super::error::ApiError;
-use super::maps::map_id;
-use super::state::AppState;
-use super::upload;
+use crate::api::admission::Refusal;
+use crate::api::error::ApiError;
+use crate::api::extract::{bytes_rejection, map_id, parse_json};
+use crate::api::state::AppState;
+use crate::api::upload;
+use crate::api::views;
+use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
 use crate::app::{LocalizeInput, Queries};
 use crate::store::{LocalizationRecord, PageRequest};
 
@@ -32,13 +34,8 @@ pub fn router() -> Router<AppState> {
         .route("/v1/maps/{id}/localize", post(run))
         .route("/v1/localizations", get(list))
         .route("/v1/localizations/{id}", get(read))
-        .route("/v1/localizations/{id}/picture", get(super::views::picture))
+        .route("/v1/localizations/{id}/picture", get(views::picture))
 }
-
-/// Default and largest page size of `GET /v1/localizations`.
-pub const DEFAULT_PAGE: usize = 20;
-/// Largest page size.
-pub const MAX_PAGE: usize = 100;
 
 async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError> {
     let content_type = req
@@ -51,8 +48,8 @@ async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError
     if content_type.starts_with("application/json") {
         let bytes = axum::body::Bytes::from_request(req, state)
             .await
-            .map_err(|r| super::extract::bytes_rejection(r, s.max_body_bytes))?;
-        let body: LocalizeDescriptorsRequest = super::extract::parse_json(&bytes, None)?;
+            .map_err(|r| bytes_rejection(r, s.max_body_bytes))?;
+        let body: LocalizeDescriptorsRequest = parse_json(&bytes, None)?;
         let method = body.params.method.map(Into::into);
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;
@@ -141,15 +138,6 @@ fn json_document(record: &LocalizationRecord) -> Result<Response, ApiError> {
 async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let lid = parse_id(&id).ok_or(ApiError::LocalizationNotFound(id))?;
     json_document(&state.app.get_localization(lid).await?)
-}
-
-/// Query of `GET /v1/localizations`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ListQuery {
-    map: Option<String>,
-    limit: Option<usize>,
-    before: Option<String>,
 }
 
 async fn list(

@@ -14,16 +14,17 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use serde::Deserialize;
+pub mod dto;
 
-use super::dto::{
-    parse_id, AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest,
-    DescriptorDto, ImageMetaDto, MapListResponse, MapResponse, MAX_DESCRIPTOR_DIM, MAX_NAME_BYTES,
+use self::dto::{
+    AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest, DescriptorDto,
+    ImageMetaDto, MapListResponse, MapResponse, ModelIdentityDto, RawQuery, MAX_DESCRIPTOR_DIM,
+    MAX_NAME_BYTES,
 };
-use super::error::ApiError;
-use super::extract::ApiJson;
-use super::state::AppState;
-use super::upload;
+use crate::api::error::ApiError;
+use crate::api::extract::{bytes_rejection, map_id, parse_json, ApiJson};
+use crate::api::state::AppState;
+use crate::api::{idempotency, upload, views};
 use crate::app::{AppendOutcome, DescriptorSpec, NewMapSpec};
 use crate::cooc::CoocParams;
 use crate::features::cnn::{CnnOptions, CnnResize};
@@ -37,18 +38,13 @@ pub fn router() -> Router<AppState> {
         .route("/v1/maps/{id}", get(read).delete(remove))
         .route(
             "/v1/maps/{id}/images",
-            post(append_images).get(super::views::list_images),
+            post(append_images).get(views::list_images),
         )
         .route(
             "/v1/maps/{id}/images/{index}/thumbnail",
-            get(super::views::thumbnail),
+            get(views::thumbnail),
         )
         .route("/v1/maps/{id}/descriptors", post(append_descriptors))
-}
-
-/// Parses a map id from a path or query; ids that cannot exist are 404.
-pub fn map_id(s: &str) -> Result<u64, ApiError> {
-    parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
 }
 
 /// Turns the CNN fields of a create request into validated options; the model is `model` or
@@ -113,7 +109,7 @@ struct CnnRequest {
     short_side: Option<u32>,
     mean: Option<[f32; 3]>,
     scale: Option<[f32; 3]>,
-    identity: Option<super::dto::ModelIdentityDto>,
+    identity: Option<ModelIdentityDto>,
 }
 
 /// Checks a create request for everything that needs no file (a CNN model is loaded and
@@ -261,7 +257,7 @@ fn metadata(json: Option<&[u8]>, count: usize) -> Result<Vec<ImageMeta>, ApiErro
     let Some(json) = json else {
         return Ok(vec![ImageMeta::default(); count]);
     };
-    let entries: Vec<ImageMetaDto> = super::extract::parse_json(json, Some("metadata"))?;
+    let entries: Vec<ImageMetaDto> = parse_json(json, Some("metadata"))?;
     if entries.len() != count {
         return Err(ApiError::param(
             "metadata",
@@ -312,20 +308,13 @@ async fn append_images(
     )
     .await?;
     let metas = metadata(batch.json.as_deref(), batch.images.len())?;
-    let key = super::idempotency::from_request(&headers, &batch)?;
+    let key = idempotency::from_request(&headers, &batch)?;
     let outcome = state
         .app
         .append_images_once(map, batch.images, metas, key)
         .await?;
-    let headers = super::idempotency::headers(outcome.replayed);
+    let headers = idempotency::headers(outcome.replayed);
     Ok((headers, Json(appended(&state, &outcome))))
-}
-
-/// Query of the raw-float form of `/descriptors`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawQuery {
-    dim: Option<u32>,
 }
 
 async fn append_descriptors(
@@ -336,8 +325,7 @@ async fn append_descriptors(
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Json<AppendResponse>, ApiError> {
     let id = map_id(&id)?;
-    let body =
-        body.map_err(|r| super::extract::bytes_rejection(r, state.settings.max_body_bytes))?;
+    let body = body.map_err(|r| bytes_rejection(r, state.settings.max_body_bytes))?;
     let map = state.app.map_for_descriptors(id).await?;
     let max = state.settings.max_batch_images;
     let content_type = headers
@@ -345,7 +333,7 @@ async fn append_descriptors(
         .and_then(|v| v.to_str().ok())
         .unwrap_or("");
     let (descriptors, metas) = if content_type.starts_with("application/json") {
-        let req: AppendDescriptorsRequest = super::extract::parse_json(&body, None)?;
+        let req: AppendDescriptorsRequest = parse_json(&body, None)?;
         let m = upload::descriptor_matrix(&req.descriptors, map.dim, max)?;
         let metas = match req.metadata {
             None => vec![ImageMeta::default(); m.rows()],

@@ -10,53 +10,18 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use serde::{Deserialize, Serialize};
+pub mod dto;
 
-use super::dto::{format_id, parse_id};
-use super::error::ApiError;
-use super::maps::map_id;
-use super::state::AppState;
+use self::dto::{ImageInfo, ImagePage, ImagesQuery};
+use crate::api::error::ApiError;
+use crate::api::extract::map_id;
+use crate::api::state::AppState;
+use crate::api::wire::{format_id, parse_id};
 
 /// Default and largest page of `GET /v1/maps/{id}/images`.
 const DEFAULT_IMAGES: u32 = 100;
 /// Largest page of `GET /v1/maps/{id}/images` (a 30,000-image map is 30 pages).
 pub const MAX_IMAGES: u32 = 1000;
-
-/// Query of `GET /v1/maps/{id}/images`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ImagesQuery {
-    /// First image index (default 0).
-    from: Option<u32>,
-    /// Most images (1..=1000, default 100).
-    limit: Option<u32>,
-}
-
-/// One reference image's metadata.
-#[derive(Clone, Debug, Serialize)]
-pub struct ImageInfo {
-    /// Route index.
-    pub index: u32,
-    /// Capture time as sent, or null.
-    pub timestamp: Option<String>,
-    /// Latitude in degrees, or null.
-    pub latitude: Option<f64>,
-    /// Longitude in degrees, or null.
-    pub longitude: Option<f64>,
-    /// Label as sent, or null.
-    pub label: Option<String>,
-}
-
-/// A page of `GET /v1/maps/{id}/images`.
-#[derive(Clone, Debug, Serialize)]
-pub struct ImagePage {
-    /// Images `from..` in route order.
-    pub items: Vec<ImageInfo>,
-    /// The map's image count.
-    pub image_count: u32,
-    /// Pass as `from` for the next page; null on the last page.
-    pub next: Option<u32>,
-}
 
 /// `GET /v1/maps/{id}/images`.
 pub async fn list_images(
