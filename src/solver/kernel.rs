@@ -5,8 +5,9 @@
 //! A row is processed in L1-sized blocks of columns, each in four passes:
 //!
 //! 1. node costs `c_j = 1/ĉ_ij` (`+inf` when unusable or blocked), vectorised;
-//! 2. the window minimum `base_j` and its offset (`K` shifted compare-and-select passes for small
-//!    `K`, a monotone deque otherwise), vectorised for small `K`;
+//! 2. the window minimum `base_j` and its offset ([`crate::window::trailing_min_offsets`]: `K`
+//!    shifted compare-and-select passes for small `K`, a monotone deque otherwise; the latest
+//!    column on ties), vectorised for small `K`;
 //! 3. the horizontal recurrences, the only serial part: the block is cut into [`LANES`] chunks
 //!    that are scanned *interleaved* with a `+inf` carry-in (independent dependency chains, so the
 //!    core overlaps them), then each chunk is fixed up from the true carry-out of the chunk to
@@ -26,10 +27,7 @@
 //! node (what a successor row needs to know), and the "came horizontally" flag of each node.
 
 use super::graph::{match_cost, Blocked};
-
-/// Largest fan-out for which the window minimum is a direct scan instead of a monotone deque
-/// (measured with `benches/solver.rs`, group `window`).
-pub(crate) const DIRECT_WINDOW_MAX_K: usize = 8;
+use crate::window::{trailing_min_offsets, trailing_min_value, MonoDeque, Scan};
 
 /// Independent chunks scanned together in pass 3.
 pub(crate) const LANES: usize = 8;
@@ -89,44 +87,6 @@ macro_rules! back_ptr {
 back_ptr!(u8, 4);
 back_ptr!(u16, 12);
 
-/// How the sliding-window minimum is computed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Window {
-    /// Scan the `K + 1` candidates.
-    Direct,
-    /// Monotone deque of candidate columns.
-    Deque,
-}
-
-/// Monotone deque of column indices with strictly increasing values front to back.
-#[derive(Default)]
-pub(crate) struct MonoDeque {
-    idx: Vec<usize>,
-    head: usize,
-}
-
-impl MonoDeque {
-    pub(crate) fn clear(&mut self) {
-        self.idx.clear();
-        self.head = 0;
-    }
-
-    /// Pushes column `kk` of `vals` and returns the argmin of `vals[kk-k..=kk]` (latest on ties).
-    /// Columns must be pushed in increasing order.
-    #[inline]
-    pub(crate) fn push_min(&mut self, vals: &[f64], kk: usize, k: usize) -> usize {
-        let v = vals[kk];
-        while self.idx.len() > self.head && vals[self.idx[self.idx.len() - 1]] >= v {
-            self.idx.pop();
-        }
-        self.idx.push(kk);
-        while self.idx[self.head] + k < kk {
-            self.head += 1;
-        }
-        self.idx[self.head]
-    }
-}
-
 /// Per-block work buffers, reused from block to block and row to row.
 #[derive(Default)]
 pub(crate) struct Scratch {
@@ -158,7 +118,7 @@ pub(crate) struct RowCtx<'a> {
     /// Hidden cost `W`.
     pub w: f64,
     /// Window strategy.
-    pub window: Window,
+    pub window: Scan,
     /// Columns per block (tests use tiny blocks to exercise chunk borders).
     pub block: usize,
 }
@@ -242,9 +202,7 @@ pub(crate) fn node_cost(ctx: &RowCtx<'_>, j: usize) -> f64 {
 pub(crate) fn base_value(ctx: &RowCtx<'_>, j: usize) -> f64 {
     match ctx.prev {
         None => 0.0,
-        Some(p) => p[j.saturating_sub(ctx.k)..=j]
-            .iter()
-            .fold(f64::INFINITY, |a, &v| if v < a { v } else { a }),
+        Some(p) => trailing_min_value(p, j, ctx.k),
     }
 }
 
@@ -268,12 +226,9 @@ pub(crate) fn range_step<P: BackPtr>(
     if s.off.len() < block {
         s.off.resize(block, 0);
     }
-    s.dq.clear();
-    if ctx.window == Window::Deque {
+    if ctx.window == Scan::Deque {
         if let Some(p) = ctx.prev {
-            for kk in lo.saturating_sub(ctx.k)..lo {
-                s.dq.push_min(p, kk, ctx.k);
-            }
+            s.dq.start(p, lo, ctx.k);
         }
     }
     let mut carry = carry;
@@ -323,45 +278,14 @@ pub(crate) fn row_costs(row: &[f32], blocked: Option<(&Blocked, usize, usize)>, 
 }
 
 /// Pass 2: `base[t] = min M_prev[j-K..=j]` for `j = b0 + t`, `off[t]` = `j` minus the argmin
-/// (the latest column on ties).
+/// (the latest column on ties, the one rule of [`crate::window`]).
 fn window(ctx: &RowCtx<'_>, b0: usize, base: &mut [f64], off: &mut [u64], dq: &mut MonoDeque) {
-    let n = base.len();
-    let b1 = b0 + n;
-    let Some(p) = ctx.prev else {
-        base.fill(0.0);
-        off.fill(0);
-        return;
-    };
-    match ctx.window {
-        Window::Direct => {
-            base.copy_from_slice(&p[b0..b1]);
+    match ctx.prev {
+        None => {
+            base.fill(0.0);
             off.fill(0);
-            for o in 1..=ctx.k.min(b1 - 1) {
-                // Columns b0+t with b0+t >= o have a candidate at b0+t-o.
-                let first = o.saturating_sub(b0).min(n);
-                let of_o = o as u64;
-                for ((b, of), &cand) in base[first..]
-                    .iter_mut()
-                    .zip(off[first..].iter_mut())
-                    .zip(&p[b0 + first - o..b1 - o])
-                {
-                    // The offset is selected with a bit mask: a plain `if` here compiles to
-                    // a branch per cell (SSE2 has no blend), the mask form vectorises.
-                    let better = cand < *b;
-                    let mask = 0u64.wrapping_sub(u64::from(better));
-                    *b = if better { cand } else { *b };
-                    *of = (*of & !mask) | (of_o & mask);
-                }
-            }
         }
-        Window::Deque => {
-            for t in 0..n {
-                let kk = b0 + t;
-                let j = dq.push_min(p, kk, ctx.k);
-                base[t] = p[j];
-                off[t] = (kk - j) as u64;
-            }
-        }
+        Some(p) => trailing_min_offsets(p, b0, ctx.k, ctx.window, base, off, dq),
     }
 }
 
@@ -532,11 +456,7 @@ pub(crate) fn forward_values_row(
         k,
         horizontal,
         w,
-        window: if k <= DIRECT_WINDOW_MAX_K {
-            Window::Direct
-        } else {
-            Window::Deque
-        },
+        window: Scan::for_fan_out(k),
         block: BLOCK,
     };
     let inf = (f64::INFINITY, f64::INFINITY);

@@ -7,8 +7,9 @@
 //! `X_{i+1}[k] = min(base_k + c_k, X_{i+1}[k-1] + c_k)` and `H_{i+1}[k] = min(base_k + W,
 //! H_{i+1}[k-1])` (the second terms only with horizontal edges), one left-to-right pass.
 //! The row step itself (blocks, interleaved chunk scans with an exact fix-up, packed pointers)
-//! is in `kernel.rs`. The window minimum is a direct scan for `K <= DIRECT_WINDOW_MAX_K` and a
-//! monotone deque (amortised O(1) per cell, independent of `K`) above; both give the same answer.
+//! is in `kernel.rs`. The window minimum is `crate::window`'s: a direct scan for
+//! `K <= DIRECT_MAX_K` and a monotone deque (amortised O(1) per cell, independent of `K`)
+//! above; both give the same answer, ties to the latest column.
 //!
 //! Wide rows (at least [`SPLIT_MIN_COLS`] columns) are split in two halves computed on two
 //! threads (`rayon::join`). The right half starts from the exact `H` carry (`W` plus the
@@ -28,13 +29,11 @@
 //! the sink the smallest column of the last row wins.
 
 use super::graph::{check_inputs, hypothesis_from_steps, Blocked, Kind, Step};
-use super::kernel::{
-    self, base_value, node_cost, range_step, BackPtr, Dest, RowCtx, DIRECT_WINDOW_MAX_K,
-};
+use super::kernel::{self, base_value, node_cost, range_step, BackPtr, Dest, RowCtx};
 use super::Hypothesis;
 use crate::{Matrix, Result};
 
-pub(crate) use super::kernel::Window;
+use crate::window::Scan;
 
 /// Rows with at least this many columns are computed on two threads (two halves).
 pub(crate) const SPLIT_MIN_COLS: usize = 8192;
@@ -91,7 +90,7 @@ pub(crate) struct Dp<'a> {
     k: usize,
     horizontal: bool,
     w: f64,
-    window: Window,
+    window: Scan,
     block: usize,
     split_min: usize,
 }
@@ -105,11 +104,7 @@ impl<'a> Dp<'a> {
         w: f64,
         blocked: Option<&'a Blocked>,
     ) -> Self {
-        let window = if k <= DIRECT_WINDOW_MAX_K {
-            Window::Direct
-        } else {
-            Window::Deque
-        };
+        let window = Scan::for_fan_out(k);
         Dp {
             chat,
             blocked,
@@ -124,7 +119,7 @@ impl<'a> Dp<'a> {
 
     /// Forces a window strategy (tests).
     #[cfg(test)]
-    pub(crate) fn with_window(mut self, window: Window) -> Self {
+    pub(crate) fn with_window(mut self, window: Scan) -> Self {
         self.window = window;
         self
     }
@@ -411,8 +406,8 @@ mod tests {
             (chat, _, horizontal, w) in random_instance(),
             k in 0usize..12,
         ) {
-            let a = Dp::new(&chat, k, horizontal, w, None).with_window(Window::Direct).shortest_steps();
-            let b = Dp::new(&chat, k, horizontal, w, None).with_window(Window::Deque).shortest_steps();
+            let a = Dp::new(&chat, k, horizontal, w, None).with_window(Scan::Direct).shortest_steps();
+            let b = Dp::new(&chat, k, horizontal, w, None).with_window(Scan::Deque).shortest_steps();
             prop_assert_eq!(a, b);
         }
 
@@ -428,7 +423,7 @@ mod tests {
         ) {
             let b = blocked.as_ref();
             let (want, want_rows) = plain(&chat, k, horizontal, w, b);
-            let window = if deque { Window::Deque } else { Window::Direct };
+            let window = if deque { Scan::Deque } else { Scan::Direct };
             let dp = Dp::new(&chat, k, horizontal, w, b)
                 .with_window(window)
                 .with_layout(block, split_min);
@@ -613,7 +608,7 @@ mod tests {
         assert!(h.rows[1].matches.len() > 250, "{:?}", cols(&h)[1].len());
         for block in [1, 3, 8, 16, 50, 64, 1024] {
             for split_min in [1, 2, 64, usize::MAX] {
-                for window in [Window::Direct, Window::Deque] {
+                for window in [Scan::Direct, Scan::Deque] {
                     let got = Dp::new(&chat, 2, true, 100.0, None)
                         .with_window(window)
                         .with_layout(block, split_min)

@@ -23,7 +23,7 @@ use std::collections::VecDeque;
 
 use crate::confidence::GraphParams;
 use crate::solver::{check_fan_out, check_hidden_cost, match_cost};
-use crate::window::trailing_min_by;
+use crate::window::{trailing_min_offsets, MonoDeque, Scan};
 use crate::{Error, Result};
 
 use super::state::{corrupt, StateReader, StateWriter};
@@ -128,8 +128,14 @@ pub struct OnlineSolver {
     /// `ĉ` of the rows in the window (needed to pick a row's best match when several).
     window_chat: VecDeque<Vec<f32>>,
     // scratch
-    best_prev: Vec<(f64, u32)>,
-    pred: Vec<(f64, u32)>,
+    /// `min(x, h)` of the previous row per column, and which node it is (`column << 1 | hidden`).
+    best_prev: Vec<f64>,
+    best_arg: Vec<u32>,
+    /// The predecessor value of each column (window minimum of `best_prev`, or the jump), and
+    /// the window offset of its argmin.
+    pred: Vec<f64>,
+    pred_off: Vec<u64>,
+    dq: MonoDeque,
 }
 
 impl OnlineSolver {
@@ -153,8 +159,11 @@ impl OnlineSolver {
             h: vec![0.0; references],
             window: VecDeque::with_capacity(params.lag + 1),
             window_chat: VecDeque::with_capacity(params.lag + 1),
-            best_prev: vec![(0.0, 0); references],
-            pred: vec![(0.0, 0); references],
+            best_prev: vec![0.0; references],
+            best_arg: vec![0; references],
+            pred: vec![0.0; references],
+            pred_off: vec![0; references],
+            dq: MonoDeque::default(),
         })
     }
 
@@ -191,7 +200,9 @@ impl OnlineSolver {
                 .map(|c| c.capacity() * 4)
                 .sum::<usize>();
         (self.x.capacity() + self.h.capacity()) * 8
-            + (self.best_prev.capacity() + self.pred.capacity()) * 16
+            + (self.best_prev.capacity() + self.pred.capacity() + self.pred_off.capacity()) * 8
+            + self.best_arg.capacity() * 4
+            + self.dq.heap_bytes()
             + window
     }
 
@@ -234,27 +245,44 @@ impl OnlineSolver {
             h: vec![Back::SOURCE; d],
         };
         if self.rows == 0 {
-            self.pred.iter_mut().for_each(|p| *p = (0.0, u32::MAX));
+            self.pred.fill(0.0);
         } else {
             // Predecessor value of each column: the cheaper of x/h, argument encodes (col, hidden).
             for j in 0..d {
-                self.best_prev[j] = if self.x[j] <= self.h[j] {
+                (self.best_prev[j], self.best_arg[j]) = if self.x[j] <= self.h[j] {
                     (self.x[j], (j as u32) << 1)
                 } else {
                     (self.h[j], ((j as u32) << 1) | 1)
                 };
             }
-            trailing_min_by(&self.best_prev, k, &mut self.pred, |a, b| a.0 < b.0);
+            // The window minimum of the offline kernel, with its tie rule (latest column).
+            let strategy = Scan::for_fan_out(k);
+            self.dq.start(&self.best_prev, 0, k);
+            trailing_min_offsets(
+                &self.best_prev,
+                0,
+                k,
+                strategy,
+                &mut self.pred,
+                &mut self.pred_off,
+                &mut self.dq,
+            );
             let teleport = self.params.relocalization.map(|r| {
-                let (v, arg) = self
-                    .best_prev
-                    .iter()
-                    .copied()
-                    .fold((f64::INFINITY, 0), |a, b| if b.0 < a.0 { b } else { a });
+                let (v, arg) = self.best_prev.iter().zip(&self.best_arg).fold(
+                    (f64::INFINITY, 0),
+                    |a, (&v, &arg)| {
+                        if v < a.0 {
+                            (v, arg)
+                        } else {
+                            a
+                        }
+                    },
+                );
                 (v + r, arg)
             });
             for j in 0..d {
-                let (v, arg) = self.pred[j];
+                let v = self.pred[j];
+                let arg = self.best_arg[j - self.pred_off[j] as usize];
                 let mut ptr = Back::prev((arg >> 1) as usize, arg & 1 == 1, false);
                 let mut val = v;
                 if let Some((tv, targ)) = teleport {
@@ -263,13 +291,13 @@ impl OnlineSolver {
                         ptr = Back::prev((targ >> 1) as usize, targ & 1 == 1, true);
                     }
                 }
-                self.pred[j].0 = val;
+                self.pred[j] = val;
                 back.x[j] = ptr;
                 back.h[j] = ptr;
             }
         }
         for j in 0..d {
-            let p = self.pred[j].0;
+            let p = self.pred[j];
             self.x[j] = p + match_cost(chat_row[j]);
             self.h[j] = p + w;
         }
@@ -388,19 +416,20 @@ impl OnlineSolver {
         let Some(last) = self.window.len().checked_sub(1) else {
             return Vec::new();
         };
-        // The best end node: the cheapest of the last row (x before h on ties, then lowest j).
+        // The best end node, picked as the offline solver's sink picks it: the lowest column of
+        // the least `M = min(x, h)`, and in that column `h` only when strictly cheaper than `x`
+        // (the rule the predecessors follow too), so ties end the path where offline does.
         let (mut col, mut hidden) = (0usize, false);
         let mut best = f64::INFINITY;
         for j in 0..self.d {
-            if self.x[j] < best {
-                best = self.x[j];
-                (col, hidden) = (j, false);
-            }
-        }
-        for j in 0..self.d {
-            if self.h[j] < best {
-                best = self.h[j];
-                (col, hidden) = (j, true);
+            let (m, h_wins) = if self.h[j] < self.x[j] {
+                (self.h[j], true)
+            } else {
+                (self.x[j], false)
+            };
+            if m < best {
+                best = m;
+                (col, hidden) = (j, h_wins);
             }
         }
         let first_row = self.rows - self.window.len();
@@ -512,6 +541,31 @@ mod tests {
         fn full_window_trace_equals_offline_path(
             q in 1usize..10, d in 1usize..9, vals in prop::collection::vec(0.05f32..3.0, 90),
             k in 0usize..4, horizontal: bool, w in 0.3f64..2.5,
+        ) {
+            let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
+            let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
+            for i in 0..q {
+                prop_assert_eq!(online.push_row(chat.row(i)).unwrap(), None);
+            }
+            let sp = SolverParams { fan_out: k, hidden_cost: HiddenCost::Fixed(w), horizontal, ..SolverParams::default() };
+            let offline = solve(&chat, &sp).unwrap();
+            let offline_refs: Vec<Option<usize>> = offline.hypotheses[0].rows.iter()
+                .map(|r| r.matches.iter().max_by(|a, b| a.similarity.total_cmp(&b.similarity)).map(|m| m.reference))
+                .collect();
+            let online_refs: Vec<Option<usize>> = online.trace().iter().map(|e| e.reference).collect();
+            prop_assert_eq!(online_refs, offline_refs);
+        }
+
+        /// The same on matrices of a few exactly representable values, where costs tie all
+        /// the time (also along hidden stretches), for fan-outs of both window scans: the
+        /// online row step and the offline kernel share the window minimum and its tie rule
+        /// (`crate::window`), so they pick the same path.
+        #[test]
+        fn full_window_trace_equals_offline_path_when_costs_tie(
+            q in 1usize..10, d in 1usize..14,
+            vals in prop::collection::vec(prop::sample::select(vec![0.0f32, 0.5, 1.0, 2.0, 4.0]), 130),
+            k in 0usize..12, horizontal: bool,
+            w in prop::sample::select(vec![0.5f64, 1.0, 2.0, 4.0]),
         ) {
             let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
             let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
