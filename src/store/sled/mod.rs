@@ -45,6 +45,21 @@ impl From<sled::Error> for StoreError {
     }
 }
 
+/// How long [`SledStore::open`] waits for a data folder locked by a handle that is closing.
+pub const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// Whether sled failed to open because another handle holds the folder's lock; every other
+/// error is reported at once. sled 0.34 reports it as an `Other` I/O error whose message
+/// starts "could not acquire lock" (`open_tests` pins this against the sled in use).
+fn is_lock_contention(e: &sled::Error) -> bool {
+    if let sled::Error::Io(io) = e {
+        io.kind() == std::io::ErrorKind::WouldBlock
+            || io.to_string().starts_with("could not acquire lock")
+    } else {
+        false
+    }
+}
+
 /// The sled engine. Cheap to clone (clones share the database and its write lock).
 #[derive(Clone)]
 pub struct SledStore {
@@ -56,14 +71,32 @@ pub struct SledStore {
 impl SledStore {
     /// Opens (or creates) the store in `dir` and upgrades its layout to
     /// [`migrate::CURRENT_VERSION`].
+    ///
+    /// sled locks the folder for as long as a database handle (or its background flusher
+    /// thread) lives, and dropping a handle releases the lock only when that thread has
+    /// exited, a moment later. An open that finds the folder locked therefore waits up to
+    /// [`LOCK_WAIT`] for the lock before it fails, so a store closed and reopened at once (a
+    /// restart in the same process, tests) opens, while a folder held by another running
+    /// process still fails with [`StoreError::Open`] after that bound.
     pub fn open(dir: &Path) -> StoreResult<SledStore> {
-        let db = sled::Config::new()
-            .path(dir)
-            .open()
-            .map_err(|source| StoreError::Open {
-                location: dir.display().to_string(),
-                source: Box::new(source),
-            })?;
+        let config = sled::Config::new().path(dir);
+        let started = std::time::Instant::now();
+        let mut pause = std::time::Duration::from_millis(5);
+        let db = loop {
+            match config.open() {
+                Ok(db) => break db,
+                Err(e) if is_lock_contention(&e) && started.elapsed() < LOCK_WAIT => {
+                    std::thread::sleep(pause);
+                    pause = (pause * 2).min(std::time::Duration::from_millis(100));
+                }
+                Err(source) => {
+                    return Err(StoreError::Open {
+                        location: dir.display().to_string(),
+                        source: Box::new(source),
+                    })
+                }
+            }
+        };
         migrate::migrate(&db)?;
         Ok(SledStore {
             db,
@@ -309,4 +342,58 @@ pub(crate) fn test_map(store: &SledStore) -> u64 {
         })
         .expect("a new map in a fresh store")
         .id
+}
+
+#[cfg(test)]
+mod open_tests {
+    use super::*;
+
+    /// A folder held by a live handle is recognised as locked (and so waited for), and the
+    /// wait ends in a clear `Open` error while the other handle stays open.
+    #[test]
+    fn a_folder_held_open_is_contention_and_fails_after_the_wait() {
+        let dir = tempfile::tempdir().unwrap();
+        let held = SledStore::open(dir.path()).unwrap();
+        let e = sled::Config::new().path(dir.path()).open().unwrap_err();
+        assert!(is_lock_contention(&e), "{e}");
+        match SledStore::open(dir.path()) {
+            Err(StoreError::Open { location, source }) => {
+                assert_eq!(location, dir.path().display().to_string());
+                assert!(source.to_string().contains("lock"), "{source}");
+            }
+            Err(other) => panic!("expected Open, got {other}"),
+            Ok(_) => panic!("a folder held open was opened twice"),
+        }
+        drop(held);
+    }
+
+    /// Closing a store and reopening it at once works every time, although sled releases
+    /// the folder's lock a moment after the handle is dropped.
+    #[test]
+    fn a_store_reopens_at_once_after_it_is_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        for round in 0..20u32 {
+            let store = SledStore::open(dir.path()).unwrap();
+            store
+                .create_map(NewMap {
+                    id: u64::from(round) + 1,
+                    name: format!("m{round}"),
+                    descriptor: crate::store::DescriptorSettings::Precomputed { dim: 2 },
+                })
+                .unwrap();
+            drop(store);
+        }
+        let store = SledStore::open(dir.path()).unwrap();
+        assert_eq!(store.get_map(20).unwrap().name, "m19");
+    }
+
+    /// Other errors are not waited for.
+    #[test]
+    fn other_open_errors_are_not_contention() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("a-file");
+        std::fs::write(&file, b"x").unwrap();
+        let e = sled::Config::new().path(&file).open().unwrap_err();
+        assert!(!is_lock_contention(&e), "{e}");
+    }
 }
