@@ -14,6 +14,8 @@
 // Helpers used only by the tests left out of this binary.
 #![allow(dead_code)]
 
+#[path = "../service/auth.rs"]
+mod auth;
 #[path = "../service/cnn.rs"]
 mod cnn;
 #[path = "../service/common.rs"]
