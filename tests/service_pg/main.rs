@@ -26,6 +26,8 @@ mod cooc;
 mod errors;
 #[path = "../service/flow.rs"]
 mod flow;
+#[path = "../service/hardening.rs"]
+mod hardening;
 #[path = "../service/http.rs"]
 mod http;
 #[path = "../service/idempotency.rs"]
