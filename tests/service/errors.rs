@@ -370,3 +370,71 @@ fn responses_carry_a_request_id() {
     let r = server.client.get("/readyz");
     check("get", "/readyz", &r);
 }
+
+/// The bounds the OpenAPI states are the server's: a value at a bound is served, one past it
+/// is refused (schemathesis found the spec silent about them; see the README's test section).
+#[test]
+fn the_specs_numeric_bounds_are_the_servers() {
+    let doc = crate::spec::doc();
+    let f32_schema = &doc["components"]["schemas"]["Float32"];
+    assert_eq!(f32_schema["maximum"].as_f64(), Some(f64::from(f32::MAX)));
+    assert_eq!(f32_schema["minimum"].as_f64(), Some(f64::from(f32::MIN)));
+    let param_max = |path: &str, name: &str| -> Option<u64> {
+        let op = &doc["paths"][path]["get"]["parameters"];
+        let shared = &doc["paths"][path]["parameters"];
+        op.as_array()
+            .into_iter()
+            .chain(shared.as_array())
+            .flatten()
+            .find(|p| p["name"] == name)
+            .and_then(|p| p["schema"]["maximum"].as_u64())
+    };
+    let u32_max = u64::from(u32::MAX);
+    assert_eq!(param_max("/v1/maps/{id}/images", "from"), Some(u32_max));
+    assert_eq!(param_max("/v1/trips/{id}", "since"), Some(u32_max));
+    assert_eq!(
+        param_max("/v1/maps/{id}/images/{index}/thumbnail", "index"),
+        Some(u32_max)
+    );
+
+    let server = strict_server();
+    let c = server.client;
+    let map = create_vector_map(&c, "bounds", 3);
+    let path = format!("/v1/maps/{map}/descriptors");
+    let t = "/v1/maps/{id}/descriptors";
+    let r = c.post_json(
+        &path,
+        &json!({"descriptors": [[f64::from(f32::MAX), f64::from(f32::MIN), 0.0]]}),
+    );
+    check("post", t, &r);
+    assert!(r.status < 300, "{}", String::from_utf8_lossy(&r.body));
+    let r = c.post_json(&path, &json!({"descriptors": [[1, 2, 3.5e38]]}));
+    expect(&r, "post", t, 422, "non_finite");
+
+    let images = "/v1/maps/{id}/images";
+    let r = c.get(&format!("/v1/maps/{map}/images?from={}", u32::MAX));
+    check("get", images, &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let r = c.get(&format!("/v1/maps/{map}/images?from={}", u32_max + 1));
+    expect(&r, "get", images, 400, "invalid_parameter");
+    let thumb = "/v1/maps/{id}/images/{index}/thumbnail";
+    let r = c.get(&format!("/v1/maps/{map}/images/{}/thumbnail", u32::MAX));
+    check("get", thumb, &r);
+    assert_eq!(r.status, 404, "{}", String::from_utf8_lossy(&r.body));
+    let r = c.get(&format!("/v1/maps/{map}/images/{}/thumbnail", u32_max + 1));
+    expect(&r, "get", thumb, 400, "invalid_parameter");
+
+    // Dashboard pages: a well-formed id is the page (which asks the API whether it exists);
+    // a path that cannot be an id is the API's 404.
+    for (page, code) in [
+        ("/maps/{id}", "map_not_found"),
+        ("/localizations/{id}", "localization_not_found"),
+        ("/trips/{id}", "trip_not_found"),
+    ] {
+        let r = c.get(&page.replace("{id}", "ffffffffffffffff"));
+        check("get", page, &r);
+        assert_eq!(r.status, 200, "{page}");
+        let r = c.get(&page.replace("{id}", "not-an-id"));
+        expect(&r, "get", page, 404, code);
+    }
+}

@@ -24,14 +24,15 @@ use axum::Router;
 
 use crate::api::error::ApiError;
 use crate::api::state::AppState;
+use crate::api::wire::parse_id;
 
 /// The routes of the dashboard.
 pub fn router() -> Router<AppState> {
     Router::new()
         .route("/", get(page))
-        .route("/maps/{id}", get(page))
-        .route("/localizations/{id}", get(page))
-        .route("/trips/{id}", get(page))
+        .route("/maps/{id}", get(map_page))
+        .route("/localizations/{id}", get(localization_page))
+        .route("/trips/{id}", get(trip_page))
         .route("/assets/{name}", get(asset))
 }
 
@@ -160,6 +161,34 @@ fn serve(a: &Asset, headers: &HeaderMap, csp: bool) -> Response {
 /// the API's 404 message on the page).
 async fn page(headers: HeaderMap) -> Response {
     serve(&SHELL, &headers, true)
+}
+
+/// A page about one object: the shell when the path holds a well-formed id (whether it exists
+/// is for the page to ask the API), the API's 404 when it cannot be an id at all.
+fn object_page(
+    id: &str,
+    headers: &HeaderMap,
+    not_found: fn(String) -> ApiError,
+) -> Result<Response, ApiError> {
+    match parse_id(id) {
+        Some(_) => Ok(serve(&SHELL, headers, true)),
+        None => Err(not_found(id.to_string())),
+    }
+}
+
+async fn map_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+    object_page(&id, &headers, ApiError::MapNotFound)
+}
+
+async fn localization_page(
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    object_page(&id, &headers, ApiError::LocalizationNotFound)
+}
+
+async fn trip_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+    object_page(&id, &headers, ApiError::TripNotFound)
 }
 
 async fn asset(Path(name): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
