@@ -397,8 +397,60 @@ fn the_specs_numeric_bounds_are_the_servers() {
         Some(u32_max)
     );
 
+    // Map settings: the spec's ranges are the library's.
+    let schemas = &doc["components"]["schemas"];
+    let range = |schema: &str, field: &str| {
+        let f = &schemas[schema]["properties"][field];
+        (f["minimum"].as_u64(), f["maximum"].as_u64())
+    };
+    use seasonloc::features::hog::{MAX_CELL_SIZE, MIN_CELL_SIZE};
+    assert_eq!(
+        range("HogDescriptor", "cell_size"),
+        (Some(MIN_CELL_SIZE.into()), Some(MAX_CELL_SIZE.into()))
+    );
+    assert_eq!(range("CoocDescriptor", "upsample"), (Some(1), Some(8)));
+    assert_eq!(
+        range("CoocDescriptor", "max_keypoints"),
+        (Some(1), Some(2000))
+    );
+    let grid = &schemas["CoocDescriptor"]["properties"]["grid"]["items"];
+    assert_eq!(
+        (grid["minimum"].as_u64(), grid["maximum"].as_u64()),
+        (Some(1), Some(64))
+    );
+
     let server = strict_server();
     let c = server.client;
+    for (settings, ok) in [
+        (json!({"kind": "hog", "cell_size": MIN_CELL_SIZE}), true),
+        (json!({"kind": "hog", "cell_size": MAX_CELL_SIZE}), true),
+        (
+            json!({"kind": "hog", "cell_size": MIN_CELL_SIZE - 1}),
+            false,
+        ),
+        (
+            json!({"kind": "hog", "cell_size": MAX_CELL_SIZE + 1}),
+            false,
+        ),
+        (
+            json!({"kind": "cooc", "upsample": 8, "max_keypoints": 2000, "grid": [64, 1]}),
+            true,
+        ),
+        (json!({"kind": "cooc", "grid": null}), true),
+        (json!({"kind": "cooc", "upsample": 9}), false),
+        (json!({"kind": "cooc", "max_keypoints": 2001}), false),
+        (json!({"kind": "cooc", "grid": [65, 8]}), false),
+    ] {
+        let r = c.post_json("/v1/maps", &json!({"name": "b", "descriptor": settings}));
+        check("post", "/v1/maps", &r);
+        let want = if ok { 201 } else { 400 };
+        assert_eq!(
+            r.status,
+            want,
+            "{settings}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+    }
     let map = create_vector_map(&c, "bounds", 3);
     let path = format!("/v1/maps/{map}/descriptors");
     let t = "/v1/maps/{id}/descriptors";
