@@ -26,6 +26,8 @@ pgport=$(free_port)
 as_pg "$pgbin/pg_ctl" -D "$tmp/pg" -l "$tmp/pg/log" -w \
   -o "-p $pgport -k $tmp/pg -c listen_addresses=127.0.0.1 -c max_connections=200" start >/dev/null
 
+# Starts one replica and sets URL (no command substitution: a subshell would lose its pid,
+# leaving the replica running and unmeasured through the next configurations).
 start() { # name, extra args...
   local name=$1; shift
   local port; port=$(free_port)
@@ -33,7 +35,7 @@ start() { # name, extra args...
   pids+=($!)
   for _ in $(seq 300); do
     if python3 -c "import urllib.request,sys; urllib.request.urlopen('http://127.0.0.1:$port/readyz', timeout=1)" 2>/dev/null; then
-      echo "http://127.0.0.1:$port"; return
+      URL="http://127.0.0.1:$port"; return
     fi
     sleep 0.1
   done
@@ -43,7 +45,7 @@ rss() { for p in "${pids[@]}"; do grep VmHWM "/proc/$p/status" | awk '{print $2}
 stop_all() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null; wait "$p" 2>/dev/null || true; done; pids=(); }
 
 echo "# uptime: $(uptime)"
-url=$(start single --data-dir "$tmp/single")
+start single --data-dir "$tmp/single"; url=$URL
 out=$("$python" "$here/load_trips.py" "$url" "$data" --batches "$batches" --max-seconds "$max")
 echo "{\"config\":\"embedded\",\"rss_kb\":\"$(rss)\",\"result\":$out}"
 stop_all
@@ -52,7 +54,7 @@ for n in 2 3; do
   as_pg "$pgbin/createdb" -h 127.0.0.1 -p "$pgport" -U postgres "$db"
   dburl="postgres://postgres@127.0.0.1:$pgport/$db"
   urls=()
-  for k in $(seq "$n"); do urls+=("$(start "r$n-$k" --database-url "$dburl")"); done
+  for k in $(seq "$n"); do start "r$n-$k" --database-url "$dburl"; urls+=("$URL"); done
   psql="$pgbin/psql -h 127.0.0.1 -p $pgport -U postgres -d $db"
   out=$("$python" "$here/load_trips.py" "$(IFS=,; echo "${urls[*]}")" "$data" --batches "$batches" --max-seconds "$max" --psql "$psql")
   echo "{\"config\":\"postgres x$n\",\"rss_kb\":\"$(rss)\",\"result\":$out}"
