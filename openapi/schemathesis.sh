@@ -2,11 +2,13 @@
 # Checks that openapi/openapi.yaml says exactly what the server does: schemathesis (PyPI, in a
 # virtual environment outside the repository) with every check, against a running build served
 # on 127.0.0.1 with an admin key and a throw-away data folder. Bounded by MAX_SECONDS.
+# openapi/schemathesis.toml says which statuses answer a request that is valid by the document.
 # usage: openapi/schemathesis.sh BINARY [MAX_SECONDS] [SCHEMATHESIS]
 #   e.g. python3 -m venv /tmp/st && /tmp/st/bin/pip install schemathesis
 #        openapi/schemathesis.sh target/debug/seasonloc 150 /tmp/st/bin/st
 set -eu
 BIN=$1; T=${2:-150}; ST=${3:-st}
+CONFIG=$(cd "$(dirname "$0")" && pwd)/schemathesis.toml
 D=$(mktemp -d)
 trap 'kill $PID 2>/dev/null || true; rm -rf "$D"' EXIT
 KEY=schemathesis-admin-key-$(od -An -N8 -tx1 /dev/urandom | tr -d ' \n')
@@ -21,5 +23,5 @@ for _ in $(seq 100); do
   sleep 0.1
 done
 cd "$D"
-"$ST" run "http://127.0.0.1:$PORT/openapi.json" --checks all -H "Authorization: Bearer $KEY" \
+"$ST" --config-file "$CONFIG" run "http://127.0.0.1:$PORT/openapi.json" --checks all -H "Authorization: Bearer $KEY" \
   --max-time "$T" --workers 1 --request-timeout 30 --suppress-health-check all

@@ -20,6 +20,16 @@ pub enum Error {
         /// Why it was rejected.
         reason: String,
     },
+    /// A parameter that is valid on its own but does not fit the other parameters of the same
+    /// request (e.g. a spatial tolerance at least the grid size), the data it applies to or
+    /// the model it names: a rule no schema of single fields can state.
+    #[error("invalid parameter `{name}`: {reason}")]
+    Inconsistent {
+        /// The parameter's user-facing name, e.g. `spatial_tolerance`.
+        name: &'static str,
+        /// What it does not fit, and why.
+        reason: String,
+    },
     /// A matrix or vector contains NaN or an infinity.
     #[error("non-finite value ({value}) in {what} at row {row}, column {col}")]
     NonFinite {
@@ -69,6 +79,14 @@ impl Error {
     /// Shorthand for [`Error::InvalidParameter`].
     pub fn param(name: &'static str, reason: impl Into<String>) -> Self {
         Error::InvalidParameter {
+            name,
+            reason: reason.into(),
+        }
+    }
+
+    /// Shorthand for [`Error::Inconsistent`].
+    pub fn inconsistent(name: &'static str, reason: impl Into<String>) -> Self {
+        Error::Inconsistent {
             name,
             reason: reason.into(),
         }

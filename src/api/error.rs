@@ -54,6 +54,16 @@ pub enum ApiError {
         /// Why it was rejected.
         reason: String,
     },
+    /// 422 `inconsistent_parameter`: a parameter valid on its own (by the published schema)
+    /// that does not fit the request's other parameters, the server's limits or the model it
+    /// names.
+    #[error("invalid parameter `{name}`: {reason}")]
+    InconsistentParameter {
+        /// The parameter, e.g. `relocalization_cost`.
+        name: String,
+        /// What it does not fit, and why.
+        reason: String,
+    },
     /// 400 `bad_request`: a malformed body (JSON syntax, multipart framing, unknown part).
     #[error("{0}")]
     BadRequest(String),
@@ -182,6 +192,9 @@ impl ApiError {
             ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),
             ApiError::MethodNotAllowed => (S::METHOD_NOT_ALLOWED, "method_not_allowed", false),
             ApiError::InvalidParameter { .. } => (S::BAD_REQUEST, "invalid_parameter", false),
+            ApiError::InconsistentParameter { .. } => {
+                (S::UNPROCESSABLE_ENTITY, "inconsistent_parameter", false)
+            }
             ApiError::BadRequest(_) => (S::BAD_REQUEST, "bad_request", false),
             ApiError::EmptyBatch(_) => (S::BAD_REQUEST, "empty_batch", false),
             ApiError::BatchTooLarge { .. } => (S::BAD_REQUEST, "batch_too_large", false),
@@ -227,6 +240,14 @@ impl ApiError {
     /// Shorthand for [`ApiError::InvalidParameter`].
     pub fn param(name: impl Into<String>, reason: impl Into<String>) -> Self {
         ApiError::InvalidParameter {
+            name: name.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// Shorthand for [`ApiError::InconsistentParameter`].
+    pub fn inconsistent(name: impl Into<String>, reason: impl Into<String>) -> Self {
+        ApiError::InconsistentParameter {
             name: name.into(),
             reason: reason.into(),
         }
@@ -287,7 +308,9 @@ impl From<AppError> for ApiError {
             AppError::InvalidParameter { name, reason } => {
                 ApiError::InvalidParameter { name, reason }
             }
-            AppError::InvalidInput(m) => ApiError::BadRequest(m),
+            AppError::InconsistentParameter { name, reason } => {
+                ApiError::InconsistentParameter { name, reason }
+            }
             AppError::EmptyBatch(m) => ApiError::EmptyBatch(m),
             AppError::MapEmpty(m) => ApiError::MapEmpty(id(m)),
             AppError::ModelMismatch(m) => ApiError::ModelMismatch(m),

@@ -1,42 +1,52 @@
 //! Extractors whose rejections use the API's error shape instead of axum's plain-text bodies,
 //! and the parsers of what every resource reads the same way (JSON documents, map ids).
 
-use axum::extract::rejection::{BytesRejection, JsonRejection};
+use axum::body::Bytes;
+use axum::extract::rejection::BytesRejection;
 use axum::extract::{FromRequest, Request};
-use axum::http::StatusCode;
+use axum::http::{header, HeaderMap, StatusCode};
 use serde::de::DeserializeOwned;
 
 use super::error::ApiError;
 use super::state::AppState;
 use super::wire::parse_id;
 
-/// `Json<T>` whose failures are [`ApiError`]s: syntax errors are 400 `bad_request`, unknown
-/// fields and wrong types 400 `invalid_parameter`, a missing JSON content type 415.
+/// A JSON object body whose failures are [`ApiError`]s: a content type other than JSON is 415,
+/// then everything [`parse_json_object`] says (syntax 400 `bad_request`; not an object, unknown
+/// fields and wrong types 400 `invalid_parameter` naming the field).
 pub struct ApiJson<T>(pub T);
 
 impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
     type Rejection = ApiError;
 
     async fn from_request(req: Request, state: &AppState) -> Result<Self, Self::Rejection> {
-        match axum::Json::<T>::from_request(req, state).await {
-            Ok(axum::Json(v)) => Ok(ApiJson(v)),
-            Err(r) => Err(json_rejection(r, state.settings.max_body_bytes)),
+        if !is_json(req.headers()) {
+            return Err(ApiError::UnsupportedMediaType(
+                "expected a request with `Content-Type: application/json`".into(),
+            ));
         }
+        let body = Bytes::from_request(req, state)
+            .await
+            .map_err(|e| bytes_rejection(e, state.settings.max_body_bytes))?;
+        parse_json_object(&body, None).map(ApiJson)
     }
 }
 
-#[allow(
-    clippy::wildcard_enum_match_arm,
-    reason = "axum's JsonRejection is #[non_exhaustive]: a fallback arm is required"
-)]
-fn json_rejection(r: JsonRejection, max_body: usize) -> ApiError {
-    match r {
-        JsonRejection::JsonDataError(e) => ApiError::param("body", e.body_text()),
-        JsonRejection::JsonSyntaxError(e) => ApiError::BadRequest(e.body_text()),
-        JsonRejection::MissingJsonContentType(e) => ApiError::UnsupportedMediaType(e.body_text()),
-        JsonRejection::BytesRejection(e) => bytes_rejection(e, max_body),
-        other => ApiError::BadRequest(other.body_text()),
-    }
+/// Whether the request says its body is JSON (`application/json` or a `+json` type, any
+/// parameters).
+pub fn is_json(headers: &HeaderMap) -> bool {
+    let Some(value) = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+    else {
+        return false;
+    };
+    let essence = value.split(';').next().unwrap_or("").trim();
+    let Some((kind, sub)) = essence.split_once('/') else {
+        return false;
+    };
+    kind.eq_ignore_ascii_case("application")
+        && (sub.eq_ignore_ascii_case("json") || sub.to_ascii_lowercase().ends_with("+json"))
 }
 
 /// Whether a body read failed because the body stalled longer than the body read timeout
@@ -67,6 +77,26 @@ pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
 /// Parses a map id from a path or query; ids that cannot exist are 404.
 pub fn map_id(s: &str) -> Result<u64, ApiError> {
     parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
+}
+
+/// Parses a JSON document that must be an object (a request body, the `params` or `drive`
+/// part): serde would also fill a struct from an array (`[4, null]` as `{"fan_out": 4}`), which
+/// the schema does not allow, so anything but an object is 400 `invalid_parameter` naming
+/// `root` (or `body`).
+pub fn parse_json_object<T: DeserializeOwned>(
+    bytes: &[u8],
+    root: Option<&str>,
+) -> Result<T, ApiError> {
+    match bytes.iter().find(|b| !b.is_ascii_whitespace()) {
+        Some(b'{') => parse_json(bytes, root),
+        Some(_) => Err(ApiError::param(
+            root.unwrap_or("body"),
+            "must be a JSON object",
+        )),
+        None => Err(ApiError::BadRequest(
+            "malformed JSON: the body is empty".into(),
+        )),
+    }
 }
 
 /// Parses a JSON document already read. Type errors and unknown fields are 400

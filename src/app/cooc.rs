@@ -159,7 +159,7 @@ impl App {
         // Re-read: the map may have been built since the caller's check.
         let map = self.map_for_drives(id).await?;
         if drive.locations.len() != drive.images.len() {
-            return Err(AppError::param(
+            return Err(AppError::inconsistent(
                 "drive.locations",
                 format!(
                     "has {} entries for {} images; give one location per image",
@@ -177,7 +177,7 @@ impl App {
             return Err(if map.image_count == 0 {
                 AppError::MapEmpty(id)
             } else {
-                AppError::param(
+                AppError::inconsistent(
                     format!("drive.locations[{k}]"),
                     format!(
                         "location {l} does not exist: the map has {} locations (0..={})",

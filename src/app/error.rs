@@ -34,10 +34,15 @@ pub enum AppError {
         /// Why it was rejected.
         reason: String,
     },
-    /// The request is well-formed but asks for something this map does not take (e.g. images
-    /// for a map of precomputed descriptors).
-    #[error("{0}")]
-    InvalidInput(String),
+    /// A parameter valid on its own that does not fit the request's other parameters, the
+    /// server's limits or the model it names (rules a schema of single fields cannot state).
+    #[error("invalid parameter `{name}`: {reason}")]
+    InconsistentParameter {
+        /// The parameter, e.g. `relocalization_cost` or `descriptor.layer`.
+        name: String,
+        /// What it does not fit, and why.
+        reason: String,
+    },
     /// Nothing to work on (no frames, no queries).
     #[error("empty batch: {0}")]
     EmptyBatch(String),
@@ -108,6 +113,14 @@ impl AppError {
             reason: reason.into(),
         }
     }
+
+    /// Shorthand for [`AppError::InconsistentParameter`].
+    pub fn inconsistent(name: impl Into<String>, reason: impl Into<String>) -> Self {
+        AppError::InconsistentParameter {
+            name: name.into(),
+            reason: reason.into(),
+        }
+    }
 }
 
 impl From<crate::Error> for AppError {
@@ -115,6 +128,7 @@ impl From<crate::Error> for AppError {
         use crate::Error as E;
         match e {
             E::InvalidParameter { name, reason } => AppError::param(name, reason),
+            E::Inconsistent { name, reason } => AppError::inconsistent(name, reason),
             E::NonFinite { .. } => AppError::NonFinite(e.to_string()),
             E::Shape(s) => AppError::ShapeMismatch(s),
             E::Empty(s) => AppError::EmptyBatch(s),

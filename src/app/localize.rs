@@ -74,7 +74,7 @@ impl App {
             match kind(&map) {
                 Kind::Cooc(_) => {
                     let Queries::Images(parts) = queries else {
-                        return Err(AppError::InvalidInput(format!(
+                        return Err(AppError::MapKind(format!(
                             "co-occurrence map `{id:016x}` localizes images (multipart), not \
                              descriptors"
                         )));
@@ -97,14 +97,11 @@ impl App {
                 }
                 Kind::Descriptors(_) => {
                     if let Some(m) = method {
-                        return Err(AppError::param(
-                            "method",
-                            format!(
-                                "`{}` applies to co-occurrence maps only; map `{id:016x}` uses \
-                                 the flow graph",
-                                service_name(m)
-                            ),
-                        ));
+                        return Err(AppError::MapKind(format!(
+                            "`{}` applies to co-occurrence maps only; map `{id:016x}` uses the \
+                             flow graph",
+                            service_name(m)
+                        )));
                     }
                     if map.image_count == 0 {
                         return Err(AppError::MapEmpty(id));
@@ -135,7 +132,7 @@ impl App {
                                 }
                                 Queries::Images(parts) => {
                                     let Some(extractor) = map_extractor(&map)? else {
-                                        return Err(AppError::InvalidInput(format!(
+                                        return Err(AppError::MapKind(format!(
                                             "map `{id:016x}` stores precomputed descriptors; \
                                              send descriptors, not images"
                                         )));

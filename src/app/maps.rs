@@ -64,7 +64,8 @@ fn cnn_error(e: crate::Error) -> AppError {
     };
     match e {
         crate::Error::InvalidParameter { name, reason } => AppError::param(field(name), reason),
-        crate::Error::Io { path, source } => AppError::param(
+        crate::Error::Inconsistent { name, reason } => AppError::inconsistent(field(name), reason),
+        crate::Error::Io { path, source } => AppError::inconsistent(
             "descriptor.model",
             format!("cannot read {}: {source}", path.display()),
         ),
@@ -72,7 +73,9 @@ fn cnn_error(e: crate::Error) -> AppError {
         | crate::Error::Shape(_)
         | crate::Error::Empty(_)
         | crate::Error::Image { .. }
-        | crate::Error::Format { .. }) => AppError::param("descriptor.model", other.to_string()),
+        | crate::Error::Format { .. }) => {
+            AppError::inconsistent("descriptor.model", other.to_string())
+        }
     }
 }
 
@@ -83,7 +86,7 @@ fn check_cnn(options: CnnOptions, max_len: usize) -> AppResult<CnnSettings> {
     options.validate().map_err(cnn_error)?;
     let spec = CnnSpec::new(options.clone()).map_err(cnn_error)?;
     if spec.dim() > max_len {
-        return Err(AppError::param(
+        return Err(AppError::inconsistent(
             "descriptor.layer",
             format!(
                 "`{}` gives descriptors of length {}, more than the server's limit of {max_len}",
@@ -106,7 +109,7 @@ impl App {
             DescriptorSpec::Settings(DescriptorSettings::Precomputed { dim })
                 if dim as usize > max_len =>
             {
-                return Err(AppError::param(
+                return Err(AppError::inconsistent(
                     "descriptor.dim",
                     format!("{dim} is more than the server's limit of {max_len}"),
                 ));
@@ -163,7 +166,7 @@ impl App {
     pub async fn map_for_images(&self, id: u64) -> AppResult<MapRecord> {
         let map = self.get_map(id).await?;
         if let DescriptorSettings::Precomputed { .. } = map.descriptor {
-            return Err(AppError::InvalidInput(format!(
+            return Err(AppError::MapKind(format!(
                 "map `{id:016x}` stores precomputed descriptors; post them to \
                  /v1/maps/{id:016x}/descriptors"
             )));
@@ -279,7 +282,7 @@ impl App {
                 let mut map = map;
                 let geometry = first_batch_geometry(&mut map, &images)?;
                 let Some(extractor) = map_extractor(&map)? else {
-                    return Err(AppError::InvalidInput(format!(
+                    return Err(AppError::MapKind(format!(
                         "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
                          images"
                     )));

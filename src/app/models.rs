@@ -29,14 +29,14 @@ impl ModelPolicy {
     /// stats the file, never opens it).
     pub fn resolve(&self, requested: &Path) -> AppResult<PathBuf> {
         let Some(dir) = &self.dir else {
-            return Err(AppError::param(
+            return Err(AppError::inconsistent(
                 "descriptor.model",
                 "this server takes no model files from requests (it has no --model-dir); \
                  omit `model` to use its default model",
             ));
         };
         let not_a_model = || {
-            AppError::param(
+            AppError::inconsistent(
                 "descriptor.model",
                 format!(
                     "`{}` is not a model file in the server's model directory",
@@ -68,7 +68,7 @@ impl ModelPolicy {
             return Err(not_a_model());
         }
         if meta.len() > self.max_bytes {
-            return Err(AppError::param(
+            return Err(AppError::inconsistent(
                 "descriptor.model",
                 format!(
                     "`{}` is {} bytes, more than the server's model size limit of {} bytes",
@@ -87,7 +87,7 @@ mod tests {
     use super::*;
 
     fn message(e: AppError) -> String {
-        let AppError::InvalidParameter { name, reason } = e else {
+        let AppError::InconsistentParameter { name, reason } = e else {
             panic!("{e:?}");
         };
         assert_eq!(name, "descriptor.model");

@@ -101,7 +101,7 @@ impl CoocParams {
         }
         let leaves = (self.vocabulary_branching as u64).pow(self.vocabulary_depth as u32);
         if leaves > 1 << 24 {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "vocabulary_depth",
                 format!("branching^depth = {leaves} words exceeds 2^24"),
             ));
@@ -110,7 +110,7 @@ impl CoocParams {
             return Err(Error::param("kmeans_iterations", "must be at least 1"));
         }
         if self.max_training_descriptors < self.vocabulary_branching {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "max_training_descriptors",
                 format!(
                     "must be at least vocabulary_branching ({}), got {}",
@@ -120,7 +120,7 @@ impl CoocParams {
         }
         spatial::SpatialGrid::new(self.grid_cols, self.grid_rows)?;
         if self.spatial_tolerance >= self.grid_cols.max(self.grid_rows) {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "spatial_tolerance",
                 format!(
                     "must be below the grid size ({}x{}), got {}",

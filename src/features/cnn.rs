@@ -108,14 +108,19 @@ impl CnnOptions {
             ));
         }
         if let CnnResize::ShortSideCrop { short_side } = self.resize {
-            if short_side < w.max(h) || short_side > 4 * MAX_INPUT_SIDE {
+            if short_side > 4 * MAX_INPUT_SIDE {
                 return Err(Error::param(
+                    "cnn_short_side",
+                    format!("{short_side}: must be at most {}", 4 * MAX_INPUT_SIDE),
+                ));
+            }
+            if short_side < w.max(h) {
+                return Err(Error::inconsistent(
                     "cnn_short_side",
                     format!(
                         "{short_side}: must be at least the larger input side ({}) so that the \
-                         {w}x{h} crop fits, and at most {}",
-                        w.max(h),
-                        4 * MAX_INPUT_SIDE
+                         {w}x{h} crop fits",
+                        w.max(h)
                     ),
                 ));
             }
@@ -345,6 +350,14 @@ mod tests {
         }
     }
 
+    /// A parameter the model (or another parameter) rejects: [`Error::Inconsistent`].
+    fn inconsistent_error(err: &Error) -> (&'static str, &str) {
+        match err {
+            Error::Inconsistent { name, reason } => (name, reason.as_str()),
+            other => panic!("expected Inconsistent, got {other:?}"),
+        }
+    }
+
     fn top_k(values: &[f32], k: usize) -> Vec<usize> {
         let mut idx: Vec<usize> = (0..values.len()).collect();
         idx.sort_by(|&a, &b| values[b].total_cmp(&values[a]));
@@ -474,7 +487,7 @@ mod tests {
         let mut options = CnnOptions::efficientnet_lite0(&model);
         options.layer = "block11".into();
         let err = CnnSpec::new(options).unwrap_err();
-        let (name, reason) = param_error(&err);
+        let (name, reason) = inconsistent_error(&err);
         assert_eq!(name, "cnn_layer");
         assert!(reason.contains("`block11`"), "{reason}");
         for output in ["logits", "pooled", "block7", "block10", "block14"] {
@@ -490,7 +503,7 @@ mod tests {
         // block10 sits after four stride-2 stages: an 8x8 input leaves it 0x0.
         options.input_size = (8, 8);
         let err = CnnSpec::new(options).unwrap_err();
-        let (name, reason) = param_error(&err);
+        let (name, reason) = inconsistent_error(&err);
         assert_eq!(name, "cnn_input_size");
         assert!(
             reason.contains("8x8") && reason.contains("block10"),
@@ -507,7 +520,9 @@ mod tests {
             ("cnn_input_size", |o| o.input_size = (0, 224)),
             ("cnn_input_size", |o| o.input_size = (224, 100_000)),
             ("cnn_short_side", |o| {
-                o.resize = CnnResize::ShortSideCrop { short_side: 200 }
+                o.resize = CnnResize::ShortSideCrop {
+                    short_side: 100_000,
+                }
             }),
             ("cnn_mean", |o| o.mean[1] = f32::NAN),
             ("cnn_scale", |o| o.scale[2] = 0.0),
@@ -518,6 +533,11 @@ mod tests {
             let err = CnnSpec::new(o).unwrap_err();
             assert_eq!(param_error(&err).0, want, "{err}");
         }
+        // A short side that is valid alone but smaller than the input it must hold.
+        let mut o = base.clone();
+        o.resize = CnnResize::ShortSideCrop { short_side: 200 };
+        let err = CnnSpec::new(o).unwrap_err();
+        assert_eq!(inconsistent_error(&err).0, "cnn_short_side", "{err}");
         // Valid settings get as far as reading the file.
         match CnnSpec::new(base).unwrap_err() {
             Error::Io { path, .. } => assert_eq!(path, Path::new("/nonexistent/model.onnx")),

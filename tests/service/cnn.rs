@@ -170,47 +170,55 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
 }
 
 #[test]
-fn cnn_map_creation_errors_are_precise_400s() {
+fn cnn_map_creation_errors_are_precise_400s_and_422s() {
     let Some((dir, model)) = model_copy() else {
         return;
     };
     let models = dir.path().to_path_buf();
     let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
-    let expect = |descriptor: Value, field: &str, needle: &str| {
+    // 400 `invalid_parameter` for a value the OpenAPI document rules out; 422
+    // `inconsistent_parameter` for one it allows that the model, another field or the server's
+    // configuration refuses.
+    let check = |descriptor: Value, status: u16, code: &str, field: &str, needle: &str| {
         let r = create(c, descriptor.clone());
         assert_eq!(
             r.status,
-            400,
+            status,
             "{descriptor}: {}",
             String::from_utf8_lossy(&r.body)
         );
-        assert_eq!(r.code(), "invalid_parameter", "{descriptor}");
+        assert_eq!(r.code(), code, "{descriptor}");
         let m = r.message();
         assert!(m.contains(field), "{descriptor}: `{field}` not in {m}");
         assert!(m.contains(needle), "{descriptor}: `{needle}` not in {m}");
     };
+    let expect =
+        |d: Value, field: &str, needle: &str| check(d, 400, "invalid_parameter", field, needle);
+    let refused = |d: Value, field: &str, needle: &str| {
+        check(d, 422, "inconsistent_parameter", field, needle)
+    };
     let missing = dir.path().join("absent.onnx");
-    expect(
+    refused(
         json!({"kind": "cnn", "model": missing, "layer": "block10"}),
         "descriptor.model",
         "absent.onnx",
     );
     let garbage = dir.path().join("garbage.onnx");
     std::fs::write(&garbage, b"this is not a protobuf").unwrap();
-    expect(
+    refused(
         json!({"kind": "cnn", "model": garbage, "layer": "block10"}),
         "descriptor.model",
         "garbage.onnx",
     );
     // The unknown layer's message lists the model's outputs.
-    expect(
+    refused(
         json!({"kind": "cnn", "model": model, "layer": "block99"}),
         "descriptor.layer",
         "pooled",
     );
     // Too small for the network's strides.
-    expect(
+    refused(
         json!({"kind": "cnn", "model": model, "layer": "block10", "input_size": [8, 8],
                "resize": "stretch"}),
         "descriptor.input_size",
@@ -226,13 +234,13 @@ fn cnn_map_creation_errors_are_precise_400s() {
         "descriptor.scale",
         "non-zero",
     );
-    expect(
+    refused(
         json!({"kind": "cnn", "model": model, "layer": "block10", "resize": "stretch", "short_side": 300}),
         "descriptor.short_side",
         "crop",
     );
     // No model and no server default.
-    expect(
+    refused(
         json!({"kind": "cnn", "layer": "block10"}),
         "descriptor.model",
         "--cnn-model",

@@ -93,15 +93,16 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
     assert!(r.message().contains("/drives"), "{}", r.message());
 
     // Bad drives store nothing.
+    // Valid by the schema, but not fitting the map (30 locations) or the images (two).
     let r = drive(c, &map, &night[..2], json!({"locations": [0, 30]}));
-    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    assert_eq!((r.status, r.code()), (422, "inconsistent_parameter".into()));
     assert!(
         r.message().contains("drive.locations[1]"),
         "{}",
         r.message()
     );
     let r = drive(c, &map, &night[..2], json!({"locations": [0]}));
-    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    assert_eq!((r.status, r.code()), (422, "inconsistent_parameter".into()));
     let r = c.post_multipart(&format!("/v1/maps/{map}/drives"), &parts(&night[..2], None));
     assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
     let mut broken = night[..2].to_vec();
@@ -149,7 +150,7 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
         &format!("/v1/maps/{map}/localize"),
         &json!({"descriptors": [[1.0]]}),
     );
-    assert_eq!(r.status, 400);
+    assert_eq!((r.status, r.code()), (409, "map_kind".into()));
     let hog = create_hog_map(c, "hog", 8);
     let r = drive(c, &hog, &night[..1], json!({"locations": [0]}));
     assert_eq!((r.status, r.code()), (409, "map_kind".into()));
@@ -159,7 +160,7 @@ fn cooc_map_builds_adds_a_drive_and_localizes_with_each_method() {
         &format!("/v1/maps/{hog}/localize"),
         &parts(&queries[..2], Some(("params", json!({"method": "cooc"})))),
     );
-    assert_eq!((r.status, r.code()), (400, "invalid_parameter".into()));
+    assert_eq!((r.status, r.code()), (409, "map_kind".into()));
     let r = c.post_json(
         "/v1/maps",
         &json!({"name": "x", "descriptor": {"kind": "cooc", "vocabulary_branching": 1}}),

@@ -80,7 +80,7 @@ fn unknown_ids_are_404() {
 }
 
 #[test]
-fn bad_map_settings_are_400() {
+fn bad_map_settings_are_400_or_422() {
     let server = strict_server();
     let c = server.client;
     let cases = [
@@ -95,10 +95,6 @@ fn bad_map_settings_are_400() {
         ),
         (json!({"name": "a", "descriptor": {"kind": "sift"}}), "sift"),
         (
-            json!({"name": "a", "descriptor": {"kind": "cnn", "model": "m.onnx", "layer": "x"}}),
-            "descriptor.model",
-        ),
-        (
             json!({"name": "a", "descriptor": {"kind": "precomputed", "dim": 0}}),
             "dim",
         ),
@@ -107,6 +103,44 @@ fn bad_map_settings_are_400() {
     for (body, needle) in cases {
         let r = c.post_json("/v1/maps", &body);
         expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+        assert!(r.message().contains(needle), "{body}: {}", r.message());
+    }
+    // Lengths are characters, as the document's `maxLength` counts them.
+    let long = "é".repeat(200);
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": long, "descriptor": {"kind": "hog"}}),
+    );
+    check("post", "/v1/maps", &r);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    c.request(
+        "DELETE",
+        &format!("/v1/maps/{}", r.json()["id"].as_str().unwrap()),
+        None,
+        b"",
+    );
+    for name in ["é".repeat(201), "   ".to_string()] {
+        let r = c.post_json(
+            "/v1/maps",
+            &json!({"name": name, "descriptor": {"kind": "hog"}}),
+        );
+        expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+    }
+    // Valid by the schema, refused by what the server has: no model directory here, and a
+    // spatial tolerance that does not fit its grid.
+    let inconsistent = [
+        (
+            json!({"name": "a", "descriptor": {"kind": "cnn", "model": "m.onnx", "layer": "x"}}),
+            "descriptor.model",
+        ),
+        (
+            json!({"name": "a", "descriptor": {"kind": "cooc", "grid": [2, 2], "spatial_tolerance": 2}}),
+            "descriptor.spatial_tolerance",
+        ),
+    ];
+    for (body, needle) in inconsistent {
+        let r = c.post_json("/v1/maps", &body);
+        expect(&r, "post", "/v1/maps", 422, "inconsistent_parameter");
         assert!(r.message().contains(needle), "{body}: {}", r.message());
     }
     let r = c.request("POST", "/v1/maps", Some("application/json"), b"{\"name\": ");
@@ -196,7 +230,9 @@ fn bad_image_batches_are_rejected_whole() {
         &path,
         &[good(1), good(2), Part::json("metadata", &json!([{}]))],
     );
-    expect(&r, "post", t, 400, "invalid_parameter");
+    // Valid by the schema, but one entry for two images: 422, never 400.
+    expect(&r, "post", t, 422, "inconsistent_parameter");
+    assert!(r.message().contains("metadata"), "{}", r.message());
 
     // Over the body limit.
     let huge = vec![7u8; MAX_BODY + 1];
@@ -246,12 +282,12 @@ fn bad_descriptors_are_rejected_whole() {
     let r = c.request("POST", &path, Some("application/json"), long.as_bytes());
     expect(&r, "post", t, 413, "payload_too_large");
     assert_eq!(image_count(&c, &map), 0, "a failed batch wrote something");
-    // Images to a precomputed map.
+    // Images to a precomputed map: a request this kind of map does not take.
     let r = c.post_multipart(
         &format!("/v1/maps/{map}/images"),
         &[Part::image("a.png", vec![1, 2])],
     );
-    expect(&r, "post", "/v1/maps/{id}/images", 400, "bad_request");
+    expect(&r, "post", "/v1/maps/{id}/images", 409, "map_kind");
 }
 
 #[test]
@@ -389,6 +425,14 @@ fn the_specs_numeric_bounds_are_the_servers() {
             .find(|p| p["name"] == name)
             .and_then(|p| p["schema"]["maximum"].as_u64())
     };
+    let param_max_post = |path: &str, name: &str| -> Option<u64> {
+        doc["paths"][path]["parameters"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .find(|p| p["name"] == name)
+            .and_then(|p| p["schema"]["maximum"].as_u64())
+    };
     let u32_max = u64::from(u32::MAX);
     assert_eq!(param_max("/v1/maps/{id}/images", "from"), Some(u32_max));
     assert_eq!(param_max("/v1/trips/{id}", "since"), Some(u32_max));
@@ -476,6 +520,45 @@ fn the_specs_numeric_bounds_are_the_servers() {
     let r = c.get(&format!("/v1/maps/{map}/images/{}/thumbnail", u32_max + 1));
     expect(&r, "get", thumb, 400, "invalid_parameter");
 
+    // A precomputed map's `dim` and the raw upload's `?dim=`: the document's bound is the
+    // server's; within it, a length over this server's configured cap is a 422.
+    let max_dim = 1u64 << 20; // the server's `MAX_DESCRIPTOR_DIM`, pinned over HTTP below
+    assert_eq!(
+        range("PrecomputedDescriptor", "dim"),
+        (Some(1), Some(max_dim))
+    );
+    assert_eq!(
+        param_max_post("/v1/maps/{id}/descriptors", "dim"),
+        Some(max_dim)
+    );
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "d", "descriptor": {"kind": "precomputed", "dim": max_dim + 1}}),
+    );
+    expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "d", "descriptor": {"kind": "precomputed", "dim": max_dim}}),
+    );
+    check("post", "/v1/maps", &r);
+    assert!(
+        r.status == 201 || (r.status, r.code().as_str()) == (422, "inconsistent_parameter"),
+        "{}",
+        String::from_utf8_lossy(&r.body)
+    );
+    let r = c.request(
+        "POST",
+        &format!("{path}?dim={}", u64::from(u32::MAX) + 1),
+        Some("application/octet-stream"),
+        &[0; 12],
+    );
+    expect(&r, "post", t, 400, "invalid_parameter");
+    let drive = &schemas["Drive"]["properties"]["locations"]["items"];
+    assert_eq!(
+        drive["maximum"].as_u64(),
+        Some(seasonloc::cooc::model::MAX_LOCATIONS as u64 - 1)
+    );
+
     // Dashboard pages: a well-formed id is the page (which asks the API whether it exists);
     // a path that cannot be an id is the API's 404.
     for (page, code) in [
@@ -489,4 +572,115 @@ fn the_specs_numeric_bounds_are_the_servers() {
         let r = c.get(&page.replace("{id}", "not-an-id"));
         expect(&r, "get", page, 404, code);
     }
+}
+
+/// Every optional field of a request object is `nullable` in the document, because the server
+/// reads `null` as "not given" (its default); the one exception is spelled out. And a body or
+/// part that must be an object is refused when it is anything else, although serde would fill
+/// a struct from an array.
+#[test]
+fn optional_fields_take_null_and_objects_must_be_objects() {
+    let doc = crate::spec::doc();
+    let schemas = &doc["components"]["schemas"];
+    for (schema, required) in [
+        ("HogDescriptor", &["kind", "cell_size"][..]),
+        ("CnnDescriptor", &["kind", "layer"]),
+        ("CoocDescriptor", &["kind"]),
+        ("Drive", &["locations"]),
+        ("ImageMetadata", &[]),
+        ("AppendDescriptorsRequest", &["descriptors"]),
+        ("LocalizeParams", &[]),
+        ("TripParams", &[]),
+    ] {
+        let props = schemas[schema]["properties"].as_object().unwrap();
+        for (name, p) in props {
+            let nullable = p["nullable"] == json!(true);
+            assert_eq!(
+                nullable,
+                !required.contains(&name.as_str()),
+                "{schema}.{name}: nullable is {nullable}"
+            );
+            // An enum that omits null forbids it, whatever `nullable` says.
+            if let (true, Some(values)) = (nullable, p["enum"].as_array()) {
+                assert!(
+                    values.contains(&json!(null)),
+                    "{schema}.{name}: enum without null"
+                );
+            }
+        }
+    }
+
+    let server = strict_server();
+    let c = server.client;
+    let route = Route::new(8, 3);
+    let hog = create_hog_map(&c, "nulls", 8);
+    let r = c.post_multipart(
+        &format!("/v1/maps/{hog}/images"),
+        &[Part::image("r.png", route.reference_png(0))],
+    );
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let trips = format!("/v1/maps/{hog}/trips");
+    let r = c.post_json(
+        &trips,
+        &json!({"lag": null, "fan_out": null, "hidden_cost": null, "relocalization": null,
+                "relocalization_cost": null, "prior_weight": null, "normalize": null,
+                "horizontal": null}),
+    );
+    check("post", "/v1/maps/{id}/trips", &r);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["params"]["lag"], 32, "null is the default");
+    for body in ["[]", "[null, null]", "[4]"] {
+        let r = c.request("POST", &trips, Some("application/json"), body.as_bytes());
+        expect(&r, "post", "/v1/maps/{id}/trips", 400, "invalid_parameter");
+        assert!(
+            r.message().contains("JSON object"),
+            "{body}: {}",
+            r.message()
+        );
+    }
+    let r = c.request(
+        "POST",
+        "/v1/maps",
+        Some("application/json"),
+        br#"["a", {"kind": "hog"}]"#,
+    );
+    expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+
+    let vectors = create_vector_map(&c, "null-vectors", 2);
+    let r = c.post_json(
+        &format!("/v1/maps/{vectors}/descriptors"),
+        &json!({"descriptors": [[1, 0]], "metadata": null}),
+    );
+    check("post", "/v1/maps/{id}/descriptors", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let localize = format!("/v1/maps/{vectors}/localize");
+    let r = c.post_json(
+        &localize,
+        &json!({"descriptors": [[1, 0]], "params": {"method": null, "flows": null}}),
+    );
+    check("post", "/v1/maps/{id}/localize", &r);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let r = c.request("POST", &localize, Some("application/json"), b"[[[1, 0]]]");
+    expect(
+        &r,
+        "post",
+        "/v1/maps/{id}/localize",
+        400,
+        "invalid_parameter",
+    );
+    let r = c.post_multipart(
+        &format!("/v1/maps/{hog}/localize"),
+        &[
+            Part::image("q.png", route.query_png(0)),
+            Part::json("params", &json!([4, null])),
+        ],
+    );
+    expect(
+        &r,
+        "post",
+        "/v1/maps/{id}/localize",
+        400,
+        "invalid_parameter",
+    );
+    assert!(r.message().contains("params"), "{}", r.message());
 }

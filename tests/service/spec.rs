@@ -84,14 +84,23 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
         return Err(format!("{path}: expected {ty}, got {value}"));
     }
     if let Some(p) = schema.get("pattern").and_then(Value::as_str) {
-        // The document's only pattern is the id format.
-        assert_eq!(p, "^[0-9a-f]{16}$", "pattern unsupported by the checker");
+        // The document's patterns: the id format, and "not all blank" on names.
         let s = value.as_str().unwrap_or("");
-        if !(s.len() == 16
-            && s.bytes()
-                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)))
-        {
-            return Err(format!("{path}: {s:?} is not an id"));
+        match p {
+            "^[0-9a-f]{16}$" => {
+                if !(s.len() == 16
+                    && s.bytes()
+                        .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)))
+                {
+                    return Err(format!("{path}: {s:?} is not an id"));
+                }
+            }
+            "\\S" => {
+                if s.chars().all(char::is_whitespace) {
+                    return Err(format!("{path}: {s:?} is blank"));
+                }
+            }
+            other => panic!("pattern {other:?} unsupported by the checker"),
         }
     }
     if let Some(min) = schema.get("minimum").and_then(Value::as_f64) {

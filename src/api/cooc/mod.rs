@@ -10,7 +10,7 @@ pub mod dto;
 
 use self::dto::{DriveDto, DriveResponse};
 use crate::api::error::ApiError;
-use crate::api::extract::{map_id, parse_json};
+use crate::api::extract::{map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::upload;
 use crate::app::DriveInput;
@@ -41,9 +41,9 @@ async fn add_drive(
             "missing: send a JSON part `drive` = {\"locations\": [one index per image], \"time\"?}",
         ));
     };
-    let drive: DriveDto = parse_json(json, Some("drive"))?;
+    let drive: DriveDto = parse_json_object(json, Some("drive"))?;
     if drive.locations.len() != batch.images.len() {
-        return Err(ApiError::param(
+        return Err(ApiError::inconsistent(
             "drive.locations",
             format!(
                 "has {} entries for {} images; give one location per image",

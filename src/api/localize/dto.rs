@@ -40,7 +40,7 @@ pub struct LocalizeParams {
 impl LocalizeParams {
     /// Parses a `params` part; unknown fields and wrong types are 400 `invalid_parameter`.
     pub fn from_json(bytes: &[u8]) -> Result<Self, ApiError> {
-        crate::api::extract::parse_json(bytes, Some("params"))
+        crate::api::extract::parse_json_object(bytes, Some("params"))
     }
 
     /// Resolves defaults and validates every range.

@@ -20,7 +20,7 @@ use self::dto::{
 };
 use crate::api::admission::Refusal;
 use crate::api::error::ApiError;
-use crate::api::extract::{bytes_rejection, map_id, parse_json};
+use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::upload;
 use crate::api::views;
@@ -49,7 +49,7 @@ async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError
         let bytes = axum::body::Bytes::from_request(req, state)
             .await
             .map_err(|r| bytes_rejection(r, s.max_body_bytes))?;
-        let body: LocalizeDescriptorsRequest = parse_json(&bytes, None)?;
+        let body: LocalizeDescriptorsRequest = parse_json_object(&bytes, None)?;
         let method = body.params.method.map(Into::into);
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;

@@ -9,10 +9,10 @@ use crate::api::wire::format_id;
 use crate::features::cnn::CnnResize;
 use crate::store::{DescriptorSettings, ImageMeta, MapRecord};
 
-/// Longest accepted map name, in bytes.
-pub const MAX_NAME_BYTES: usize = 200;
-/// Longest accepted metadata string (timestamp, label), in bytes.
-pub const MAX_META_BYTES: usize = 256;
+/// Longest accepted map name, in characters (as the OpenAPI `maxLength` counts).
+pub const MAX_NAME_CHARS: usize = 200;
+/// Longest accepted metadata string (timestamp, label), in characters.
+pub const MAX_META_CHARS: usize = 256;
 /// Largest accepted precomputed descriptor length.
 pub const MAX_DESCRIPTOR_DIM: u32 = 1 << 20;
 
@@ -240,10 +240,12 @@ impl ImageMetaDto {
     pub fn validate(self, index: usize) -> Result<ImageMeta, ApiError> {
         let name = |f: &str| format!("metadata[{index}].{f}");
         for (field, v) in [("timestamp", &self.timestamp), ("label", &self.label)] {
-            if v.as_ref().is_some_and(|s| s.len() > MAX_META_BYTES) {
+            if v.as_ref()
+                .is_some_and(|s| s.chars().count() > MAX_META_CHARS)
+            {
                 return Err(ApiError::param(
                     name(field),
-                    format!("must be at most {MAX_META_BYTES} bytes"),
+                    format!("must be at most {MAX_META_CHARS} characters"),
                 ));
             }
         }

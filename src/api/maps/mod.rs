@@ -19,10 +19,10 @@ pub mod dto;
 use self::dto::{
     AppendDescriptorsRequest, AppendResponse, CnnResizeDto, CreateMapRequest, DescriptorDto,
     ImageMetaDto, MapListResponse, MapResponse, ModelIdentityDto, RawQuery, MAX_DESCRIPTOR_DIM,
-    MAX_NAME_BYTES,
+    MAX_NAME_CHARS,
 };
 use crate::api::error::ApiError;
-use crate::api::extract::{bytes_rejection, map_id, parse_json, ApiJson};
+use crate::api::extract::{bytes_rejection, map_id, parse_json, parse_json_object, ApiJson};
 use crate::api::state::AppState;
 use crate::api::{idempotency, upload, views};
 use crate::app::{AppendOutcome, DescriptorSpec, NewMapSpec};
@@ -66,7 +66,7 @@ fn cnn_options(
         (Some(m), _) => PathBuf::from(m),
         (None, Some(d)) => d.to_path_buf(),
         (None, None) => {
-            return Err(ApiError::param(
+            return Err(ApiError::inconsistent(
                 "descriptor.model",
                 "is required: this server has no default CNN model (--cnn-model / \
                  SEASONLOC_CNN_MODEL)",
@@ -81,7 +81,7 @@ fn cnn_options(
     let (w, h) = o.input_size;
     o.resize = match (descriptor.resize, descriptor.short_side) {
         (Some(CnnResizeDto::Stretch), Some(_)) => {
-            return Err(ApiError::param(
+            return Err(ApiError::inconsistent(
                 "descriptor.short_side",
                 "applies to `resize: crop` only",
             ))
@@ -119,10 +119,11 @@ fn validate(
     default_model: Option<&std::path::Path>,
 ) -> Result<NewMapSpec, ApiError> {
     let name = req.name.trim().to_string();
-    if name.is_empty() || name.len() > MAX_NAME_BYTES {
+    let chars = name.chars().count();
+    if chars == 0 || chars > MAX_NAME_CHARS {
         return Err(ApiError::param(
             "name",
-            format!("must be 1 to {MAX_NAME_BYTES} bytes, got {}", name.len()),
+            format!("must be 1 to {MAX_NAME_CHARS} characters (not all blank), got {chars}"),
         ));
     }
     let descriptor = match req.descriptor {
@@ -170,6 +171,9 @@ fn validate(
             p.validate().map_err(|e| match e {
                 crate::Error::InvalidParameter { name, reason } => {
                     ApiError::param(format!("descriptor.{name}"), reason)
+                }
+                crate::Error::Inconsistent { name, reason } => {
+                    ApiError::inconsistent(format!("descriptor.{name}"), reason)
                 }
                 other @ (crate::Error::NonFinite { .. }
                 | crate::Error::Shape(_)
@@ -259,7 +263,7 @@ fn metadata(json: Option<&[u8]>, count: usize) -> Result<Vec<ImageMeta>, ApiErro
     };
     let entries: Vec<ImageMetaDto> = parse_json(json, Some("metadata"))?;
     if entries.len() != count {
-        return Err(ApiError::param(
+        return Err(ApiError::inconsistent(
             "metadata",
             format!(
                 "has {} entries for {count} images; send one per image",
@@ -332,8 +336,18 @@ async fn append_descriptors(
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
         .unwrap_or("");
+    // `?dim=` is checked whatever the body, so a bound the document states is never ignored.
+    let Query(q) = query.map_err(|e| ApiError::param("query", e.body_text()))?;
+    if let Some(d) = q.dim {
+        if d == 0 || d > MAX_DESCRIPTOR_DIM {
+            return Err(ApiError::param(
+                "dim",
+                format!("must be between 1 and {MAX_DESCRIPTOR_DIM}, got {d}"),
+            ));
+        }
+    }
     let (descriptors, metas) = if content_type.starts_with("application/json") {
-        let req: AppendDescriptorsRequest = parse_json(&body, None)?;
+        let req: AppendDescriptorsRequest = parse_json_object(&body, None)?;
         let m = upload::descriptor_matrix(&req.descriptors, map.dim, max)?;
         let metas = match req.metadata {
             None => vec![ImageMeta::default(); m.rows()],
@@ -343,7 +357,7 @@ async fn append_descriptors(
                 .map(|(k, e)| e.validate(k))
                 .collect::<Result<_, _>>()?,
             Some(entries) => {
-                return Err(ApiError::param(
+                return Err(ApiError::inconsistent(
                     "metadata",
                     format!("has {} entries for {} descriptors", entries.len(), m.rows()),
                 ))
@@ -351,12 +365,11 @@ async fn append_descriptors(
         };
         (m, metas)
     } else if content_type.starts_with("application/octet-stream") {
-        let Query(q) = query.map_err(|e| ApiError::param("query", e.body_text()))?;
         let dim = match (q.dim, map.dim) {
             (Some(d), _) => d,
             (None, Some(d)) => d,
             (None, None) => {
-                return Err(ApiError::param(
+                return Err(ApiError::inconsistent(
                     "dim",
                     "required until the map has descriptors",
                 ))

@@ -56,7 +56,7 @@ impl TripParamsDto {
                 }
             };
         if self.relocalization == Some(false) && self.relocalization_cost.is_some() {
-            return Err(ApiError::param(
+            return Err(ApiError::inconsistent(
                 "relocalization_cost",
                 "is set but `relocalization` is false",
             ));

@@ -23,7 +23,7 @@ use self::dto::{
     TripParamsDto, TripParamsUsed, TripResponse,
 };
 use crate::api::error::ApiError;
-use crate::api::extract::{bytes_rejection, map_id, parse_json};
+use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
 use crate::api::{idempotency, upload};
@@ -86,7 +86,7 @@ async fn open(
                 "trip parameters must be sent as application/json, got `{content_type}`"
             )));
         }
-        parse_json(&body, None)?
+        parse_json_object(&body, None)?
     };
     let params = dto.into_params()?;
     let record = state.app.open_trip(map, params).await?;

@@ -85,7 +85,7 @@ impl LoadedModel {
     ) -> Result<Self> {
         let shown = path.display();
         let bad_model = |what: &str, e: TractError| {
-            Error::param("cnn_model", format!("{shown}: {what}: {e:#}"))
+            Error::inconsistent("cnn_model", format!("{shown}: {what}: {e:#}"))
         };
         let onnx = tract_onnx::onnx();
         let proto = onnx
@@ -97,7 +97,7 @@ impl LoadedModel {
             .parse(&proto, dir)
             .map_err(|e| bad_model("cannot be loaded", e))?;
         if !parsed.unresolved_inputs.is_empty() {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "cnn_model",
                 format!(
                     "{shown}: cannot be loaded: unresolved inputs {:?}",
@@ -110,7 +110,7 @@ impl LoadedModel {
             .input_outlets()
             .map_err(|e| bad_model("no inputs", e))?;
         if inputs.len() != 1 {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "cnn_model",
                 format!(
                     "{shown}: has {} inputs; seasonloc feeds one image tensor [1, 3, h, w]",
@@ -124,7 +124,7 @@ impl LoadedModel {
             .unwrap_or_else(|_| "unknown".into());
         let outputs = output_names(&model);
         model.select_outputs_by_name([layer]).map_err(|_| {
-            Error::param(
+            Error::inconsistent(
                 "cnn_layer",
                 format!(
                     "`{layer}` is neither an output nor a node of {shown}; its outputs are: {}",
@@ -134,7 +134,7 @@ impl LoadedModel {
         })?;
         let shape = [1, 3, height as usize, width as usize];
         let wrong_size = |e: TractError| {
-            Error::param(
+            Error::inconsistent(
                 "cnn_input_size",
                 format!(
                     "{shown} cannot run on a {width}x{height} input (tensor {shape:?}; the model \
@@ -161,7 +161,7 @@ impl LoadedModel {
         let zeros = vec![0.0; 3 * width as usize * height as usize];
         let (output, out_shape) = loaded.run_raw(zeros).map_err(wrong_size)?;
         if output.is_empty() {
-            return Err(Error::param(
+            return Err(Error::inconsistent(
                 "cnn_input_size",
                 format!(
                     "{width}x{height} is too small for `{layer}` of {shown}: the layer has no \
@@ -177,7 +177,7 @@ impl LoadedModel {
     /// the chosen output, flattened.
     pub(crate) fn run(&self, input: Vec<f32>) -> Result<Vec<f32>> {
         let (output, shape) = self.run_raw(input).map_err(|e| {
-            Error::param(
+            Error::inconsistent(
                 "cnn_model",
                 format!("inference with {} failed: {e:#}", self.path.display()),
             )
@@ -281,7 +281,7 @@ mod tests {
         std::fs::write(&path, b"this is not protobuf \xff\xff\xff").unwrap();
         let err = LoadedModel::shared(&path, "logits", (224, 224)).unwrap_err();
         match &err {
-            Error::InvalidParameter { name, reason } => {
+            Error::Inconsistent { name, reason } => {
                 assert_eq!(*name, "cnn_model");
                 assert!(reason.contains("not-a-model.onnx"), "{reason}");
             }
