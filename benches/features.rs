@@ -1,14 +1,18 @@
 //! HOG extraction benches: the paper's 1024x768 / 32 px grid single-threaded (HOG alone on a
 //! gray image, and camera-image preparation alone: JPEG decode + gray + resize, with the shipped
-//! path and, for a back-to-back before/after, the `image` crate's `to_luma8` + `imageops::resize`
-//! it replaced), a 64x32 Nordland frame with 8 px cells, and batch throughput across all cores
+//! path (the JPEG's Y plane decoded alone) and, for back-to-back before/afters, the colour
+//! decode + Rec. 709 luma it replaced for gray descriptors and the `image` crate's `to_luma8` +
+//! `imageops::resize` before that), a 64x32 Nordland frame with 8 px cells, and batch throughput across all cores
 //! (`extract_batch` on decoded frames, `extract_files` with PNG decoding). Compare with
 //! `benches/opencv_hog.py`.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use image::DynamicImage;
 use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{extract_batch, extract_files, load_image_file, prepare_gray, Extractor};
+use seasonloc::features::{
+    extract_batch, extract_files, load_image_file, load_image_file_as, prepare_gray, Extractor,
+    Pixels,
+};
 
 mod fixture;
 
@@ -36,23 +40,33 @@ fn single(c: &mut Criterion) {
         let spec = hog(32, Some((1024, 768)));
         g.bench_function("jpeg_decode_to_hog_1024x768_cell32", |b| {
             b.iter(|| {
-                spec.extract(&load_image_file(&path).expect("decodes"))
+                spec.extract(&load_image_file_as(&path, spec.pixels()).expect("decodes"))
                     .expect("extracts")
             })
         });
-        // The shipped preparation path (what HOG's `extract` with `resize` runs).
+        // The shipped preparation path of gray descriptors (what `extract_files` and HOG's
+        // `extract` with `resize` run): the Y plane alone, then the resize.
         let prepare = || {
+            let img = load_image_file_as(&path, Pixels::Gray).expect("decodes");
+            prepare_gray(&img, Some((1024, 768)))
+                .expect("resizes")
+                .into_owned()
+        };
+        // The colour path (still the CNN's decode) + Rec. 709 luma, which gray descriptors
+        // used before, kept for back-to-back comparisons.
+        let prepare_colour = || {
             let img = load_image_file(&path).expect("decodes");
             prepare_gray(&img, Some((1024, 768)))
                 .expect("resizes")
                 .into_owned()
         };
-        // The path it replaced, kept for back-to-back comparisons.
+        // The path before that.
         let prepare_image_crate = || {
             let img = load_image_file(&path).expect("decodes").to_luma8();
             image::imageops::resize(&img, 1024, 768, image::imageops::FilterType::Triangle)
         };
         let decode_only = || load_image_file(&path).expect("decodes");
+        let decode_y_only = || load_image_file_as(&path, Pixels::Gray).expect("decodes");
         // The two stages after decoding, alone (where the time goes).
         let decoded = load_image_file(&path).expect("decodes");
         g.bench_function("gray_only_768x576", |b| {
@@ -67,19 +81,37 @@ fn single(c: &mut Criterion) {
             })
         });
         g.bench_function("jpeg_decode_gray_resize_1024x768", |b| b.iter(prepare));
+        g.bench_function("jpeg_decode_colour_gray_resize_1024x768", |b| {
+            b.iter(prepare_colour)
+        });
         g.bench_function("jpeg_decode_gray_resize_1024x768_image_crate", |b| {
             b.iter(prepare_image_crate)
         });
+        g.bench_function("jpeg_decode_y_only_768x576", |b| b.iter(decode_y_only));
         g.bench_function("jpeg_decode_only_768x576", |b| b.iter(decode_only));
         if fixture::thread_cpu_time().is_some() {
             g.bench_function("jpeg_decode_gray_resize_1024x768_thread_cpu_time", |b| {
                 b.iter_custom(|n| fixture::cpu_time_of(n, prepare))
             });
             g.bench_function(
+                "jpeg_decode_colour_gray_resize_1024x768_thread_cpu_time",
+                |b| b.iter_custom(|n| fixture::cpu_time_of(n, prepare_colour)),
+            );
+            g.bench_function(
                 "jpeg_decode_gray_resize_1024x768_image_crate_thread_cpu_time",
                 |b| b.iter_custom(|n| fixture::cpu_time_of(n, prepare_image_crate)),
             );
         }
+    }
+    // A camera JPEG with the common 4:2:0 chroma sampling (dog.jpg is 4:4:0, where zune-jpeg's
+    // Y-only output does not pay: `image_io`), colour against Y-only decoding.
+    if let Some(path) = fixture::shared("data/gardenspoint_dev/day_right/Image000.jpg") {
+        g.bench_function("jpeg_decode_only_960x540_420", |b| {
+            b.iter(|| load_image_file(&path).expect("decodes"))
+        });
+        g.bench_function("jpeg_decode_y_only_960x540_420", |b| {
+            b.iter(|| load_image_file_as(&path, Pixels::Gray).expect("decodes"))
+        });
     }
     if let Some(frames) = fixture::nordland_images("summer", 600) {
         let spec = hog(8, None);

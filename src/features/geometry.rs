@@ -187,6 +187,10 @@ impl<E: Extractor> Extractor for Fitted<E> {
         let fitted = fit_image(image, self.geometry, self.fit)?;
         self.inner.extract(&fitted)
     }
+
+    fn pixels(&self) -> super::Pixels {
+        self.inner.pixels()
+    }
 }
 
 #[cfg(test)]

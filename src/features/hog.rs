@@ -5,7 +5,9 @@
 //!
 //! * the image is converted to 8-bit luma (Rec. 709 weights, as `image`'s `to_luma8`) and, when
 //!   [`HogOptions::resize`] asks for it, resized with a triangle (bilinear) filter, both by the
-//!   shared preparation path ([`super::prepare_gray`]);
+//!   shared preparation path ([`super::prepare_gray`]). HOG reads gray only
+//!   ([`Extractor::pixels`]), so callers that decode for it get a YCbCr JPEG's Y plane (BT.601
+//!   luma, decoded without its chroma: [`super::Pixels::Gray`]) and the conversion is a no-op;
 //! * gradients are centred `[-1, 0, 1]` differences in x and y, with replicated border pixels;
 //!   the magnitude is `sqrt(gx² + gy²)`, the orientation is unsigned (`0..180°`, `gy` pointing
 //!   down the image);
@@ -200,6 +202,10 @@ impl Extractor for HogSpec {
         // Fail on unusable sizes before spending time on conversion and resizing.
         self.dim_for(image.width(), image.height())?;
         self.compute(&*super::prepare_gray(image, self.options.resize)?)
+    }
+
+    fn pixels(&self) -> super::Pixels {
+        super::Pixels::Gray
     }
 }
 

@@ -10,6 +10,19 @@
 //! * JPEG is decoded by `zune-jpeg` (SIMD IDCT and colour conversion; the decoder `image`
 //!   wraps) called directly in strict mode, so truncated or corrupt frames are rejected rather
 //!   than padded with grey ([`decode_image`]); PNG by `image` (`png`/`fdeflate`);
+//! * callers decode only the pixels their extractor reads ([`Pixels`],
+//!   `Extractor::pixels`): for gray descriptors (HOG) a camera (YCbCr) JPEG gives its Y plane,
+//!   decoded without the chroma IDCT, upsampling and colour conversion, as OpenCV's
+//!   `IMREAD_GRAYSCALE` does; the CNN keeps the colour decode;
+//! * **tolerance of gray-only decoding.** Y is BT.601 luma (`0.299 R + 0.587 G + 0.114 B`, as
+//!   JFIF defines YCbCr), where gray was the Rec. 709 luma of the decoded RGB before. The Y
+//!   plane is exactly the one the full decode computes and within one level of libjpeg-turbo's
+//!   (test, all four chroma samplings); PNG and gray JPEGs are unchanged (bit for bit, test;
+//!   Nordland is PNG). On Gardens Point (HOG 32 px at 960x540, 300 frames) the HOG
+//!   descriptor of each frame keeps a cosine >= 0.99 with its former value (measured min
+//!   0.9935, mean >= 0.9994) and no cross-walk similarity moves by more than 0.015 (measured
+//!   0.009); a test pins both on the shared data. The README's Gardens Point HOG rows moved by
+//!   at most 0.01 AP;
 //! * [`to_gray`] is `image`'s `to_luma8` (Rec. 709 weights, `round(255 (kr R + kg G + kb B))`
 //!   on channels scaled to `0..=1` in `f32`) bit for bit, but computed in one branch-free loop
 //!   over RGB8 instead of `image`'s generic per-pixel conversion with a libm `roundf`;
@@ -39,9 +52,39 @@ pub const DEFAULT_MAX_PIXELS: u64 = 100_000_000;
 /// File extensions [`list_images`] accepts (compared case-insensitively).
 pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 
+/// Which pixels the consumer of a decoded image reads, so that decoding can skip the work
+/// nobody uses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Pixels {
+    /// The image as decoded: `Rgb8` for colour images, `Luma8` for gray ones (the CNN input,
+    /// thumbnails, anything that shows or needs colour).
+    #[default]
+    Colour,
+    /// 8-bit gray only (HOG, co-occurrence): always an `ImageLuma8`. A YCbCr JPEG (nearly every
+    /// camera JPEG) gives its Y plane, decoded alone: the chroma blocks are entropy-decoded
+    /// and skipped, with no chroma IDCT, upsampling or colour conversion (what OpenCV's
+    /// `IMREAD_GRAYSCALE` does with libjpeg-turbo). Y is the JPEG's BT.601 luma, not the
+    /// Rec. 709 luma [`to_gray`] takes of decoded RGB; the two differ by a few levels on
+    /// natural images (documented tolerance: module doc). Every other image (PNG, gray or
+    /// RGB/CMYK JPEGs) gives exactly [`to_gray`] of its colour decode.
+    Gray,
+}
+
 /// Decodes one JPEG/PNG image given as bytes; `name` (file or multipart part name) appears in
 /// errors. Images with more than `max_pixels` pixels are rejected before being decoded.
+/// The colour decode ([`Pixels::Colour`]); see [`decode_image_as`].
 pub fn decode_image(name: &str, bytes: &[u8], max_pixels: u64) -> Result<DynamicImage> {
+    decode_image_as(name, bytes, max_pixels, Pixels::Colour)
+}
+
+/// [`decode_image`] of only the pixels the caller reads ([`Pixels`]); with [`Pixels::Gray`]
+/// the result is always an `ImageLuma8`.
+pub fn decode_image_as(
+    name: &str,
+    bytes: &[u8],
+    max_pixels: u64,
+    pixels: Pixels,
+) -> Result<DynamicImage> {
     let fail = |reason: String| Error::Image {
         name: name.to_string(),
         reason,
@@ -63,16 +106,39 @@ pub fn decode_image(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Dynamic
             )))
         }
     };
-    if format == ImageFormat::Jpeg {
-        return decode_jpeg(bytes, max_pixels).map_err(fail);
+    let image = if format == ImageFormat::Jpeg {
+        decode_jpeg(bytes, max_pixels, pixels).map_err(fail)?
+    } else {
+        let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
+            .into_dimensions()
+            .map_err(|e| fail(format!("cannot read the {format:?} header: {e}")))?;
+        check_pixel_limit(w, h, max_pixels).map_err(fail)?;
+        ImageReader::with_format(Cursor::new(bytes), format)
+            .decode()
+            .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))?
+    };
+    Ok(match pixels {
+        Pixels::Colour => image,
+        Pixels::Gray => gray_image(image),
+    })
+}
+
+/// The decoded gray image of JPEG/PNG bytes ([`Pixels::Gray`]): the input of co-occurrence
+/// extraction.
+pub fn decode_gray(name: &str, bytes: &[u8], max_pixels: u64) -> Result<GrayImage> {
+    match decode_image_as(name, bytes, max_pixels, Pixels::Gray)? {
+        DynamicImage::ImageLuma8(gray) => Ok(gray),
+        // Not reached: `Pixels::Gray` always gives `ImageLuma8`.
+        other => Ok(to_gray(&other).into_owned()),
     }
-    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
-        .into_dimensions()
-        .map_err(|e| fail(format!("cannot read the {format:?} header: {e}")))?;
-    check_pixel_limit(w, h, max_pixels).map_err(fail)?;
-    ImageReader::with_format(Cursor::new(bytes), format)
-        .decode()
-        .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))
+}
+
+/// `image` as an `ImageLuma8` ([`to_gray`]), without a copy when it already is one.
+fn gray_image(image: DynamicImage) -> DynamicImage {
+    match image {
+        gray @ DynamicImage::ImageLuma8(_) => gray,
+        other => DynamicImage::ImageLuma8(to_gray(&other).into_owned()),
+    }
 }
 
 fn check_pixel_limit(w: u32, h: u32, max_pixels: u64) -> std::result::Result<(), String> {
@@ -88,9 +154,14 @@ fn check_pixel_limit(w: u32, h: u32, max_pixels: u64) -> std::result::Result<(),
 /// JPEG with `zune-jpeg` directly (the decoder `image` wraps), in *strict* mode: `image` runs
 /// it lenient, which decodes a truncated or corrupt entropy stream into an image padded with
 /// grey and no error; a localization service must reject such a frame instead. Going direct
-/// also decodes without `image`'s copy of the input. Gray JPEGs give
-/// `Luma8`, every other colour space `Rgb8` (as `image` does, alpha aside).
-fn decode_jpeg(bytes: &[u8], max_pixels: u64) -> std::result::Result<DynamicImage, String> {
+/// also decodes without `image`'s copy of the input. Gray JPEGs give `Luma8`; YCbCr JPEGs give
+/// their Y plane alone when only gray is wanted ([`Pixels::Gray`]); every other case `Rgb8`
+/// (as `image` does, alpha aside).
+fn decode_jpeg(
+    bytes: &[u8],
+    max_pixels: u64,
+    pixels: Pixels,
+) -> std::result::Result<DynamicImage, String> {
     use zune_jpeg::zune_core::bytestream::ZCursor;
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;
@@ -112,39 +183,77 @@ fn decode_jpeg(bytes: &[u8], max_pixels: u64) -> std::result::Result<DynamicImag
         u32::try_from(h).unwrap_or(u32::MAX),
     );
     check_pixel_limit(w, h, max_pixels)?;
-    let gray = matches!(
-        decoder.input_colorspace(),
-        Some(ColorSpace::Luma | ColorSpace::LumaA)
-    );
-    let out = if gray {
-        ColorSpace::Luma
-    } else {
-        ColorSpace::RGB
+    // zune-jpeg turns YCbCr into Luma by keeping Y and skipping the chroma components' IDCT
+    // and upsampling; it has no other "to Luma" conversion, so RGB, CMYK and YCCK JPEGs are
+    // decoded to RGB and made gray by the caller.
+    let out = match decoder.input_colorspace() {
+        Some(ColorSpace::Luma | ColorSpace::LumaA) => JpegOut::Luma,
+        Some(ColorSpace::YCbCr) if pixels == Pixels::Gray => {
+            // zune-jpeg 0.5.15's Luma output decodes twice the MCU rows (the second half past
+            // the end of the data) when chroma is subsampled vertically only (4:4:0): 1.5x the
+            // time of a colour decode on such a camera JPEG (BENCHMARKS.md). There the Y plane
+            // comes from the YCbCr output instead (no colour conversion; the same Y, a test
+            // checks both against each other and against libjpeg-turbo).
+            match decoder.info().map(|i| i.sample_ratio) {
+                Some(zune_jpeg::SampleRatios::V) => JpegOut::YOfYCbCr,
+                _ => JpegOut::Luma,
+            }
+        }
+        _ => JpegOut::Rgb,
+    };
+    let colorspace = match out {
+        JpegOut::Luma => ColorSpace::Luma,
+        JpegOut::YOfYCbCr => ColorSpace::YCbCr,
+        JpegOut::Rgb => ColorSpace::RGB,
     };
     // A fresh decoder with the output colour space set before its headers are read (as
     // `image` does); the headers are a few hundred bytes.
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
         ZCursor::new(bytes),
-        options.jpeg_set_out_colorspace(out),
+        options.jpeg_set_out_colorspace(colorspace),
     );
     let failed = |e: &dyn std::fmt::Display| format!("cannot decode the {w}x{h} Jpeg image: {e}");
-    let pixels = decoder.decode().map_err(|e| failed(&e))?;
-    let image = if gray {
-        GrayImage::from_raw(w, h, pixels).map(DynamicImage::ImageLuma8)
-    } else {
-        RgbImage::from_raw(w, h, pixels).map(DynamicImage::ImageRgb8)
+    let decoded = decoder.decode().map_err(|e| failed(&e))?;
+    let image = match out {
+        JpegOut::Luma => GrayImage::from_raw(w, h, decoded).map(DynamicImage::ImageLuma8),
+        JpegOut::YOfYCbCr => {
+            let y = decoded.chunks_exact(3).map(|p| p[0]).collect();
+            GrayImage::from_raw(w, h, y).map(DynamicImage::ImageLuma8)
+        }
+        JpegOut::Rgb => RgbImage::from_raw(w, h, decoded).map(DynamicImage::ImageRgb8),
     };
     image.ok_or_else(|| failed(&"the decoder returned a buffer of the wrong size"))
+}
+
+/// What [`decode_jpeg`] asks zune-jpeg for.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum JpegOut {
+    /// The Y plane alone (gray JPEGs; YCbCr JPEGs when only gray is wanted).
+    Luma,
+    /// Y taken from the YCbCr output (4:4:0 JPEGs when only gray is wanted).
+    YOfYCbCr,
+    /// Colour.
+    Rgb,
 }
 
 /// Reads and decodes one JPEG/PNG file (at most [`DEFAULT_MAX_PIXELS`] pixels); errors name
 /// the path.
 pub fn load_image_file(path: &Path) -> Result<DynamicImage> {
+    load_image_file_as(path, Pixels::Colour)
+}
+
+/// [`load_image_file`] of only the pixels the caller reads ([`decode_image_as`]).
+pub fn load_image_file_as(path: &Path, pixels: Pixels) -> Result<DynamicImage> {
     let bytes = std::fs::read(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    decode_image(&path.display().to_string(), &bytes, DEFAULT_MAX_PIXELS)
+    decode_image_as(
+        &path.display().to_string(),
+        &bytes,
+        DEFAULT_MAX_PIXELS,
+        pixels,
+    )
 }
 
 /// 8-bit luma of any decoded image: Rec. 709 weights, exactly `image`'s `to_luma8`; borrowed
@@ -488,6 +597,132 @@ mod tests {
         let ours = decode_image("g.jpg", out.get_ref(), 10_000).unwrap();
         let theirs = image::load_from_memory_with_format(out.get_ref(), ImageFormat::Jpeg).unwrap();
         assert_eq!(ours.as_luma8().unwrap(), theirs.as_luma8().unwrap());
+    }
+
+    /// Camera JPEGs of every common chroma sampling, odd sizes (partial MCUs), made by
+    /// `testdata/make_jpegs.py` with OpenCV, beside the Y plane libjpeg-turbo decodes.
+    fn sampled_jpegs() -> [(&'static str, &'static [u8], &'static [u8]); 4] {
+        [
+            (
+                "4:2:0",
+                include_bytes!("testdata/sampling_420.jpg"),
+                include_bytes!("testdata/sampling_420_y.pgm"),
+            ),
+            (
+                "4:2:2",
+                include_bytes!("testdata/sampling_422.jpg"),
+                include_bytes!("testdata/sampling_422_y.pgm"),
+            ),
+            (
+                "4:4:0",
+                include_bytes!("testdata/sampling_440.jpg"),
+                include_bytes!("testdata/sampling_440_y.pgm"),
+            ),
+            (
+                "4:4:4",
+                include_bytes!("testdata/sampling_444.jpg"),
+                include_bytes!("testdata/sampling_444_y.pgm"),
+            ),
+        ]
+    }
+
+    /// Pixels of a binary PGM with a `P5\nW H\n255\n` header.
+    fn pgm_pixels(pgm: &[u8]) -> &[u8] {
+        let mut newlines = 0;
+        let start = pgm
+            .iter()
+            .position(|&b| {
+                newlines += usize::from(b == b'\n');
+                newlines == 3
+            })
+            .unwrap();
+        &pgm[start + 1..]
+    }
+
+    /// The Y plane of a YCbCr JPEG's full decode (chroma included), from zune-jpeg.
+    fn y_of_full_decode(bytes: &[u8]) -> Vec<u8> {
+        use zune_jpeg::zune_core::{
+            bytestream::ZCursor, colorspace::ColorSpace, options::DecoderOptions,
+        };
+        let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::YCbCr);
+        let ycbcr = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options)
+            .decode()
+            .unwrap();
+        ycbcr.chunks_exact(3).map(|p| p[0]).collect()
+    }
+
+    #[test]
+    fn gray_decoding_of_ycbcr_jpegs_is_their_y_plane() {
+        for (sampling, jpeg, pgm) in sampled_jpegs() {
+            let gray = decode_image_as("y.jpg", jpeg, 10_000, Pixels::Gray).unwrap();
+            let DynamicImage::ImageLuma8(gray) = gray else {
+                panic!("{sampling}: Pixels::Gray must give Luma8");
+            };
+            assert_eq!(gray.dimensions(), (45, 29), "{sampling}");
+            // The Y plane the decoder computes when it decodes the chroma too, exactly.
+            assert_eq!(gray.as_raw(), &y_of_full_decode(jpeg), "{sampling}");
+            // libjpeg-turbo's Y (another IDCT): within one level everywhere.
+            let anchor = pgm_pixels(pgm);
+            assert_eq!(anchor.len(), gray.as_raw().len(), "{sampling}");
+            let worst = gray
+                .as_raw()
+                .iter()
+                .zip(anchor)
+                .map(|(a, b)| a.abs_diff(*b))
+                .max()
+                .unwrap();
+            assert!(worst <= 1, "{sampling}: {worst} levels from libjpeg-turbo");
+            // It is not the Rec. 709 luma of the colour decode (a different, cheaper path),
+            // and colour decoding is unchanged.
+            let colour = decode_image("c.jpg", jpeg, 10_000).unwrap();
+            assert!(colour.as_rgb8().is_some(), "{sampling}");
+            assert_ne!(*to_gray(&colour), gray, "{sampling}");
+            assert_eq!(decode_gray("g.jpg", jpeg, 10_000).unwrap(), gray);
+        }
+    }
+
+    #[test]
+    fn gray_decoding_stays_strict_and_limited() {
+        for (sampling, jpeg, _) in sampled_jpegs() {
+            // Cut in the entropy-coded data: the skipped chroma blocks still have to parse.
+            let cut = &jpeg[..jpeg.len() * 3 / 4];
+            let (name, why) = reason(decode_gray("cut.jpg", cut, 10_000).unwrap_err());
+            assert_eq!(name, "cut.jpg", "{sampling}");
+            assert!(
+                why.contains("cannot decode the 45x29 Jpeg"),
+                "{sampling}: {why}"
+            );
+            let (_, why) = reason(decode_gray("big.jpg", jpeg, 45 * 29 - 1).unwrap_err());
+            assert!(why.contains("exceeds the limit"), "{sampling}: {why}");
+        }
+    }
+
+    #[test]
+    fn gray_decoding_of_other_images_is_to_gray_of_their_colour() {
+        let rgb = noisy_rgb(61, 37, 4);
+        let png = encode(&rgb, ImageFormat::Png);
+        let gray = decode_gray("a.png", &png, 10_000).unwrap();
+        assert_eq!(gray, DynamicImage::ImageRgb8(rgb.clone()).to_luma8());
+        let luma = DynamicImage::ImageRgb8(rgb).to_luma8();
+        let mut gray_jpeg = Cursor::new(Vec::new());
+        luma.write_to(&mut gray_jpeg, ImageFormat::Jpeg).unwrap();
+        let colour = decode_image("g.jpg", gray_jpeg.get_ref(), 10_000).unwrap();
+        assert_eq!(
+            decode_gray("g.jpg", gray_jpeg.get_ref(), 10_000).unwrap(),
+            *colour.as_luma8().unwrap()
+        );
+        // Colour is the default everywhere it is not asked for.
+        assert_eq!(Pixels::default(), Pixels::Colour);
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), &png).unwrap();
+        assert!(load_image_file(file.path()).unwrap().as_rgb8().is_some());
+        assert_eq!(
+            *load_image_file_as(file.path(), Pixels::Gray)
+                .unwrap()
+                .as_luma8()
+                .unwrap(),
+            gray
+        );
     }
 
     #[test]

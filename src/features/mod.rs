@@ -24,8 +24,9 @@ mod image_io;
 
 pub use geometry::{image_file_size, Fit, Fitted};
 pub use image_io::{
-    decode_image, list_images, load_image_file, prepare_gray, resize_gray, resize_rgb, to_gray,
-    to_rgb, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
+    decode_gray, decode_image, decode_image_as, list_images, load_image_file, load_image_file_as,
+    prepare_gray, resize_gray, resize_rgb, to_gray, to_rgb, Pixels, DEFAULT_MAX_PIXELS,
+    IMAGE_EXTENSIONS,
 };
 
 /// Turns one image into one global descriptor.
@@ -36,6 +37,13 @@ pub trait Extractor: Send + Sync {
 
     /// The descriptor of one image. Never contains NaN or infinities.
     fn extract(&self, image: &image::DynamicImage) -> Result<Vec<f32>>;
+
+    /// The pixels [`Extractor::extract`] reads: decode images for it with
+    /// [`decode_image_as`] / [`load_image_file_as`] and this, so that a gray descriptor does
+    /// not pay for colour it drops. The default, [`Pixels::Colour`], is always correct.
+    fn pixels(&self) -> Pixels {
+        Pixels::Colour
+    }
 }
 
 /// Extracts the descriptors of `images` in parallel (rayon) into one row per image, in order.
@@ -153,7 +161,7 @@ pub fn extract_files(
 type FileRow = (u32, u32, Vec<f32>);
 
 fn extract_file(extractor: &dyn Extractor, path: &Path) -> Result<FileRow> {
-    let image = load_image_file(path)?;
+    let image = load_image_file_as(path, extractor.pixels())?;
     let values = extractor
         .extract(&image)
         .map_err(|e| rename(e, &path.display().to_string()))?;
@@ -327,6 +335,112 @@ mod tests {
             extract_files(&hog(8, None), &[], &|| {}),
             Err(Error::Empty(_))
         ));
+    }
+
+    /// `shared/<rel>` beside the repository (`../shared`, or the folder named by
+    /// `SEASONLOC_SHARED_DIR`), or `None` with a printed message.
+    fn shared(rel: &str) -> Option<PathBuf> {
+        let shared = std::env::var_os("SEASONLOC_SHARED_DIR").map_or_else(
+            || Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
+            PathBuf::from,
+        );
+        let path = shared.join(rel);
+        if path.exists() {
+            Some(path)
+        } else {
+            eprintln!("skipping: {} not found", path.display());
+            None
+        }
+    }
+
+    /// The documented tolerance of gray-only JPEG decoding (`image_io`, `Pixels::Gray`): HOG
+    /// on a camera JPEG's Y plane (BT.601) against HOG on the Rec. 709 luma of its colour
+    /// decode, on Gardens Point (the map geometry and cells of the README's tables).
+    #[test]
+    fn gardens_point_hog_on_jpeg_y_is_within_tolerance_of_rec709_luma() {
+        let Some(dir) = shared("data/gardenspoint_dev") else {
+            return;
+        };
+        let spec = Fitted::hog(32, (960, 540), Fit::Stretch).unwrap();
+        assert_eq!(spec.pixels(), Pixels::Gray);
+        let mut by_walk = Vec::new();
+        for walk in ["day_right", "day_left", "night_right"] {
+            let files = list_images(&dir.join(walk)).unwrap();
+            let y = extract_files(&spec, &files, &|| {}).unwrap();
+            let colour: Vec<_> = files.iter().map(|f| load_image_file(f).unwrap()).collect();
+            let rec709 = extract_batch(&spec, &colour).unwrap();
+            let cos: Vec<f64> = (0..files.len())
+                .map(|i| cosine(y.row(i), rec709.row(i)))
+                .collect();
+            let min = cos.iter().copied().fold(1.0, f64::min);
+            let mean = cos.iter().sum::<f64>() / cos.len() as f64;
+            let worst_value = y
+                .as_slice()
+                .iter()
+                .zip(rec709.as_slice())
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            eprintln!(
+                "{walk}: cosine(HOG of Y, HOG of Rec. 709) min {min:.5} mean {mean:.5}, \
+                 largest value change {worst_value:.4}"
+            );
+            // Measured: min 0.9935 (day_right), mean >= 0.9994; night_right is nearly
+            // colourless and does not move.
+            assert!(
+                min >= 0.99 && mean >= 0.999,
+                "{walk}: min {min}, mean {mean}"
+            );
+            by_walk.push((y, rec709));
+        }
+        // Similarities between walks (what the methods see) move by at most:
+        let mut worst_sim = 0.0f64;
+        for (a, b) in [(1, 0), (2, 0), (2, 1)] {
+            let ((qy, q709), (ry, r709)) = (&by_walk[a], &by_walk[b]);
+            for i in 0..qy.rows() {
+                for j in 0..ry.rows() {
+                    let d = (cosine(qy.row(i), ry.row(j)) - cosine(q709.row(i), r709.row(j))).abs();
+                    worst_sim = worst_sim.max(d);
+                }
+            }
+        }
+        eprintln!("largest change of a cross-walk cosine similarity: {worst_sim:.5}");
+        // Measured: 0.0090.
+        assert!(worst_sim <= 0.015, "a similarity moved by {worst_sim}");
+    }
+
+    #[test]
+    fn gray_extractors_get_the_jpeg_y_plane_and_colour_ones_colour() {
+        let hog_spec = hog(8, Some((40, 24)));
+        assert_eq!(hog_spec.pixels(), Pixels::Gray);
+        let fitted = Fitted::hog(8, (40, 24), Fit::Crop).unwrap();
+        assert_eq!(fitted.pixels(), Pixels::Gray);
+        // The trait's default (the CNN keeps it: it reads RGB).
+        struct Colourful;
+        impl Extractor for Colourful {
+            fn dim_for(&self, _: u32, _: u32) -> Result<usize> {
+                Ok(3)
+            }
+            fn extract(&self, image: &DynamicImage) -> Result<Vec<f32>> {
+                let rgb = image
+                    .as_rgb8()
+                    .ok_or_else(|| Error::Empty("not colour".into()))?;
+                Ok(rgb.get_pixel(0, 0).0.map(f32::from).to_vec())
+            }
+        }
+        assert_eq!(Colourful.pixels(), Pixels::Colour);
+        // A 4:2:0 camera JPEG: files are decoded for what the extractor reads.
+        let jpeg = include_bytes!("testdata/sampling_420.jpg");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame.jpg");
+        std::fs::write(&path, jpeg).unwrap();
+        let paths = [path.clone(), path];
+        let y = DynamicImage::ImageLuma8(decode_gray("y", jpeg, 10_000).unwrap());
+        let colour = decode_image("c", jpeg, 10_000).unwrap();
+        let m = extract_files(&hog_spec, &paths, &|| {}).unwrap();
+        assert_eq!(m.row(1), hog_spec.extract(&y).unwrap().as_slice());
+        assert_ne!(m.row(1), hog_spec.extract(&colour).unwrap().as_slice());
+        let m = extract_files(&Colourful, &paths, &|| {}).unwrap();
+        assert_eq!(m.row(0), Colourful.extract(&colour).unwrap().as_slice());
     }
 
     /// `shared/data/nordland_64x32` beside the repository (`../shared`, or the folder named by
