@@ -61,7 +61,14 @@ pub fn describe(
     max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<Matrix> {
-    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
+    let images = decode_checked(
+        extractor,
+        parts,
+        max_pixels,
+        max_len,
+        expected_dim,
+        extractor.pixels(),
+    )?;
     Ok(features::extract_batch(extractor, &images)?)
 }
 
@@ -74,8 +81,28 @@ pub fn describe_with_thumbnails(
     max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<(Matrix, Vec<Vec<u8>>)> {
-    let images = decode_checked(extractor, parts, max_pixels, max_len, expected_dim)?;
-    let descriptors = features::extract_batch(extractor, &images)?;
+    // Thumbnails show colour; the descriptors read what the extractor reads (a camera JPEG's
+    // Y plane for HOG), exactly as for queries, so references and queries match.
+    let images = decode_checked(
+        extractor,
+        parts,
+        max_pixels,
+        max_len,
+        expected_dim,
+        features::Pixels::Colour,
+    )?;
+    let descriptors = if extractor.pixels() == features::Pixels::Colour {
+        features::extract_batch(extractor, &images)?
+    } else {
+        let own = parts
+            .par_iter()
+            .map(|p| {
+                features::decode_image_as(&p.name, &p.bytes, max_pixels, extractor.pixels())
+                    .map_err(AppError::from)
+            })
+            .collect::<AppResult<Vec<_>>>()?;
+        features::extract_batch(extractor, &own)?
+    };
     let thumbnails = images
         .par_iter()
         .map(|img| crate::picture::thumbnail_jpeg(img).map_err(AppError::from))
@@ -91,6 +118,7 @@ fn decode_checked(
     max_pixels: u64,
     max_len: usize,
     expected_dim: Option<u32>,
+    pixels: features::Pixels,
 ) -> AppResult<Vec<image::DynamicImage>> {
     let dims = parts
         .par_iter()
@@ -146,7 +174,9 @@ fn decode_checked(
     }
     parts
         .par_iter()
-        .map(|p| features::decode_image(&p.name, &p.bytes, max_pixels).map_err(AppError::from))
+        .map(|p| {
+            features::decode_image_as(&p.name, &p.bytes, max_pixels, pixels).map_err(AppError::from)
+        })
         .collect()
 }
 
@@ -154,10 +184,7 @@ fn decode_checked(
 pub fn decode_gray(parts: &[ImageInput], max_pixels: u64) -> AppResult<Vec<GrayImage>> {
     parts
         .par_iter()
-        .map(|p| {
-            let img = features::decode_image(&p.name, &p.bytes, max_pixels)?;
-            Ok(img.to_luma8())
-        })
+        .map(|p| Ok(features::decode_gray(&p.name, &p.bytes, max_pixels)?))
         .collect()
 }
 

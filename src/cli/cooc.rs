@@ -16,7 +16,7 @@ use image::GrayImage;
 use rayon::prelude::*;
 
 use crate::cooc::{CoocMap, CoocParams, Drive, SequenceParams};
-use crate::features::load_image_file;
+use crate::features::{load_image_file_as, Pixels};
 use crate::Result;
 
 /// Flags of the co-occurrence methods (all optional; unset = the library default).
@@ -137,6 +137,6 @@ pub fn build_map(
 fn load_gray(files: &[PathBuf]) -> Result<Vec<GrayImage>> {
     files
         .par_iter()
-        .map(|f| Ok(load_image_file(f)?.to_luma8()))
+        .map(|f| Ok(load_image_file_as(f, Pixels::Gray)?.into_luma8()))
         .collect()
 }

@@ -124,13 +124,20 @@ impl HogSpec {
             ));
         }
         if let Some((w, h)) = options.resize {
-            if !(c..=MAX_RESIZE_SIDE).contains(&w) || !(c..=MAX_RESIZE_SIDE).contains(&h) {
+            let side = MIN_CELL_SIZE..=MAX_RESIZE_SIDE;
+            if !side.contains(&w) || !side.contains(&h) {
                 return Err(Error::param(
                     "resize",
                     format!(
-                        "both sides must be between the cell size ({c} px) and \
-                         {MAX_RESIZE_SIDE} px, got {w}x{h}"
+                        "both sides must be between {MIN_CELL_SIZE} and {MAX_RESIZE_SIDE} px, \
+                         got {w}x{h}"
                     ),
+                ));
+            }
+            if w < c || h < c {
+                return Err(Error::inconsistent(
+                    "resize",
+                    format!("both sides must be at least the cell size ({c} px), got {w}x{h}"),
                 ));
             }
         }
@@ -491,7 +498,7 @@ mod tests {
                 "{err}"
             );
         }
-        for resize in [(4, 64), (64, 0), (20_000, 64)] {
+        for resize in [(64, 0), (1, 64), (20_000, 64)] {
             let err = HogSpec::new(HogOptions {
                 cell_size: 8,
                 resize: Some(resize),
@@ -502,6 +509,16 @@ mod tests {
                 "{err}"
             );
         }
+        // In range alone, but smaller than one cell of this spec.
+        let err = HogSpec::new(HogOptions {
+            cell_size: 8,
+            resize: Some((4, 64)),
+        })
+        .unwrap_err();
+        assert!(
+            matches!(err, Error::Inconsistent { name: "resize", .. }),
+            "{err}"
+        );
         let options = HogOptions {
             cell_size: 16,
             resize: Some((64, 48)),
