@@ -5,7 +5,9 @@
 //! carrying it (and the API key's name once known) -> request id copied to the response ->
 //! JSON bodies for limit errors -> metrics -> `Host` check (421, when `--allowed-host` is set)
 //! -> CORS (when `--cors-origin` is set; answers preflights before any key is asked for) ->
-//! access control ([`super::auth`]: 401/403, per-key in-flight cap 429) -> load shedding (503
+//! access control ([`super::auth`]: 401/403, per-key in-flight cap 429) -> panic guard (a
+//! handler that panics answers 500 `internal` in the API's error shape and is logged, instead
+//! of dropping the connection) -> load shedding (503
 //! `overloaded`) over a global concurrency limit -> timeout (503 `timeout`) -> body read
 //! timeout (a body that stalls fails with 408 `body_timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
 //! one.
@@ -18,6 +20,7 @@ use axum::http::{header, HeaderName, HeaderValue, Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{middleware, BoxError, Router};
 use tower::ServiceBuilder;
+use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
@@ -110,6 +113,7 @@ pub fn app(state: AppState) -> Router {
             state.auth.clone(),
             auth::authorize,
         ))
+        .layer(CatchPanicLayer::custom(panic_response))
         .layer(limits)
         .layer(RequestBodyTimeoutLayer::new(s.body_read_timeout))
         .layer(RequestBodyLimitLayer::new(s.max_body_bytes))
@@ -129,6 +133,17 @@ pub fn app(state: AppState) -> Router {
         .layer(edge)
         .layer(axum::Extension(BodyLimit(max_body)))
         .with_state(state)
+}
+
+/// The answer to a request whose handler panicked: logged with its message (a bug to fix),
+/// answered 500 `internal` like any other internal error, never with the panic's text.
+fn panic_response(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let message = err
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| err.downcast_ref::<&str>().copied())
+        .unwrap_or("(no message)");
+    ApiError::Internal(format!("request handler panicked: {message}")).into_response()
 }
 
 /// The CORS layer for the configured origins (`None` when there are none: no cross-origin
@@ -225,4 +240,34 @@ async fn json_limit_errors(
         return ApiError::PayloadTooLarge(limit).into_response();
     }
     response
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::body::Body;
+    use axum::routing::get;
+    use tower::ServiceExt;
+
+    #[tokio::test]
+    async fn a_panicking_handler_answers_500_in_the_error_shape_without_its_message() {
+        let router: Router = Router::new()
+            .route(
+                "/boom",
+                get(|| async {
+                    let side: Option<u32> = std::hint::black_box(None);
+                    side.expect("secret detail of the panic").to_string()
+                }),
+            )
+            .layer(CatchPanicLayer::custom(panic_response));
+        let r = router
+            .oneshot(Request::get("/boom").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        let bytes = axum::body::to_bytes(r.into_body(), 1 << 20).await.unwrap();
+        let body: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+        assert_eq!(body["error"]["code"], "internal");
+        assert!(!body.to_string().contains("secret"), "{body}");
+    }
 }

@@ -116,6 +116,9 @@ impl App {
             }
             DescriptorSpec::Settings(d) => d,
             DescriptorSpec::Cnn(mut options) => {
+                // Ranges first (no file is touched): a side out of range is the same 400
+                // whatever model the request names.
+                options.validate().map_err(cnn_error)?;
                 // A model the request named is checked against the model directory first,
                 // on a blocking thread (stat only), so a hostile path never reaches the
                 // loader or the CPU pool.

@@ -36,7 +36,9 @@ use crate::{Error, Result};
 
 /// Largest accepted input side in pixels: far above any ImageNet model, and a guard against
 /// a typo asking for gigabytes of activations.
-const MAX_INPUT_SIDE: u32 = 4096;
+pub const MAX_INPUT_SIDE: u32 = 4096;
+/// Largest accepted `short_side` of the crop resize (four times [`MAX_INPUT_SIDE`]).
+pub const MAX_SHORT_SIDE: u32 = 4 * MAX_INPUT_SIDE;
 
 /// How an image is brought to the network's input size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -108,10 +110,10 @@ impl CnnOptions {
             ));
         }
         if let CnnResize::ShortSideCrop { short_side } = self.resize {
-            if short_side > 4 * MAX_INPUT_SIDE {
+            if short_side > MAX_SHORT_SIDE {
                 return Err(Error::param(
                     "cnn_short_side",
-                    format!("{short_side}: must be at most {}", 4 * MAX_INPUT_SIDE),
+                    format!("{short_side}: must be at most {MAX_SHORT_SIDE}"),
                 ));
             }
             if short_side < w.max(h) {

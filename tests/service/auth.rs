@@ -365,15 +365,34 @@ fn a_map_life_cycle_by_role() {
 fn a_key_with_its_requests_in_flight_gets_429_and_others_do_not() {
     let (server, _dir) = keyed_server(|a| a.max_requests_per_key = 1);
     let c = server.client;
-    // A request whose body never finishes holds the key's only slot.
-    let mut slow = std::net::TcpStream::connect(c.addr).unwrap();
-    write!(
-        slow,
-        "POST /v1/maps HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\n\
-         Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"name\""
-    )
-    .unwrap();
-    slow.flush().unwrap();
+    // A request whose body never finishes holds the key's only slot: sent while no other
+    // request of the key is in flight, and once it is answered nothing (it was admitted and is
+    // waiting for its body) rather than refused.
+    let mut slow = loop {
+        let mut s = std::net::TcpStream::connect(c.addr).unwrap();
+        write!(
+            s,
+            "POST /v1/maps HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\n\
+             Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"name\""
+        )
+        .unwrap();
+        s.flush().unwrap();
+        s.set_read_timeout(Some(Duration::from_millis(300)))
+            .unwrap();
+        let mut first = [0u8; 1];
+        match s.read(&mut first) {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
+                s.set_read_timeout(None).unwrap();
+                break s;
+            }
+            _ => continue,
+        }
+    };
     let deadline = Instant::now() + Duration::from_secs(10);
     let r = loop {
         let r = call(&c, "GET", "/v1/maps", Some(ADMIN), None, b"");

@@ -463,8 +463,48 @@ fn the_specs_numeric_bounds_are_the_servers() {
         (Some(1), Some(64))
     );
 
+    use seasonloc::features::cnn::{MAX_INPUT_SIDE, MAX_SHORT_SIDE};
+    let side = &schemas["CnnDescriptor"]["properties"]["input_size"]["items"];
+    assert_eq!(
+        (side["minimum"].as_u64(), side["maximum"].as_u64()),
+        (Some(1), Some(MAX_INPUT_SIDE.into()))
+    );
+    assert_eq!(
+        range("CnnDescriptor", "short_side"),
+        (Some(1), Some(MAX_SHORT_SIDE.into()))
+    );
+
     let server = strict_server();
     let c = server.client;
+    // CNN sides past the bounds are 400s naming them, checked before any model file is read
+    // (an input side near u32::MAX once overflowed the default short side: a dropped
+    // connection instead of an answer).
+    for (descriptor, field) in [
+        (
+            json!({"kind": "cnn", "model": "none.onnx", "layer": "x", "input_size": [MAX_INPUT_SIDE + 1, 224]}),
+            "descriptor.input_size",
+        ),
+        (
+            json!({"kind": "cnn", "model": "none.onnx", "layer": "x", "input_size": [23745, 993679550]}),
+            "descriptor.input_size",
+        ),
+        (
+            json!({"kind": "cnn", "model": "none.onnx", "layer": "x", "input_size": [224, u32::MAX]}),
+            "descriptor.input_size",
+        ),
+        (
+            json!({"kind": "cnn", "model": "none.onnx", "layer": "x", "short_side": MAX_SHORT_SIDE + 1}),
+            "descriptor.short_side",
+        ),
+    ] {
+        let r = c.post_json("/v1/maps", &json!({"name": "b", "descriptor": descriptor}));
+        expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+        assert!(
+            String::from_utf8_lossy(&r.body).contains(field),
+            "{descriptor}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+    }
     for (settings, ok) in [
         (json!({"kind": "hog", "cell_size": MIN_CELL_SIZE}), true),
         (json!({"kind": "hog", "cell_size": MAX_CELL_SIZE}), true),

@@ -196,6 +196,12 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     assert_eq!(r.status, 415);
     let r = c.request("POST", &trips, Some("application/json"), b"{\"lag\": ");
     assert_eq!((r.status, r.code()), (400, "bad_request".into()));
+    // Whitespace is not a JSON document (only an absent body takes the defaults).
+    for body in [&b"\r"[..], b" \n\t"] {
+        let r = c.request("POST", &trips, Some("application/json"), body);
+        check("POST", OPEN, &r);
+        assert_eq!((r.status, r.code()), (400, "bad_request".into()));
+    }
     // Unknown ids.
     let r = c.post_json("/v1/maps/00000000000000ff/trips", &json!({}));
     check("POST", OPEN, &r);

@@ -88,7 +88,11 @@ fn cnn_options(
         }
         (Some(CnnResizeDto::Stretch), None) => CnnResize::Stretch,
         (_, side) => CnnResize::ShortSideCrop {
-            short_side: side.unwrap_or_else(|| (w.max(h) * 256).div_ceil(224)),
+            // 256/224 of the larger side, in u64: an oversized input side must reach
+            // `CnnOptions::validate` (a 400 naming it), not overflow here.
+            short_side: side.unwrap_or_else(|| {
+                u32::try_from((u64::from(w.max(h)) * 256).div_ceil(224)).unwrap_or(u32::MAX)
+            }),
         },
     };
     if let Some(m) = descriptor.mean {

@@ -74,7 +74,9 @@ async fn open(
 ) -> Result<(StatusCode, Json<TripResponse>), ApiError> {
     let map = map_id(&id)?;
     let body = body.map_err(|r| bytes_rejection(r, state.settings.max_body_bytes))?;
-    let dto = if body.iter().all(u8::is_ascii_whitespace) {
+    // No body at all takes the defaults; anything else must be a JSON object (a body of
+    // whitespace is not a JSON document).
+    let dto = if body.is_empty() {
         TripParamsDto::default()
     } else {
         let content_type = headers
