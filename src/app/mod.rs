@@ -70,6 +70,7 @@ pub struct App {
     config: AppConfig,
     references: cache::References,
     priors: cache::Priors,
+    open_trips: cache::OpenTrips,
     trip_locks: cache::TripLocks,
 }
 
@@ -84,6 +85,7 @@ impl App {
             config,
             references: cache::References::default(),
             priors: cache::Priors::default(),
+            open_trips: cache::OpenTrips::default(),
             trip_locks: cache::TripLocks::default(),
         })
     }
