@@ -4,16 +4,17 @@
 //!
 //! Input is a descriptor matrix (756-D, the size of HOG with 8 px cells on 64x32 frames), so
 //! image decoding and extraction are *not* measured: one iteration is the batch's cosine rows
-//! against the map (one GEMM) plus `Trip::push_batch` (online Eq. 2, the `O(D)` row updates,
-//! the lag-window re-trace and confidences) plus `Trip::take_delta` (the state delta) (what the service stores per
-//! batch). The trip is advanced to the target length beforehand; every iteration starts from
+//! against the map normalised beforehand (one GEMM, as the service does with its cached
+//! normalised map) plus `Trip::push_batch` (online Eq. 2, the `O(D)` row updates,
+//! the lag-window re-trace and confidences) plus `Trip::take_delta` (the state delta the
+//! service stores per batch). The `push_only` cases leave the cosine rows out. The trip is advanced to the target length beforehand; every iteration starts from
 //! a clone of that state (cloning is not timed), so the length does not drift.
 //!
 //! Run: `cargo bench --bench trips -- --warm-up-time 1 --measurement-time 3`.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 
-use seasonloc::similarity::cosine_matrix;
+use seasonloc::similarity::{cosine_matrix, cosine_matrix_normalized, l2_normalized_rows};
 use seasonloc::trip::{column_prior, Trip, TripParams};
 use seasonloc::Matrix;
 
@@ -65,11 +66,13 @@ fn bench_batch(
     batch: usize,
 ) {
     let next = queries(map, trip.frames(), batch, 99);
+    // The service keeps the normalised map per map version (`app::cache`).
+    let normalized = l2_normalized_rows(map);
     g.bench_function(name, |b| {
         b.iter_batched(
             || trip.clone(),
             |mut t| {
-                let cos = cosine_matrix(&next, map).expect("same dimension");
+                let cos = cosine_matrix_normalized(&next, &normalized).expect("same dimension");
                 let update = t.push_batch(&cos).expect("valid batch");
                 (update, t.take_delta())
             },
@@ -129,6 +132,22 @@ fn city(c: &mut Criterion) {
             &map,
             batch,
         );
+    }
+    // The trip alone (its cosine rows computed beforehand): what `push_batch` and the
+    // delta cost.
+    for batch in [1usize, 10] {
+        let q = queries(&map, trip.frames(), batch, 99);
+        let cos = cosine_matrix(&q, &map).expect("same dimension");
+        g.bench_function(format!("push_only_batch_{batch}_length_200"), |b| {
+            b.iter_batched(
+                || trip.clone(),
+                |mut t| {
+                    let update = t.push_batch(&cos).expect("valid batch");
+                    (update, t.take_delta())
+                },
+                BatchSize::LargeInput,
+            )
+        });
     }
     g.finish();
 }

@@ -109,6 +109,50 @@ async fn prefix(pool: &CpuPool, m: Arc<Matrix>, count: u32) -> AppResult<Arc<Mat
     .await
 }
 
+/// A map's L2-normalised reference matrix with the image count it was computed for.
+type CachedNormalized = (u32, Arc<Matrix>);
+
+/// L2-normalised reference matrices of maps with trips, by map id: a trip's batch compares its
+/// frames with them ([`crate::similarity::cosine_matrix_normalized`], the same values as
+/// [`crate::similarity::cosine_matrix`]) instead of copying and normalising the whole map per
+/// batch (about 100 ms on a 30,790-image map). A map's first `count` rows never change
+/// (images are append-only), so an entry is valid for as long as the map exists.
+#[derive(Default)]
+pub struct NormalizedReferences {
+    maps: Mutex<HashMap<u64, CachedNormalized>>,
+}
+
+impl NormalizedReferences {
+    /// The normalised first `count` reference rows of `map` (from [`References`]).
+    pub async fn get(
+        &self,
+        references: &References,
+        store: &dyn Store,
+        pool: &CpuPool,
+        map: &MapRecord,
+        count: u32,
+    ) -> AppResult<Arc<Matrix>> {
+        let cached = lock(&self.maps)
+            .get(&map.id)
+            .filter(|(n, _)| *n == count)
+            .map(|(_, m)| Arc::clone(m));
+        if let Some(m) = cached {
+            return Ok(m);
+        }
+        let raw = references.get(store, pool, map, count).await?;
+        let normalized = pool
+            .run(move || Ok(Arc::new(crate::similarity::l2_normalized_rows(&raw))))
+            .await?;
+        lock(&self.maps).insert(map.id, (count, Arc::clone(&normalized)));
+        Ok(normalized)
+    }
+
+    /// Drops a map's matrix (after it was deleted).
+    pub fn forget(&self, map: u64) {
+        lock(&self.maps).remove(&map);
+    }
+}
+
 /// A map's prior column means with the image count they were computed for.
 type CachedPrior = (u32, Arc<Vec<f32>>);
 

@@ -219,8 +219,9 @@ impl App {
         let source = match kind(&map) {
             Kind::Cooc(_) => RowSource::Cooc(Box::new(self.load_cooc(&map).await?.1)),
             Kind::Descriptors(_) => RowSource::Descriptors(
-                self.references
+                self.normalized
                     .get(
+                        &self.references,
                         self.store.as_ref(),
                         &self.pool,
                         &map,
@@ -271,7 +272,7 @@ impl App {
                             max_len,
                             map.dim,
                         )?;
-                        similarity::cosine_matrix(&queries, references)?
+                        similarity::cosine_matrix_normalized(&queries, references)?
                     }
                     RowSource::Cooc(cooc) => RowSource::cooc_rows(cooc, &frames, max_pixels)?,
                 };
