@@ -1,24 +1,24 @@
-//! Trips: latency of one 10-frame batch at trip lengths 100, 1,000 and 10,000 frames on a flat
-//! 2,400-image map, and the memory an open trip holds.
+//! Trips: latency of one batch on a flat 2,400-image map (10 frames, at trip lengths 100,
+//! 1,000 and 10,000) and on a city-scale 30,790-image map (1 frame and 10 frames, the paper's
+//! map size), and the memory an open trip holds.
 //!
 //! Input is a descriptor matrix (756-D, the size of HOG with 8 px cells on 64x32 frames), so
 //! image decoding and extraction are *not* measured: one iteration is the batch's cosine rows
-//! against the map (one GEMM) plus `Trip::push_batch` (online Eq. 2, the `O(D)` row updates,
-//! the lag-window re-trace, causal confidences) plus `Trip::to_bytes` (the state the service
-//! stores per batch). The trip is advanced to the target length beforehand; every iteration
-//! starts from a clone of that state, so the length does not drift.
+//! against the map normalised beforehand (one GEMM, as the service does with its cached
+//! normalised map) plus `Trip::push_batch` (online Eq. 2, the `O(D)` row updates,
+//! the lag-window re-trace and confidences) plus `Trip::take_delta` (the state delta the
+//! service stores per batch). The `push_only` cases leave the cosine rows out. The trip is advanced to the target length beforehand; every iteration starts from
+//! a clone of that state (cloning is not timed), so the length does not drift.
 //!
 //! Run: `cargo bench --bench trips -- --warm-up-time 1 --measurement-time 3`.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 
-use seasonloc::similarity::cosine_matrix;
+use seasonloc::similarity::{cosine_matrix, cosine_matrix_normalized, l2_normalized_rows};
 use seasonloc::trip::{column_prior, Trip, TripParams};
 use seasonloc::Matrix;
 
-const MAP: usize = 2400;
 const DIM: usize = 756;
-const BATCH: usize = 10;
 
 /// Deterministic pseudo-random non-negative descriptors (HOG-like: non-negative, unit scale).
 fn descriptors(rows: usize, seed: u64) -> Matrix {
@@ -33,12 +33,12 @@ fn descriptors(rows: usize, seed: u64) -> Matrix {
     m
 }
 
-/// A route-like query: frame `i` is reference `i mod MAP` plus noise.
+/// A route-like query: frame `i` is reference `i mod D` plus noise.
 fn queries(map: &Matrix, first: usize, n: usize, seed: u64) -> Matrix {
     let noise = descriptors(n, seed);
     let mut q = Matrix::zeros(n, DIM);
     for k in 0..n {
-        let r = map.row((first + k) % MAP);
+        let r = map.row((first + k) % map.rows());
         for ((o, a), b) in q.row_mut(k).iter_mut().zip(r).zip(noise.row(k)) {
             *o = a + 0.8 * b;
         }
@@ -46,32 +46,104 @@ fn queries(map: &Matrix, first: usize, n: usize, seed: u64) -> Matrix {
     q
 }
 
+/// Advances `trip` to `length` frames in batches of 100.
+fn advance(trip: &mut Trip, map: &Matrix, length: usize) {
+    while trip.frames() < length {
+        let n = 100.min(length - trip.frames());
+        let q = queries(map, trip.frames(), n, trip.frames() as u64);
+        let cos = cosine_matrix(&q, map).expect("same dimension");
+        trip.push_batch(&cos).expect("valid batch");
+        trip.take_delta();
+    }
+}
+
+/// One measured batch of `batch` frames after `trip`'s current length.
+fn bench_batch(
+    g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+    name: String,
+    trip: &Trip,
+    map: &Matrix,
+    batch: usize,
+) {
+    let next = queries(map, trip.frames(), batch, 99);
+    // The service keeps the normalised map per map version (`app::cache`).
+    let normalized = l2_normalized_rows(map);
+    g.bench_function(name, |b| {
+        b.iter_batched(
+            || trip.clone(),
+            |mut t| {
+                let cos = cosine_matrix_normalized(&next, &normalized).expect("same dimension");
+                let update = t.push_batch(&cos).expect("valid batch");
+                (update, t.take_delta())
+            },
+            BatchSize::LargeInput,
+        )
+    });
+}
+
+fn report(label: &str, trip: &Trip, map: &Matrix, batch: usize) {
+    // Bytes a batch writes: the delta of `batch`-frame batches over 2·lag frames (a snapshot
+    // is due once in that span), on a clone.
+    let mut t = trip.clone();
+    let (mut total, mut n, mut max) = (0usize, 0usize, 0usize);
+    while n * batch < 2 * t.params().lag {
+        let q = queries(map, t.frames(), batch, 5 + n as u64);
+        let cos = cosine_matrix(&q, map).expect("same dimension");
+        t.push_batch(&cos).expect("valid batch");
+        let bytes = t.take_delta().bytes();
+        (total, max, n) = (total + bytes, max.max(bytes), n + 1);
+    }
+    let stored = t.stored_state();
+    eprintln!(
+        "{label}: batch of {batch} writes {} bytes on average (max {max}), stored form {} bytes, heap {} bytes",
+        total / n,
+        stored.base.len() + stored.snapshot.len() + stored.log.iter().map(|(_, r)| r.len()).sum::<usize>(),
+        trip.heap_bytes()
+    );
+}
+
 fn batches(c: &mut Criterion) {
-    let map = descriptors(MAP, 1);
+    let map = descriptors(2400, 1);
     let prior = column_prior(&map).expect("non-empty map");
     let mut g = c.benchmark_group("trip_batch_10_frames_map_2400");
     g.sample_size(10);
     let mut trip = Trip::new(prior, TripParams::default()).expect("default parameters");
     for &length in &[100usize, 1_000, 10_000] {
-        while trip.frames() < length {
-            let q = queries(&map, trip.frames(), 100, trip.frames() as u64);
-            let cos = cosine_matrix(&q, &map).expect("same dimension");
-            trip.push_batch(&cos).expect("valid batch");
-        }
-        let bytes = trip.to_bytes();
-        eprintln!(
-            "trip length {length}: state {} bytes, heap {} bytes",
-            bytes.len(),
-            trip.heap_bytes()
+        advance(&mut trip, &map, length);
+        report(&format!("map 2400, length {length}"), &trip, &map, 10);
+        bench_batch(&mut g, format!("length_{length}"), &trip, &map, 10);
+    }
+    g.finish();
+}
+
+fn city(c: &mut Criterion) {
+    let map = descriptors(30_790, 7);
+    let prior = column_prior(&map).expect("non-empty map");
+    let mut g = c.benchmark_group("trip_map_30790");
+    g.sample_size(10);
+    let mut trip = Trip::new(prior, TripParams::default()).expect("default parameters");
+    advance(&mut trip, &map, 200);
+    report("map 30790, length 200", &trip, &map, 1);
+    for batch in [1usize, 10] {
+        bench_batch(
+            &mut g,
+            format!("batch_{batch}_length_200"),
+            &trip,
+            &map,
+            batch,
         );
-        let next = queries(&map, length, BATCH, 99);
-        g.bench_function(format!("length_{length}"), |b| {
+    }
+    // The trip alone (its cosine rows computed beforehand): what `push_batch` and the
+    // delta cost.
+    for batch in [1usize, 10] {
+        let q = queries(&map, trip.frames(), batch, 99);
+        let cos = cosine_matrix(&q, &map).expect("same dimension");
+        g.bench_function(format!("push_only_batch_{batch}_length_200"), |b| {
             b.iter_batched(
                 || trip.clone(),
                 |mut t| {
-                    let cos = cosine_matrix(&next, &map).expect("same dimension");
                     let update = t.push_batch(&cos).expect("valid batch");
-                    (update, t.to_bytes())
+                    (update, t.take_delta())
                 },
                 BatchSize::LargeInput,
             )
@@ -80,5 +152,5 @@ fn batches(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, batches);
+criterion_group!(benches, batches, city);
 criterion_main!(benches);

@@ -104,16 +104,27 @@ fn main() {
     let defaults = TripParams::default();
     let (arrival, last) = stream(&c, &prior, defaults, 10);
     let mut probe = Trip::new(prior.clone(), defaults).expect("valid parameters");
+    let (mut written, mut most, mut batches) = (0usize, 0usize, 0usize);
     for start in (0..q).step_by(10) {
         let rows: Vec<&[f32]> = (start..(start + 10).min(q)).map(|i| c.row(i)).collect();
         probe
             .push_batch(&Matrix::from_rows(&rows).expect("rows"))
             .expect("batch");
+        let bytes = probe.take_delta().bytes();
+        (written, most, batches) = (written + bytes, most.max(bytes), batches + 1);
     }
+    let stored = probe.stored_state();
     let state = format!(
-        "state after {q} frames on a {}-image map: {} bytes encoded, {} bytes of heap",
+        "state after {q} frames on a {}-image map: a batch of 10 writes {} bytes on average \
+         (at most {most}); stored form {} bytes (base {}, snapshot {}, {} log rows); {} bytes of heap",
         summer.rows(),
-        probe.to_bytes().len(),
+        written / batches,
+        stored.base.len()
+            + stored.snapshot.len()
+            + stored.log.iter().map(|(_, r)| r.len()).sum::<usize>(),
+        stored.base.len(),
+        stored.snapshot.len(),
+        stored.log.len(),
         probe.heap_bytes()
     );
     row(

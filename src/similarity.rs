@@ -61,6 +61,43 @@ pub fn cosine_matrix(queries: &Matrix, references: &Matrix) -> Result<Matrix> {
     Ok(out)
 }
 
+/// [`cosine_matrix`] against references normalised beforehand with [`l2_normalized_rows`]:
+/// the same values bit for bit (the same normalisation, product and clamp), without copying,
+/// checking and normalising the reference matrix per call. For a trip's batch of a few frames
+/// on a city-scale map (30,790 x 756) that per-call work on the references is about 100 ms,
+/// the product itself a few; callers keep the normalised matrix per map version
+/// (`app::cache`). `normalized_references` must come from [`l2_normalized_rows`] of finite
+/// descriptors (unchecked here).
+pub fn cosine_matrix_normalized(
+    queries: &Matrix,
+    normalized_references: &Matrix,
+) -> Result<Matrix> {
+    if queries.rows() == 0 {
+        return Err(Error::Empty("query descriptor set has no rows".into()));
+    }
+    if normalized_references.rows() == 0 {
+        return Err(Error::Empty("reference descriptor set has no rows".into()));
+    }
+    if queries.cols() != normalized_references.cols() {
+        return Err(Error::Shape(format!(
+            "query descriptors have length {}, reference descriptors have length {}",
+            queries.cols(),
+            normalized_references.cols()
+        )));
+    }
+    if queries.cols() == 0 {
+        return Err(Error::Empty("descriptors have length 0".into()));
+    }
+    queries.check_finite("query descriptors")?;
+    let qn = l2_normalized_rows(queries);
+    let mut out = Matrix::zeros(queries.rows(), normalized_references.rows());
+    matmul_abt(&qn, normalized_references, &mut out);
+    out.as_mut_slice()
+        .par_chunks_mut(4096)
+        .for_each(|chunk| chunk.iter_mut().for_each(|v| *v = v.clamp(-1.0, 1.0)));
+    Ok(out)
+}
+
 /// A copy of `m` with every row scaled to unit L2 norm; all-zero rows stay zero.
 ///
 /// The norm is accumulated in `f64` so that large finite entries (whose squares overflow
@@ -299,6 +336,30 @@ mod tests {
         );
         let bad = Matrix::from_vec(1, 1, vec![f32::NAN]).unwrap();
         assert!(Normalization::None.apply(&bad).is_err());
+    }
+
+    #[test]
+    fn cosine_against_normalized_references_is_bit_identical() {
+        let m = |rows: usize, cols: usize, seed: usize| {
+            let data = (0..rows * cols)
+                .map(|k| ((k * 37 + seed * 11) % 101) as f32 / 25.0 - 0.7)
+                .collect();
+            Matrix::from_vec(rows, cols, data).unwrap()
+        };
+        for (q, d, n) in [(1, 7, 3), (3, 5000, 64), (10, 2400, 33)] {
+            let (queries, mut refs) = (m(q, n, 1), m(d, n, 2));
+            refs.row_mut(d / 2).fill(0.0); // a zero descriptor
+            let normalized = l2_normalized_rows(&refs);
+            assert_eq!(
+                cosine_matrix_normalized(&queries, &normalized).unwrap(),
+                cosine_matrix(&queries, &refs).unwrap()
+            );
+        }
+        let refs = l2_normalized_rows(&m(4, 3, 0));
+        assert!(cosine_matrix_normalized(&m(2, 4, 0), &refs).is_err());
+        assert!(cosine_matrix_normalized(&Matrix::zeros(0, 3), &refs).is_err());
+        let bad = Matrix::from_vec(1, 3, vec![0.0, f32::NAN, 1.0]).unwrap();
+        assert!(cosine_matrix_normalized(&bad, &refs).is_err());
     }
 
     fn naive_cosine(q: &Matrix, d: &Matrix) -> Vec<f64> {

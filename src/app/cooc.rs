@@ -36,7 +36,8 @@ const TRIP_PRIOR_SAMPLE: usize = 256;
 /// its co-occurrence model (score rows `s + 1`, as `cooc-flow` offline). Either feeds the same
 /// online graph ([`crate::trip::Trip::push_batch`]).
 pub(super) enum RowSource {
-    /// Reference descriptors of a HOG/CNN map.
+    /// Reference descriptors of a HOG/CNN map, L2-normalised
+    /// ([`crate::similarity::l2_normalized_rows`]).
     Descriptors(Arc<Matrix>),
     /// The decoded co-occurrence map.
     Cooc(Box<CoocMap>),

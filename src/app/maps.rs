@@ -160,6 +160,7 @@ impl App {
         self.store.delete_map(id).await?;
         self.references.forget(id);
         self.priors.forget(id);
+        self.normalized.forget(id);
         tracing::info!(map = %format!("{id:016x}"), "map deleted");
         Ok(())
     }

@@ -70,6 +70,8 @@ pub struct App {
     config: AppConfig,
     references: cache::References,
     priors: cache::Priors,
+    normalized: cache::NormalizedReferences,
+    open_trips: cache::OpenTrips,
     trip_locks: cache::TripLocks,
 }
 
@@ -84,6 +86,8 @@ impl App {
             config,
             references: cache::References::default(),
             priors: cache::Priors::default(),
+            normalized: cache::NormalizedReferences::default(),
+            open_trips: cache::OpenTrips::default(),
             trip_locks: cache::TripLocks::default(),
         })
     }

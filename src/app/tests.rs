@@ -223,9 +223,9 @@ async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) 
     );
 }
 
-/// The real store, except that the first two reads of a trip's state wait for each other: two
-/// replicas then compute their batches from the same state, and one of the conditional writes
-/// must lose.
+/// The real store, except that the first two reads of a trip's record (the first read of a
+/// batch) wait for each other: two replicas then compute their batches from the same state,
+/// and one of the conditional writes must lose.
 struct BothReadFirst {
     inner: Arc<dyn Store>,
     reads: AtomicUsize,
@@ -291,14 +291,14 @@ impl Store for BothReadFirst {
         self.inner.create_trip(new).await
     }
     async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
-        self.inner.get_trip(id).await
-    }
-    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
-        let state = self.inner.trip_state(id).await;
+        let record = self.inner.get_trip(id).await;
         if self.reads.fetch_add(1, Ordering::SeqCst) < 2 {
             self.barrier.wait().await;
         }
-        state
+        record
+    }
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
+        self.inner.trip_state(id).await
     }
     async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
         self.inner.put_trip_batch(id, batch).await

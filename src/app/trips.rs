@@ -3,9 +3,12 @@
 //!
 //! * Opening pins the map's current image count: the trip localizes against those references,
 //!   even if images are appended later (its column prior and solver state have that width).
-//! * A batch restores the trip's state ([`crate::trip::Trip::from_bytes`]), describes the
-//!   frames with the map's settings, pushes their similarities through the trip, and writes the
-//!   new state, record and estimates in one atomic store write, conditional on the frame count
+//! * A batch takes the trip's state from this process's cache of open trips when it is at the
+//!   stored frame count ([`super::cache::OpenTrips`]), else restores it from the store
+//!   ([`crate::trip::Trip::restore`]: the snapshot and the log rows after it); describes the
+//!   frames with the map's settings, pushes their similarities through the trip, and writes
+//!   the state's delta ([`crate::trip::Trip::take_delta`]: the batch's rows, sometimes a
+//!   snapshot), record and estimates in one atomic store write, conditional on the frame count
 //!   the batch was computed after. When another process applied a batch of the same trip in
 //!   between (a shared store), the batch is recomputed from the new state, at most
 //!   [`CONFLICT_RETRIES`] times; so batches of one trip apply one at a time, wherever they
@@ -23,7 +26,7 @@ use super::{ids, map_extractor, App};
 use crate::similarity;
 use crate::store::{
     FrameRecord, IdempotencyRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch,
-    TripParamsDocument, TripRecord,
+    TripParamsDocument, TripRecord, TripState, TripStateWrite,
 };
 use crate::trip::{column_prior, BatchUpdate, Trip, TripParams};
 
@@ -110,14 +113,15 @@ impl App {
         let (id, count) = (map.id, map.image_count);
         let state = self
             .pool
-            .run(move || Ok(Trip::new(prior.as_ref().clone(), params)?.to_bytes()))
+            .run(move || Ok(Trip::new(prior.as_ref().clone(), params)?.stored_state()))
             .await?;
         let new = NewTrip {
             id: 0,
             map_id: id,
             reference_count: count,
             params: TripParamsDocument::from(&params),
-            state,
+            base: state.base,
+            snapshot: state.snapshot,
         };
         let record =
             ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_trip(n)).await?;
@@ -194,16 +198,30 @@ impl App {
         idempotency: Option<(&Idempotency, String)>,
     ) -> AppResult<FramesOutcome> {
         let started = Instant::now();
-        let (record, bytes) = self.store.trip_state(id).await?;
+        let mut record = self.store.get_trip(id).await?;
         if record.closed_ms.is_some() {
             return Err(AppError::TripClosed(id));
         }
+        // The common path: this process applied the trip's previous batch.
+        let cached = self.open_trips.take(id, record.frame_count);
+        let stored = match cached {
+            Some(_) => None,
+            None => {
+                let (fresh, state) = self.store.trip_state(id).await?;
+                if fresh.closed_ms.is_some() {
+                    return Err(AppError::TripClosed(id));
+                }
+                record = fresh;
+                Some(state)
+            }
+        };
         let map = self.get_map(record.map_id).await?;
         let source = match kind(&map) {
             Kind::Cooc(_) => RowSource::Cooc(Box::new(self.load_cooc(&map).await?.1)),
             Kind::Descriptors(_) => RowSource::Descriptors(
-                self.references
+                self.normalized
                     .get(
+                        &self.references,
                         self.store.as_ref(),
                         &self.pool,
                         &map,
@@ -214,10 +232,29 @@ impl App {
         };
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
-        let (update, state, hidden_cost, mut timings) = self
+        let frame_count = record.frame_count;
+        let (update, live, delta, hidden_cost, mut timings) = self
             .pool
             .run(move || {
-                let mut trip = Trip::from_bytes(&bytes)?;
+                let mut trip = match (cached, stored) {
+                    (Some(trip), _) => trip,
+                    (
+                        None,
+                        Some(TripState::Parts {
+                            base,
+                            snapshot,
+                            log,
+                        }),
+                    ) => {
+                        let log: Vec<(u64, &[u8])> =
+                            log.iter().map(|(f, r)| (*f, &r[..])).collect();
+                        Trip::restore(&base, &snapshot, &log, frame_count)?
+                    }
+                    (None, Some(TripState::Legacy(bytes))) => Trip::from_legacy_bytes(&bytes)?,
+                    (None, None) => {
+                        return Err(AppError::Internal("a trip with no state to use".into()))
+                    }
+                };
                 let load = started.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let c = match &source {
@@ -235,7 +272,7 @@ impl App {
                             max_len,
                             map.dim,
                         )?;
-                        similarity::cosine_matrix(&queries, references)?
+                        similarity::cosine_matrix_normalized(&queries, references)?
                     }
                     RowSource::Cooc(cooc) => RowSource::cooc_rows(cooc, &frames, max_pixels)?,
                 };
@@ -246,6 +283,7 @@ impl App {
                 let hidden_cost = trip.hidden_cost().ok_or_else(|| {
                     AppError::Internal("the first batch did not resolve the hidden cost".into())
                 })?;
+                let delta = trip.take_delta();
                 let solve = t.elapsed().as_secs_f64();
                 let timings = FramesTimings {
                     load,
@@ -253,7 +291,7 @@ impl App {
                     solve,
                     store: 0.0,
                 };
-                Ok((update, trip.to_bytes(), hidden_cost, timings))
+                Ok((update, trip, delta, hidden_cost, timings))
             })
             .await?;
         let estimates = update
@@ -270,6 +308,12 @@ impl App {
             })
             .collect::<AppResult<Vec<_>>>()?;
         let frame_count = record.frame_count + update.estimates.len() as u64;
+        let state = TripStateWrite {
+            base: delta.base,
+            snapshot: delta.snapshot,
+            log: delta.log,
+            drop_log_before: delta.drop_log_before,
+        };
         let idempotency = match idempotency {
             Some((key, scope)) => Some(key.record(
                 scope,
@@ -296,6 +340,8 @@ impl App {
             Err(e) => return Err(e.into()),
         };
         timings.store = t.elapsed().as_secs_f64();
+        // The store holds what `trip` holds now: keep it for the trip's next batch.
+        self.open_trips.keep(id, live);
         tracing::debug!(trip = %format!("{id:016x}"), frames = trip.frame_count, "batch applied");
         Ok(FramesOutcome {
             trip,
@@ -311,6 +357,7 @@ impl App {
         let lock = self.trip_locks.of(id);
         let _order = lock.lock().await;
         let record = self.store.close_trip(id).await?;
+        self.open_trips.forget(id);
         tracing::info!(trip = %format!("{id:016x}"), "trip closed");
         Ok(record)
     }

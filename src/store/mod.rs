@@ -434,8 +434,51 @@ pub struct NewTrip {
     pub reference_count: u32,
     /// Its parameters.
     pub params: TripParamsDocument,
-    /// Its initial solver state (opaque bytes owned by `crate::trip`).
-    pub state: Vec<u8>,
+    /// Its initial state's constant part (opaque bytes owned by `crate::trip`).
+    pub base: Vec<u8>,
+    /// Its initial snapshot (opaque bytes owned by `crate::trip`); the log starts empty.
+    pub snapshot: Vec<u8>,
+}
+
+/// A trip's solver state as stored: opaque parts owned by `crate::trip` (`trip::persist`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum TripState {
+    /// The parts this version writes: the constant base, the latest snapshot and the log
+    /// rows after it, `(frame, bytes)` in frame order.
+    Parts {
+        /// Written at open, never changed.
+        base: Vec<u8>,
+        /// The latest snapshot.
+        snapshot: Vec<u8>,
+        /// The log rows from the snapshot's frame on.
+        log: Vec<(u64, Vec<u8>)>,
+    },
+    /// One blob written by an earlier version (sled layout 4-5, PostgreSQL schema 1-3),
+    /// replaced by parts when the trip's next batch writes a base.
+    Legacy(Vec<u8>),
+}
+
+/// What one batch changes in a trip's stored state ([`TripState::Parts`]): written in the
+/// same atomic write as the batch's record, estimates and idempotency record.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TripStateWrite {
+    /// A base to store; replaces a [`TripState::Legacy`] blob.
+    pub base: Option<Vec<u8>>,
+    /// A snapshot replacing the stored one.
+    pub snapshot: Option<Vec<u8>>,
+    /// Log rows to add, `(frame, bytes)`.
+    pub log: Vec<(u64, Vec<u8>)>,
+    /// Drop the log rows of frames below this one.
+    pub drop_log_before: Option<u64>,
+}
+
+impl TripStateWrite {
+    /// Bytes of state this write stores (base, snapshot, log rows).
+    pub fn bytes(&self) -> usize {
+        self.base.as_ref().map_or(0, Vec::len)
+            + self.snapshot.as_ref().map_or(0, Vec::len)
+            + self.log.iter().map(|(_, r)| r.len()).sum::<usize>()
+    }
 }
 
 /// What one batch of frames changes, written with [`Store::put_trip_batch`].
@@ -448,8 +491,8 @@ pub struct TripBatch {
     pub frame_count: u64,
     /// Status after the batch.
     pub status: TripStatus,
-    /// The new solver state.
-    pub state: Vec<u8>,
+    /// The change of the solver state (a delta: new log rows, sometimes a snapshot).
+    pub state: TripStateWrite,
     /// New or revised estimates (the batch's frames and the re-traced lag window).
     pub estimates: Vec<FrameRecord>,
     /// Stored in the same write, when the request had an idempotency key.
@@ -565,10 +608,11 @@ pub trait Store: Send + Sync + 'static {
     /// One trip's record.
     async fn get_trip(&self, id: u64) -> StoreResult<TripRecord>;
 
-    /// A trip's record and solver state, read consistently.
-    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)>;
+    /// A trip's record and solver state, read consistently (one point in time: the log
+    /// rows are those after the snapshot, up to the record's `frame_count`).
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)>;
 
-    /// Applies one batch: record, state and estimates in one atomic write, only if the trip
+    /// Applies one batch: record, state delta and estimates in one atomic write, only if the trip
     /// is open and its `frame_count` still equals [`TripBatch::expected_frames`]
     /// ([`StoreError::TripClosed`] / [`StoreError::TripConflict`] otherwise, writing nothing).
     async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord>;

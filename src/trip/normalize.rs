@@ -2,7 +2,6 @@
 //! running means a trip divides each arriving row by (Eq. 2 with the prior; see the
 //! [`crate::trip`] module doc for the formula and why rows are never revised).
 
-use super::Trip;
 use crate::{similarity, Error, Matrix, Result};
 
 /// How many map images [`column_prior`] compares each reference with.
@@ -28,51 +27,86 @@ pub fn column_prior(references: &Matrix) -> Result<Vec<f32>> {
     Ok(prior.iter().map(|p| (p / take as f64) as f32).collect())
 }
 
-impl Trip {
-    /// Normalises a batch with the running column means (see the module doc), updating them.
-    pub(super) fn normalize(&mut self, c: &Matrix) -> Matrix {
-        let n0 = self.params.prior_weight;
-        if !self.params.normalize {
-            return c.clone();
+/// The running sums of the raw rows a trip has seen: the whole state of its online Eq. 2
+/// besides the (constant) prior.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct Sums {
+    /// `Σ_i c_ij` per column.
+    pub columns: Vec<f64>,
+    /// `Σ_i mean_j c_ij`.
+    pub similarity: f64,
+}
+
+impl Sums {
+    pub fn new(d: usize) -> Self {
+        Sums {
+            columns: vec![0.0; d],
+            similarity: 0.0,
         }
-        let mut out = Matrix::zeros(c.rows(), c.cols());
-        let mut means = vec![0.0f64; c.cols()];
-        let mut scratch = vec![0.0f64; c.cols()];
-        for (i, row) in c.iter_rows().enumerate() {
-            for (s, v) in self.column_sums.iter_mut().zip(row) {
-                *s += f64::from(*v);
-            }
-            self.similarity_sum +=
-                row.iter().map(|v| f64::from(*v)).sum::<f64>() / row.len() as f64;
-            let n = (self.frames + i + 1) as f64;
-            let scale = if self.prior_mean > 0.0 {
-                (self.similarity_sum / n) / self.prior_mean
+    }
+
+    /// Adds one raw row.
+    pub fn add(&mut self, row: &[f32]) {
+        for (s, v) in self.columns.iter_mut().zip(row) {
+            *s += f64::from(*v);
+        }
+        self.similarity += row.iter().map(|v| f64::from(*v)).sum::<f64>() / row.len() as f64;
+    }
+}
+
+/// The constant part of the normalisation: the map's prior and its weight.
+pub(super) struct Prior<'a> {
+    pub means: &'a [f32],
+    pub mean: f64,
+    pub weight: f64,
+}
+
+/// Work buffers of [`Prior::normalize_row`].
+#[derive(Default)]
+pub(super) struct NormScratch {
+    means: Vec<f64>,
+    select: Vec<f64>,
+}
+
+impl Prior<'_> {
+    /// Adds raw `row` (the `n`-th row of the trip, counting from 1) to `sums` and writes its
+    /// normalised values to `out`: `c_ij / max(m_j, floor)` with the running means of the
+    /// module doc.
+    pub fn normalize_row(
+        &self,
+        sums: &mut Sums,
+        n: usize,
+        row: &[f32],
+        out: &mut [f32],
+        s: &mut NormScratch,
+    ) {
+        let n0 = self.weight;
+        sums.add(row);
+        let n = n as f64;
+        let scale = if self.mean > 0.0 {
+            (sums.similarity / n) / self.mean
+        } else {
+            0.0
+        };
+        s.means.resize(row.len(), 0.0);
+        // Floor every column mean at half the median column mean, as the offline default
+        // (`similarity::normalize_columns_floored`): a near-empty reference (a dark tunnel
+        // frame) would otherwise get an exploding `ĉ` and hold the path for good.
+        for (m, (p, c)) in s.means.iter_mut().zip(self.means.iter().zip(&sums.columns)) {
+            *m = (n0 * scale * f64::from(*p) + c) / (n0 + n);
+        }
+        s.select.clear();
+        s.select.extend_from_slice(&s.means);
+        let mid = s.select.len() / 2;
+        let (_, median, _) = s.select.select_nth_unstable_by(mid, f64::total_cmp);
+        let floor = similarity::MEAN_FLOOR_FRACTION * *median;
+        for ((o, &v), &m) in out.iter_mut().zip(row).zip(&s.means) {
+            let mean = m.max(floor);
+            *o = if mean > 1e-12 {
+                (f64::from(v) / mean) as f32
             } else {
                 0.0
             };
-            // Floor every column mean at half the median column mean, as the offline default
-            // (`similarity::normalize_columns_floored`): a near-empty reference (a dark tunnel
-            // frame) would otherwise get an exploding `ĉ` and hold the path for good.
-            for (m, (p, s)) in means
-                .iter_mut()
-                .zip(self.prior.iter().zip(&self.column_sums))
-            {
-                *m = (n0 * scale * f64::from(*p) + s) / (n0 + n);
-            }
-            scratch.copy_from_slice(&means);
-            let mid = scratch.len() / 2;
-            let (_, median, _) = scratch.select_nth_unstable_by(mid, f64::total_cmp);
-            let floor = similarity::MEAN_FLOOR_FRACTION * *median;
-            let out_row = out.row_mut(i);
-            for j in 0..row.len() {
-                let mean = means[j].max(floor);
-                out_row[j] = if mean > 1e-12 {
-                    (f64::from(row[j]) / mean) as f32
-                } else {
-                    0.0
-                };
-            }
         }
-        out
     }
 }

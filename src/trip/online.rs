@@ -116,18 +116,28 @@ pub struct RowEstimate {
     pub relocalized: bool,
 }
 
-/// Incremental `F = 1` solver over a fixed map of `D` reference columns.
-#[derive(Clone)]
-pub struct OnlineSolver {
-    params: OnlineParams,
-    d: usize,
+/// The cost rows of the DP after some number of rows: the cheapest path from the source to
+/// every matching (`x`) and hidden (`h`) node of the last row consumed.
+#[derive(Clone, PartialEq)]
+struct Costs {
     rows: usize,
     x: Vec<f64>,
     h: Vec<f64>,
-    window: VecDeque<RowBack>,
-    /// `ĉ` of the rows in the window (needed to pick a row's best match when several).
-    window_chat: VecDeque<Vec<f32>>,
-    // scratch
+}
+
+impl Costs {
+    fn new(d: usize) -> Self {
+        Costs {
+            rows: 0,
+            x: vec![0.0; d],
+            h: vec![0.0; d],
+        }
+    }
+}
+
+/// Scratch of one row step (not state).
+#[derive(Clone, Default)]
+struct StepScratch {
     /// `min(x, h)` of the previous row per column, and which node it is (`column << 1 | hidden`).
     best_prev: Vec<f64>,
     best_arg: Vec<u32>,
@@ -136,6 +146,45 @@ pub struct OnlineSolver {
     pred: Vec<f64>,
     pred_off: Vec<u64>,
     dq: MonoDeque,
+}
+
+impl StepScratch {
+    fn new(d: usize) -> Self {
+        StepScratch {
+            best_prev: vec![0.0; d],
+            best_arg: vec![0; d],
+            pred: vec![0.0; d],
+            pred_off: vec![0; d],
+            dq: MonoDeque::default(),
+        }
+    }
+
+    fn heap_bytes(&self) -> usize {
+        (self.best_prev.capacity() + self.pred.capacity() + self.pred_off.capacity()) * 8
+            + self.best_arg.capacity() * 4
+            + self.dq.heap_bytes()
+    }
+}
+
+/// Incremental `F = 1` solver over a fixed map of `D` reference columns.
+///
+/// Besides the cost rows of the latest row it can keep those of the row before its lag window
+/// (the *window base*), advanced by the same row step as rows leave the window: a solver
+/// restored from the base costs and the window's `ĉ` rows ([`OnlineSolver::base_image`] +
+/// [`OnlineSolver::push_row`]) is bit-identical to this one, which is what lets a trip store
+/// the base once in a while and only the rows in between ([`crate::trip`]).
+#[derive(Clone)]
+pub struct OnlineSolver {
+    params: OnlineParams,
+    d: usize,
+    cur: Costs,
+    /// The costs before the window's first row (`None` when not tracked: a state restored
+    /// from a format that did not keep it).
+    base: Option<Costs>,
+    window: VecDeque<RowBack>,
+    /// `ĉ` of the rows in the window (needed to pick a row's best match when several).
+    window_chat: VecDeque<Vec<f32>>,
+    scratch: StepScratch,
 }
 
 impl OnlineSolver {
@@ -154,22 +203,22 @@ impl OnlineSolver {
         Ok(OnlineSolver {
             params,
             d: references,
-            rows: 0,
-            x: vec![0.0; references],
-            h: vec![0.0; references],
+            cur: Costs::new(references),
+            base: Some(Costs::new(references)),
             window: VecDeque::with_capacity(params.lag + 1),
             window_chat: VecDeque::with_capacity(params.lag + 1),
-            best_prev: vec![0.0; references],
-            best_arg: vec![0; references],
-            pred: vec![0.0; references],
-            pred_off: vec![0; references],
-            dq: MonoDeque::default(),
+            scratch: StepScratch::new(references),
         })
     }
 
     /// Rows consumed so far.
     pub fn rows(&self) -> usize {
-        self.rows
+        self.cur.rows
+    }
+
+    /// Whether the window base's costs are kept (see the type's doc).
+    pub fn tracks_base(&self) -> bool {
+        self.base.is_some()
     }
 
     /// The parameters.
@@ -187,7 +236,7 @@ impl OnlineSolver {
         self.d
     }
 
-    /// Approximate heap bytes held (vectors' capacities, window included).
+    /// Approximate heap bytes held (vectors' capacities, window and window base included).
     pub fn heap_bytes(&self) -> usize {
         let window: usize = self
             .window
@@ -199,18 +248,33 @@ impl OnlineSolver {
                 .iter()
                 .map(|c| c.capacity() * 4)
                 .sum::<usize>();
-        (self.x.capacity() + self.h.capacity()) * 8
-            + (self.best_prev.capacity() + self.pred.capacity() + self.pred_off.capacity()) * 8
-            + self.best_arg.capacity() * 4
-            + self.dq.heap_bytes()
-            + window
+        let costs = |c: &Costs| (c.x.capacity() + c.h.capacity()) * 8;
+        costs(&self.cur) + self.base.as_ref().map_or(0, costs) + self.scratch.heap_bytes() + window
     }
 
     /// Extends the path by one row of `ĉ` (length `D`, finite). Returns the row that left the
     /// lag window with its committed estimate, if one did.
-    // The row update reads neighbouring columns; indices say that more plainly.
-    #[allow(clippy::needless_range_loop)]
     pub fn push_row(&mut self, chat_row: &[f32]) -> Result<Option<RowEstimate>> {
+        self.check_row(chat_row)?;
+        // Before this row's pointers overwrite anything, commit the row leaving the window.
+        let committed = if self.window.len() == self.params.lag {
+            let oldest = self.rows() - self.window.len();
+            self.trace().into_iter().find(|e| e.row == oldest)
+        } else {
+            None
+        };
+        self.push_checked(chat_row.to_vec());
+        Ok(committed)
+    }
+
+    /// [`OnlineSolver::push_row`] without re-tracing the row that leaves the window: returns
+    /// that row's `ĉ` instead, if a row left.
+    pub fn push_row_leaving(&mut self, chat_row: Vec<f32>) -> Result<Option<Vec<f32>>> {
+        self.check_row(&chat_row)?;
+        Ok(self.push_checked(chat_row))
+    }
+
+    fn check_row(&self, chat_row: &[f32]) -> Result<()> {
         if chat_row.len() != self.d {
             return Err(Error::Shape(format!(
                 "a row has {} values, the map has {} references",
@@ -221,108 +285,63 @@ impl OnlineSolver {
         if let Some(j) = chat_row.iter().position(|v| !v.is_finite()) {
             return Err(Error::NonFinite {
                 what: "similarity row",
-                row: self.rows,
+                row: self.rows(),
                 col: j,
                 value: f64::from(chat_row[j]),
             });
         }
-        // Before this row's pointers overwrite anything, commit the row leaving the window.
-        let committed = if self.window.len() == self.params.lag {
-            let oldest = self.rows - self.window.len();
-            let estimate = self.trace().into_iter().find(|e| e.row == oldest);
-            self.window.pop_front();
-            self.window_chat.pop_front();
-            estimate
-        } else {
-            None
-        };
+        Ok(())
+    }
 
-        let d = self.d;
-        let k = self.params.graph.fan_out;
-        let w = self.params.graph.hidden_cost;
-        let mut back = RowBack {
-            x: vec![Back::SOURCE; d],
-            h: vec![Back::SOURCE; d],
-        };
-        if self.rows == 0 {
-            self.pred.fill(0.0);
+    /// The row step on a checked row: the leaving row (if the window is full) advances the
+    /// window base, the new row the latest costs and the window.
+    fn push_checked(&mut self, chat_row: Vec<f32>) -> Option<Vec<f32>> {
+        let (back, left) = if self.window.len() == self.params.lag {
+            let back = self.window.pop_front();
+            let left = self.window_chat.pop_front();
+            if let (Some(base), Some(row)) = (self.base.as_mut(), left.as_ref()) {
+                step(&self.params, base, row, &mut self.scratch, None);
+            }
+            (back, left)
         } else {
-            // Predecessor value of each column: the cheaper of x/h, argument encodes (col, hidden).
-            for j in 0..d {
-                (self.best_prev[j], self.best_arg[j]) = if self.x[j] <= self.h[j] {
-                    (self.x[j], (j as u32) << 1)
-                } else {
-                    (self.h[j], ((j as u32) << 1) | 1)
-                };
-            }
-            // The window minimum of the offline kernel, with its tie rule (latest column).
-            let strategy = Scan::for_fan_out(k);
-            self.dq.start(&self.best_prev, 0, k);
-            trailing_min_offsets(
-                &self.best_prev,
-                0,
-                k,
-                strategy,
-                &mut self.pred,
-                &mut self.pred_off,
-                &mut self.dq,
-            );
-            let teleport = self.params.relocalization.map(|r| {
-                let (v, arg) = self.best_prev.iter().zip(&self.best_arg).fold(
-                    (f64::INFINITY, 0),
-                    |a, (&v, &arg)| {
-                        if v < a.0 {
-                            (v, arg)
-                        } else {
-                            a
-                        }
-                    },
-                );
-                (v + r, arg)
-            });
-            for j in 0..d {
-                let v = self.pred[j];
-                let arg = self.best_arg[j - self.pred_off[j] as usize];
-                let mut ptr = Back::prev((arg >> 1) as usize, arg & 1 == 1, false);
-                let mut val = v;
-                if let Some((tv, targ)) = teleport {
-                    if tv < val {
-                        val = tv;
-                        ptr = Back::prev((targ >> 1) as usize, targ & 1 == 1, true);
-                    }
-                }
-                self.pred[j] = val;
-                back.x[j] = ptr;
-                back.h[j] = ptr;
-            }
-        }
-        for j in 0..d {
-            let p = self.pred[j];
-            self.x[j] = p + match_cost(chat_row[j]);
-            self.h[j] = p + w;
-        }
-        if self.params.graph.horizontal {
-            for j in 1..d {
-                let left = self.x[j - 1] + match_cost(chat_row[j]);
-                if left < self.x[j] {
-                    self.x[j] = left;
-                    back.x[j] = Back::LEFT;
-                }
-                if self.h[j - 1] < self.h[j] {
-                    self.h[j] = self.h[j - 1];
-                    back.h[j] = Back::LEFT;
-                }
-            }
-        }
+            (None, None)
+        };
+        let mut back = back.unwrap_or_else(|| RowBack {
+            x: vec![Back::SOURCE; self.d],
+            h: vec![Back::SOURCE; self.d],
+        });
+        step(
+            &self.params,
+            &mut self.cur,
+            &chat_row,
+            &mut self.scratch,
+            Some(&mut back),
+        );
         self.window.push_back(back);
-        self.window_chat.push_back(chat_row.to_vec());
-        self.rows += 1;
-        Ok(committed)
+        self.window_chat.push_back(chat_row);
+        left
+    }
+
+    /// The solver as it was before the first row of its lag window, with an empty window
+    /// (`None` when the window base is not tracked). Pushing the window's `ĉ` rows into it
+    /// gives back this solver exactly.
+    pub fn base_image(&self) -> Option<OnlineSolver> {
+        let base = self.base.as_ref()?;
+        Some(OnlineSolver {
+            params: self.params,
+            d: self.d,
+            cur: base.clone(),
+            base: Some(base.clone()),
+            window: VecDeque::with_capacity(self.params.lag + 1),
+            window_chat: VecDeque::with_capacity(self.params.lag + 1),
+            scratch: StepScratch::new(self.d),
+        })
     }
 
     /// Appends the solver's exact state to `out` (see [`StateWriter`]): parameters, the two
-    /// cost rows and the lag window. Scratch buffers are not state. The size is
-    /// `O(lag · D)`, independent of the number of rows consumed.
+    /// cost rows and the lag window. Scratch buffers and the window base are not written: a
+    /// solver decoded with an empty window has its base (it is the latest costs), one decoded
+    /// with a window has none. The size is `O(lag · D)`, independent of the rows consumed.
     pub fn encode(&self, out: &mut StateWriter) {
         let p = &self.params;
         out.u64(p.graph.fan_out as u64);
@@ -331,9 +350,9 @@ impl OnlineSolver {
         out.u64(p.lag as u64);
         out.opt_f64(p.relocalization);
         out.u64(self.d as u64);
-        out.u64(self.rows as u64);
-        out.f64s(&self.x);
-        out.f64s(&self.h);
+        out.u64(self.cur.rows as u64);
+        out.f64s(&self.cur.x);
+        out.f64s(&self.cur.h);
         out.u64(self.window.len() as u64);
         for (back, chat) in self.window.iter().zip(&self.window_chat) {
             for b in back.x.iter().chain(&back.h) {
@@ -371,14 +390,14 @@ impl OnlineSolver {
         }
         let mut solver =
             OnlineSolver::new(d, params).map_err(|e| corrupt(format!("solver size: {e}")))?;
-        solver.rows = r.usize()?;
-        solver.x = r.f64s(d)?;
-        solver.h = r.f64s(d)?;
+        solver.cur.rows = r.usize()?;
+        solver.cur.x = r.f64s(d)?;
+        solver.cur.h = r.f64s(d)?;
         let window = r.usize()?;
-        if window > lag || window > solver.rows {
+        if window > lag || window > solver.cur.rows {
             return Err(corrupt(format!(
                 "{window} rows in the lag window of {lag} after {} rows",
-                solver.rows
+                solver.cur.rows
             )));
         }
         for _ in 0..window {
@@ -407,6 +426,7 @@ impl OnlineSolver {
             solver.window.push_back(row);
             solver.window_chat.push_back(r.f32s(d)?);
         }
+        solver.base = (window == 0).then(|| solver.cur.clone());
         Ok(solver)
     }
 
@@ -416,23 +436,24 @@ impl OnlineSolver {
         let Some(last) = self.window.len().checked_sub(1) else {
             return Vec::new();
         };
+        let (x, h) = (&self.cur.x, &self.cur.h);
         // The best end node, picked as the offline solver's sink picks it: the lowest column of
         // the least `M = min(x, h)`, and in that column `h` only when strictly cheaper than `x`
         // (the rule the predecessors follow too), so ties end the path where offline does.
         let (mut col, mut hidden) = (0usize, false);
         let mut best = f64::INFINITY;
         for j in 0..self.d {
-            let (m, h_wins) = if self.h[j] < self.x[j] {
-                (self.h[j], true)
+            let (m, h_wins) = if h[j] < x[j] {
+                (h[j], true)
             } else {
-                (self.x[j], false)
+                (x[j], false)
             };
             if m < best {
                 best = m;
                 (col, hidden) = (j, h_wins);
             }
         }
-        let first_row = self.rows - self.window.len();
+        let first_row = self.rows() - self.window.len();
         let mut out = Vec::with_capacity(self.window.len());
         let mut t = last;
         loop {
@@ -466,6 +487,114 @@ impl OnlineSolver {
         out.reverse();
         out
     }
+}
+
+/// One row step of the DP on `c` (the costs after `c.rows` rows) with the row `ĉ`, writing
+/// the new row's back-pointers into `back` when given (the window base needs values only).
+// The row update reads neighbouring columns; indices say that more plainly.
+#[allow(clippy::needless_range_loop)]
+fn step(
+    params: &OnlineParams,
+    c: &mut Costs,
+    chat_row: &[f32],
+    s: &mut StepScratch,
+    mut back: Option<&mut RowBack>,
+) {
+    let d = chat_row.len();
+    let k = params.graph.fan_out;
+    let w = params.graph.hidden_cost;
+    if c.rows == 0 {
+        s.pred.fill(0.0);
+        if let Some(b) = back.as_deref_mut() {
+            b.x.fill(Back::SOURCE);
+            b.h.fill(Back::SOURCE);
+        }
+    } else {
+        // Predecessor value of each column: the cheaper of x/h, argument encodes (col, hidden).
+        for j in 0..d {
+            (s.best_prev[j], s.best_arg[j]) = if c.x[j] <= c.h[j] {
+                (c.x[j], (j as u32) << 1)
+            } else {
+                (c.h[j], ((j as u32) << 1) | 1)
+            };
+        }
+        // The window minimum of the offline kernel, with its tie rule (latest column).
+        let strategy = Scan::for_fan_out(k);
+        s.dq.start(&s.best_prev, 0, k);
+        trailing_min_offsets(
+            &s.best_prev,
+            0,
+            k,
+            strategy,
+            &mut s.pred,
+            &mut s.pred_off,
+            &mut s.dq,
+        );
+        let teleport =
+            params.relocalization.map(|r| {
+                let (v, arg) = s.best_prev.iter().zip(&s.best_arg).fold(
+                    (f64::INFINITY, 0),
+                    |a, (&v, &arg)| {
+                        if v < a.0 {
+                            (v, arg)
+                        } else {
+                            a
+                        }
+                    },
+                );
+                (v + r, arg)
+            });
+        match back.as_deref_mut() {
+            Some(b) => {
+                for j in 0..d {
+                    let arg = s.best_arg[j - s.pred_off[j] as usize];
+                    let mut ptr = Back::prev((arg >> 1) as usize, arg & 1 == 1, false);
+                    let mut val = s.pred[j];
+                    if let Some((tv, targ)) = teleport {
+                        if tv < val {
+                            val = tv;
+                            ptr = Back::prev((targ >> 1) as usize, targ & 1 == 1, true);
+                        }
+                    }
+                    s.pred[j] = val;
+                    b.x[j] = ptr;
+                    b.h[j] = ptr;
+                }
+            }
+            None => {
+                if let Some((tv, _)) = teleport {
+                    for p in s.pred.iter_mut() {
+                        if tv < *p {
+                            *p = tv;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    for j in 0..d {
+        let p = s.pred[j];
+        c.x[j] = p + match_cost(chat_row[j]);
+        c.h[j] = p + w;
+    }
+    if params.graph.horizontal {
+        for j in 1..d {
+            let left = c.x[j - 1] + match_cost(chat_row[j]);
+            if left < c.x[j] {
+                c.x[j] = left;
+                if let Some(b) = back.as_deref_mut() {
+                    b.x[j] = Back::LEFT;
+                }
+            }
+            if c.h[j - 1] < c.h[j] {
+                c.h[j] = c.h[j - 1];
+                if let Some(b) = back.as_deref_mut() {
+                    b.h[j] = Back::LEFT;
+                }
+            }
+        }
+    }
+    c.rows += 1;
 }
 
 #[cfg(test)]

@@ -7,7 +7,7 @@ use crate::codec::{ByteReader, ByteWriter, DecodeError};
 use crate::{Error, Result};
 
 /// Version byte of the state encoding written by [`StateWriter`].
-pub const STATE_FORMAT: u8 = 1;
+pub const STATE_FORMAT: u8 = 2;
 
 pub(super) fn corrupt(reason: impl Into<String>) -> Error {
     Error::Format {

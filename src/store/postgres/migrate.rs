@@ -32,6 +32,11 @@ pub const MIGRATIONS: &[(u32, &str, &str)] = &[
         "0003_thumbnails_and_pictures",
         include_str!("../../../migrations/postgres/0003_thumbnails_and_pictures.sql"),
     ),
+    (
+        4,
+        "0004_trip_state_parts",
+        include_str!("../../../migrations/postgres/0004_trip_state_parts.sql"),
+    ),
 ];
 
 /// The newest schema version this build knows.

@@ -41,7 +41,7 @@ use tokio_postgres::NoTls;
 use super::{
     now_ms, CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
     MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
-    TripBatch, TripRecord,
+    TripBatch, TripRecord, TripState,
 };
 use crate::Matrix;
 
@@ -416,7 +416,7 @@ impl Store for PgStore {
         self.trip(id).await
     }
 
-    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
         self.trip_with_state(id).await
     }
 

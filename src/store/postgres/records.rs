@@ -1,6 +1,8 @@
 //! Localization results and trips on PostgreSQL.
 //!
-//! A trip batch is one transaction: a conditional `UPDATE` of the trip row (open, and still at
+//! A trip's state is its `base` and `snapshot` columns and its `trip_log` rows (or, for a trip
+//! written by schema 1-3, the `state` blob), read in one statement. A trip batch is one
+//! transaction: a conditional `UPDATE` of the trip row (open, and still at
 //! the frame count the batch was computed after) that writes the new record fields and solver
 //! state, then an upsert of the batch's estimates. When the `UPDATE` matches no row nothing is
 //! written and the trip is read again to say why (gone, closed, or moved on), so of two
@@ -12,7 +14,7 @@ use super::maps::{is_duplicate, is_missing_parent};
 use super::{before, corrupt, db_id, fetch, paged, small, unsigned, PgStore};
 use crate::store::{
     now_ms, FrameRecord, LocalizationDocument, LocalizationRecord, NewLocalization, NewTrip, Page,
-    PageRequest, StoreError, StoreResult, TripBatch, TripParamsDocument, TripRecord,
+    PageRequest, StoreError, StoreResult, TripBatch, TripParamsDocument, TripRecord, TripState,
 };
 use crate::trip::TripStatus;
 
@@ -183,8 +185,8 @@ impl PgStore {
         let stmt = client
             .prepare_cached(
                 "INSERT INTO trips (id, map_id, created_ms, closed_ms, frame_count,
-                                    reference_count, status, params, state)
-                 VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5) RETURNING id",
+                                    reference_count, status, params, base, snapshot)
+                 VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5, $7) RETURNING id",
             )
             .await?;
         let row = client
@@ -195,8 +197,9 @@ impl PgStore {
                     &ms(created_ms),
                     &i64::from(new.reference_count),
                     &params,
-                    &new.state,
+                    &new.base,
                     &id,
+                    &new.snapshot,
                 ],
             )
             .await
@@ -234,18 +237,49 @@ impl PgStore {
         }
     }
 
-    pub(super) async fn trip_with_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
+    /// The record and the state parts in one statement (so one snapshot of the database: the
+    /// log rows are exactly those after the stored snapshot).
+    pub(super) async fn trip_with_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
         let key = db_id(id).ok_or(StoreError::TripNotFound(id))?;
         let client = self.client().await?;
         let stmt = client
             .prepare_cached(&format!(
-                "SELECT {TRIP_COLUMNS}, state FROM trips WHERE id = $1"
+                "SELECT {TRIP_COLUMNS}, state, base, snapshot,
+                        ARRAY(SELECT frame FROM trip_log WHERE trip_id = $1 ORDER BY frame),
+                        ARRAY(SELECT row FROM trip_log WHERE trip_id = $1 ORDER BY frame)
+                 FROM trips WHERE id = $1"
             ))
             .await?;
-        match client.query_opt(&stmt, &[&key]).await? {
-            Some(row) => Ok((trip_from_row(&row)?, row.get(8))),
-            None => Err(StoreError::TripNotFound(id)),
-        }
+        let Some(row) = client.query_opt(&stmt, &[&key]).await? else {
+            return Err(StoreError::TripNotFound(id));
+        };
+        let record = trip_from_row(&row)?;
+        let legacy: Option<Vec<u8>> = row.get(8);
+        let base: Option<Vec<u8>> = row.get(9);
+        let snapshot: Option<Vec<u8>> = row.get(10);
+        let frames: Vec<i64> = row.get(11);
+        let rows: Vec<Vec<u8>> = row.get(12);
+        let state = match (base, snapshot, legacy) {
+            (Some(base), Some(snapshot), None) => TripState::Parts {
+                base,
+                snapshot,
+                log: frames
+                    .into_iter()
+                    .map(|f| unsigned("trip_log", key, f))
+                    .zip(rows)
+                    .map(|(f, r)| Ok((f?, r)))
+                    .collect::<StoreResult<Vec<_>>>()?,
+            },
+            (None, None, Some(blob)) => TripState::Legacy(blob),
+            _ => {
+                return Err(corrupt(
+                    "trips",
+                    key,
+                    "neither a state blob nor state parts",
+                ))
+            }
+        };
+        Ok((record, state))
     }
 
     pub(super) async fn apply_trip_batch(
@@ -268,9 +302,13 @@ impl PgStore {
         let confidences: Vec<f64> = latest.values().map(|e| e.confidence).collect();
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        // Base and snapshot only when the batch changes them: an unchanged column keeps its
+        // stored (TOAST) value, so the WAL carries only the small row update.
         let update = tx
             .prepare_cached(&format!(
-                "UPDATE trips SET frame_count = $3, status = $4, state = $5
+                "UPDATE trips SET frame_count = $3, status = $4,
+                        base = COALESCE($5, base), snapshot = COALESCE($6, snapshot),
+                        state = CASE WHEN $5::BYTEA IS NULL THEN state END
                  WHERE id = $1 AND closed_ms IS NULL AND frame_count = $2
                  RETURNING {TRIP_COLUMNS}"
             ))
@@ -283,7 +321,8 @@ impl PgStore {
                     &expected,
                     &count,
                     &status_code(Some(batch.status)),
-                    &batch.state,
+                    &batch.state.base,
+                    &batch.state.snapshot,
                 ],
             )
             .await?;
@@ -307,6 +346,29 @@ impl PgStore {
         let record = trip_from_row(&row)?;
         let map: i64 = row.get(1);
         PgStore::claim_key(&tx, map, batch.idempotency.as_ref(), None).await?;
+        if let Some(before) = batch.state.drop_log_before {
+            let before = i64::try_from(before).unwrap_or(i64::MAX);
+            let drop = tx
+                .prepare_cached("DELETE FROM trip_log WHERE trip_id = $1 AND frame < $2")
+                .await?;
+            tx.execute(&drop, &[&key, &before]).await?;
+        }
+        if !batch.state.log.is_empty() {
+            let log_frames: Vec<i64> = batch
+                .state
+                .log
+                .iter()
+                .map(|(f, _)| i64::try_from(*f).unwrap_or(i64::MAX))
+                .collect();
+            let log_rows: Vec<&[u8]> = batch.state.log.iter().map(|(_, r)| &r[..]).collect();
+            let insert = tx
+                .prepare_cached(
+                    "INSERT INTO trip_log (trip_id, frame, row)
+                     SELECT $1, f, r FROM unnest($2::BIGINT[], $3::BYTEA[]) AS u (f, r)",
+                )
+                .await?;
+            tx.execute(&insert, &[&key, &log_frames, &log_rows]).await?;
+        }
         if !frames.is_empty() {
             let upsert = tx
                 .prepare_cached(

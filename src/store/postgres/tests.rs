@@ -5,7 +5,7 @@
 
 use super::testing;
 use super::*;
-use crate::store::{DescriptorSettings, TripParamsDocument};
+use crate::store::{DescriptorSettings, TripParamsDocument, TripStateWrite};
 use crate::trip::{TripParams, TripStatus};
 
 async fn database(test: &str) -> Option<String> {
@@ -271,15 +271,25 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             map_id: map.id,
             reference_count: 5,
             params: TripParamsDocument::from(&TripParams::default()),
-            state: vec![0],
+            base: vec![b'B'; 3000],
+            snapshot: vec![0],
         })
         .await
         .unwrap();
+    // A batch of `n` frames: their log rows, and a snapshot `state` (dropping the log rows
+    // before the batch) when `state` is even.
     let batch = |expected: u64, n: u64, state: u8| TripBatch {
         expected_frames: expected,
         frame_count: expected + n,
         status: TripStatus::Lost,
-        state: vec![state; 3],
+        state: TripStateWrite {
+            base: None,
+            snapshot: (state % 2 == 0).then(|| vec![state; 3]),
+            log: (expected..expected + n)
+                .map(|f| (f, vec![f as u8; 4000]))
+                .collect(),
+            drop_log_before: (state % 2 == 0).then_some(expected),
+        },
         estimates: (expected.saturating_sub(1)..expected + n)
             .map(|f| FrameRecord {
                 frame: f as u32,
@@ -301,7 +311,15 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
         })
     ));
     let (rec, state) = store.trip_state(trip.id).await.unwrap();
-    assert_eq!((rec.frame_count, state), (5, vec![2; 3]));
+    assert_eq!(rec.frame_count, 5);
+    assert_eq!(
+        state,
+        TripState::Parts {
+            base: vec![b'B'; 3000],
+            snapshot: vec![2; 3],
+            log: vec![(3, vec![3; 4000]), (4, vec![4; 4000])],
+        }
+    );
     let est = store.trip_estimates(trip.id, 0).await.unwrap();
     assert_eq!(est.len(), 5);
     // Read from a frame on: the same estimates, the earlier ones left out.
@@ -310,6 +328,45 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
     // Frame 2 was revised by the second batch (its window).
     assert_eq!(est[2].reference, Some(4));
     assert_eq!(est[3].reference, None);
+    // A trip written by schema 1-3: one blob in `state`, read as such; the next batch with a
+    // base replaces it by parts in the same transaction.
+    let other = store.create_map(precomputed(1)).await.unwrap();
+    let old = store
+        .create_trip(NewTrip {
+            id: crate::store::test_id(),
+            map_id: other.id,
+            reference_count: 5,
+            params: TripParamsDocument::from(&TripParams::default()),
+            base: vec![1],
+            snapshot: vec![2],
+        })
+        .await
+        .unwrap();
+    store
+        .client()
+        .await
+        .unwrap()
+        .execute(
+            "UPDATE trips SET state = $2, base = NULL, snapshot = NULL WHERE id = $1",
+            &[&db_id(old.id).unwrap(), &vec![7u8; 5]],
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        store.trip_state(old.id).await.unwrap().1,
+        TripState::Legacy(vec![7; 5])
+    );
+    let mut first = batch(0, 2, 4);
+    first.state.base = Some(vec![b'B', 1]);
+    store.put_trip_batch(old.id, first).await.unwrap();
+    assert_eq!(
+        store.trip_state(old.id).await.unwrap().1,
+        TripState::Parts {
+            base: vec![b'B', 1],
+            snapshot: vec![4; 3],
+            log: vec![(0, vec![0; 4000]), (1, vec![1; 4000])],
+        }
+    );
     let closed = store.close_trip(trip.id).await.unwrap();
     assert!(closed.closed_ms.is_some());
     assert_eq!(store.close_trip(trip.id).await.unwrap(), closed);

@@ -12,7 +12,10 @@
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
 //! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
 //! | `T` + trip id (`u64` BE) | [`TripRecord`] (layout >= 4) |
-//! | `S` + trip id (`u64` BE) | the trip's solver state, opaque bytes from `crate::trip` |
+//! | `S` + trip id (`u64` BE) | a trip's solver state in one blob (format 1, layouts 4-5), opaque bytes from `crate::trip`; replaced by `b`/`s`/`r` at the trip's next batch |
+//! | `b` + trip id (`u64` BE) | the trip state's base (layout >= 6; `crate::trip::persist`) |
+//! | `s` + trip id (`u64` BE) | the trip state's latest snapshot (layout >= 6) |
+//! | `r` + trip id (`u64` BE) + frame (`u32` BE) | one log row of the trip state: the frame's raw cosine row (layout >= 6) |
 //! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`]: the frame's latest estimate |
 //! | `t` + map id (`u64` BE) + trip id (`u64` BE) | empty (index of a map's trips) |
 //! | `K` + scope + `0x00` + key | [`IdempotencyRecord`] of a request sent with an `Idempotency-Key` (additive: older stores have none) |
@@ -53,8 +56,14 @@ pub fn cooc_key(id: u64) -> [u8; 9] {
 
 /// Prefix of trip records.
 pub const TRIP_PREFIX: u8 = b'T';
-/// Prefix of trip states.
+/// Prefix of trip states in one blob (format 1, layouts 4-5; read until a batch replaces them).
 pub const TRIP_STATE_PREFIX: u8 = b'S';
+/// Prefix of a trip state's base (layout >= 6).
+pub const TRIP_BASE_PREFIX: u8 = b'b';
+/// Prefix of a trip state's snapshot (layout >= 6).
+pub const TRIP_SNAPSHOT_PREFIX: u8 = b's';
+/// Prefix of a trip state's log rows (layout >= 6).
+pub const TRIP_LOG_PREFIX: u8 = b'r';
 /// Prefix of trip frame estimates.
 pub const TRIP_FRAME_PREFIX: u8 = b'F';
 /// Prefix of the by-map trip index.
@@ -148,6 +157,35 @@ pub fn trip_key(id: u64) -> [u8; 9] {
 /// `S` + trip id.
 pub fn trip_state_key(id: u64) -> [u8; 9] {
     id_key(TRIP_STATE_PREFIX, id)
+}
+
+/// `b` + trip id: the trip state's base.
+pub fn trip_base_key(id: u64) -> [u8; 9] {
+    id_key(TRIP_BASE_PREFIX, id)
+}
+
+/// `s` + trip id: the trip state's snapshot.
+pub fn trip_snapshot_key(id: u64) -> [u8; 9] {
+    id_key(TRIP_SNAPSHOT_PREFIX, id)
+}
+
+/// `r` + trip id: the prefix of the trip state's log rows.
+pub fn trip_log_prefix(id: u64) -> [u8; 9] {
+    id_key(TRIP_LOG_PREFIX, id)
+}
+
+/// `r` + trip id + frame: one log row.
+pub fn trip_log_key(id: u64, frame: u32) -> [u8; 13] {
+    index_key(TRIP_LOG_PREFIX, id, frame)
+}
+
+/// The frame of a log row's key.
+pub fn log_frame_at(key: &[u8]) -> Result<u32, StoreError> {
+    let bytes: [u8; 4] = key
+        .get(9..13)
+        .and_then(|b| b.try_into().ok())
+        .ok_or_else(|| StoreError::corrupt(key, "key too short for a frame"))?;
+    Ok(u32::from_be_bytes(bytes))
 }
 
 /// `F` + trip id: the prefix of a trip's frames.

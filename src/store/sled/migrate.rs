@@ -50,10 +50,16 @@ pub const MIGRATIONS: &[Migration] = &[
         doc: include_str!("../../../migrations/0005_thumbnails_and_pictures.md"),
         apply: thumbnails_and_pictures,
     },
+    Migration {
+        version: 6,
+        file: "0006_trip_state_parts.md",
+        doc: include_str!("../../../migrations/0006_trip_state_parts.md"),
+        apply: trip_state_parts,
+    },
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 5;
+pub const CURRENT_VERSION: u32 = 6;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -116,6 +122,12 @@ fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
 
 /// Layouts before 5 have no thumbnails or pictures: old maps and results simply have none.
 fn thumbnails_and_pictures(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+    Ok(())
+}
+
+/// Layout 6 stores a trip's state in parts (`b`, `s`, `r`); the `S` blobs of layouts 4-5 stay
+/// readable and each is replaced by parts at its trip's next batch, so nothing is rewritten here.
+fn trip_state_parts(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -261,7 +273,8 @@ mod tests {
                 map_id,
                 reference_count: 2,
                 params: TripParamsDocument::from(&crate::trip::TripParams::default()),
-                state: vec![7],
+                base: vec![7],
+                snapshot: vec![8],
             })
             .unwrap();
         let page = PageRequest {

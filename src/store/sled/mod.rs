@@ -35,7 +35,7 @@ use async_trait::async_trait;
 use super::{
     CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
     MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
-    TripBatch, TripRecord,
+    TripBatch, TripRecord, TripState,
 };
 use crate::Matrix;
 
@@ -301,7 +301,7 @@ impl Store for SledStore {
         self.run(move |s| s.get_trip(id)).await
     }
 
-    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, Vec<u8>)> {
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
         self.run(move |s| s.trip_state(id)).await
     }
 
