@@ -137,9 +137,18 @@ fn big(c: &mut Criterion) {
             },
             ..LocalizeOptions::default()
         };
+        let before = peak_rss_kib();
         once(&format!("5392x30790 F=1 K=4 + confidence ({name})"), || {
             solve_with_confidence(&chat, &options).expect("valid input")
         });
+        if let (Some(a), Some(b)) = (before, peak_rss_kib()) {
+            println!(
+                "peak RSS {:.0} MiB before, {:.0} MiB after (matrix {:.0} MiB)",
+                a as f64 / 1024.0,
+                b as f64 / 1024.0,
+                (q * d * 4) as f64 / (1 << 20) as f64
+            );
+        }
     }
     let mut g = c.benchmark_group("solver_5392x30790");
     g.sample_size(10);

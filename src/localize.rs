@@ -6,7 +6,7 @@
 
 use std::time::Instant;
 
-use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
+use crate::confidence::{score_hypotheses, ConfidenceParams, GraphParams};
 use crate::picture::MatrixPicture;
 use crate::similarity::{self, Normalization};
 use crate::solver::{solve, Solution, SolverParams};
@@ -32,6 +32,11 @@ pub struct LocalizeOptions {
     pub normalization: Normalization,
     /// How per-query confidences are computed.
     pub confidence: ConfidenceParams,
+    /// Frames a prediction claims on each side of the frame it names (`c`; discounted
+    /// confidence only): 0 names the path's match; `c > 0` names the frame within `c` of it
+    /// whose `±c` neighbourhood the evidence supports best ([`crate::confidence::score_hypotheses`]).
+    /// `eval` sets it to its scoring tolerance.
+    pub claim: usize,
 }
 
 /// Seconds spent per stage.
@@ -121,23 +126,30 @@ pub fn solve_with_confidence(
         horizontal: options.solver.horizontal,
         hidden_cost: solution.hidden_cost,
     };
+    let scored = score_hypotheses(
+        chat,
+        &graph,
+        &solution.hypotheses,
+        &options.confidence,
+        options.claim,
+    )?;
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
     let mut first_matched = vec![false; chat.rows()];
-    if let Some(h) = solution.hypotheses.first() {
-        for r in h.rows.iter().filter(|r| !r.matches.is_empty()) {
-            if let Some(m) = first_matched.get_mut(r.query) {
-                *m = true;
-            }
-        }
-    }
-    for (rank, hypothesis) in solution.hypotheses.iter().enumerate() {
-        let first = rank == 0;
-        for row in score_hypothesis(chat, &graph, hypothesis, &options.confidence)? {
-            let slot = &mut best[row.query];
-            let adds = first
-                || (row.confidence > 1.0
-                    && !first_matched[row.query]
-                    && slot.is_none_or(|p| row.confidence > p.confidence));
+    for (rank, rows) in scored.into_iter().enumerate() {
+        for row in rows {
+            let (Some(slot), Some(first)) =
+                (best.get_mut(row.query), first_matched.get_mut(row.query))
+            else {
+                continue;
+            };
+            let adds = if rank == 0 {
+                *first = true;
+                true
+            } else {
+                !*first
+                    && row.confidence > 1.0
+                    && slot.is_none_or(|p| row.confidence > p.confidence)
+            };
             if adds {
                 *slot = Some(Prediction {
                     query: row.query,
