@@ -106,16 +106,19 @@ fn localize_inspecting<T>(
 /// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most
 /// one prediction per query, so that further flows only add:
 ///
-/// * every row the first (rank 1) hypothesis matches keeps that hypothesis's prediction and
-///   confidence, whatever `F` is (greedy `F > 1` finds the `F = 1` path first, so `F = 2` never
-///   changes a prediction of `F = 1`);
-/// * a row the first hypothesis leaves hidden gets a further hypothesis's match only when that
-///   match is better supported than hiding the row: its confidence (the same local min-marginal
-///   ratio, [`crate::confidence`], whose "outside" includes every hidden route) is above 1.
-///   Among several such hypotheses the most confident wins.
+/// * the first (rank 1) hypothesis's prediction of a row stands unless the first's match is
+///   not preferred by the local evidence (its confidence, the local min-marginal ratio of
+///   [`crate::confidence`], is at most 1) and a further hypothesis matches that row where
+///   the local evidence prefers it over every alternative (confidence above 1);
+/// * a row the first hypothesis leaves hidden gets a further hypothesis's match on the same
+///   condition (confidence above 1: better supported than hiding the row, whose routes are in
+///   the ratio's "outside").
 ///
-/// This is how a loop (a section driven twice) is recovered with `F = 2` without letting a
-/// second, weaker hypothesis overwrite the first one's answers on a single traversal.
+/// Among several such hypotheses the most confident wins. The ratio is above 1 at one place of
+/// a row at most (up to the radius: the best route inside beats every route outside), so on
+/// a single traversal `F = 2` changes only rows where the first path goes against the local
+/// evidence; on a loop those are the rows of the second pass, which one route cannot drive
+/// back to.
 pub fn solve_with_confidence(
     chat: &Matrix,
     options: &LocalizeOptions,
@@ -134,21 +137,19 @@ pub fn solve_with_confidence(
         options.claim,
     )?;
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
-    let mut first_matched = vec![false; chat.rows()];
+    // Rows whose first prediction the local evidence prefers (ratio above 1): they stand.
+    let mut settled = vec![false; chat.rows()];
     for (rank, rows) in scored.into_iter().enumerate() {
         for row in rows {
-            let (Some(slot), Some(first)) =
-                (best.get_mut(row.query), first_matched.get_mut(row.query))
+            let (Some(slot), Some(done)) = (best.get_mut(row.query), settled.get_mut(row.query))
             else {
                 continue;
             };
             let adds = if rank == 0 {
-                *first = true;
+                *done = row.confidence > 1.0;
                 true
             } else {
-                !*first
-                    && row.confidence > 1.0
-                    && slot.is_none_or(|p| row.confidence > p.confidence)
+                !*done && row.confidence > 1.0 && slot.is_none_or(|p| row.confidence > p.confidence)
             };
             if adds {
                 *slot = Some(Prediction {
@@ -208,7 +209,9 @@ mod tests {
         // F = 2 finds both passes.
         let (a2, b2) = (correct(&two, 0..30), correct(&two, 30..60));
         assert!(a2 >= 27 && b2 >= 27, "F=2: {a2} / {b2}");
-        // And changes none of F = 1's predictions.
+        // And changes none of F = 1's predictions: here the first path hides the second pass
+        // (fixed W), so it has no match the local evidence goes against. Replacing such
+        // matches is tested on derived loops (tests/derived_routes, `loop_route`).
         for p in &one {
             assert!(two.contains(p), "{p:?} changed with F = 2");
         }
