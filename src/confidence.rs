@@ -40,6 +40,7 @@
 use rayon::prelude::*;
 
 mod discounted;
+mod sweep;
 
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
 use crate::window::leading_min_in_place;
@@ -116,20 +117,34 @@ pub fn score_hypothesis(
     hypothesis: &Hypothesis,
     params: &ConfidenceParams,
 ) -> Result<Vec<RowConfidence>> {
+    let mut scored = score_hypotheses(chat, graph, std::slice::from_ref(hypothesis), params, 0)?;
+    Ok(scored.pop().unwrap_or_default())
+}
+
+/// [`score_hypothesis`] for several hypotheses of one matrix at once: the discounted ratio
+/// runs its two passes once for all of them (the passes do not depend on the hypothesis,
+/// only the rows read out do).
+///
+/// `claim` (`c`, discounted ratio only): the frames a prediction claims on each side of the
+/// frame it names. With `c > 0` a row is predicted at the frame within `c` of the path's
+/// match whose `±c` neighbourhood the evidence supports best (the largest ratio at radius
+/// `c`), and scored with the ratio at radius `r` there: a sub-frame readout of the path
+/// (ARCHITECTURE.md, "Confidence"). `c = 0` names the path's match itself.
+pub fn score_hypotheses(
+    chat: &Matrix,
+    graph: &GraphParams,
+    hypotheses: &[Hypothesis],
+    params: &ConfidenceParams,
+    claim: usize,
+) -> Result<Vec<Vec<RowConfidence>>> {
     crate::solver::check_hidden_cost(graph.hidden_cost)?;
-    let targets: Vec<(usize, usize)> = hypothesis
-        .rows
+    let per_hypothesis: Vec<Vec<(usize, usize)>> = hypotheses
         .iter()
-        .filter_map(|row| {
-            let best = row
-                .matches
-                .iter()
-                .max_by(|a, b| a.similarity.total_cmp(&b.similarity))?;
-            Some((row.query, best.reference))
-        })
+        .map(|h| h.rows.iter().filter_map(predicted_at).collect())
         .collect();
-    if let Some(&(i, j)) = targets
+    if let Some(&(i, j)) = per_hypothesis
         .iter()
+        .flatten()
         .find(|(i, j)| *i >= chat.rows() || *j >= chat.cols())
     {
         return Err(Error::Shape(format!(
@@ -138,6 +153,17 @@ pub fn score_hypothesis(
             chat.cols()
         )));
     }
+    let rows = |targets: &[(usize, usize)], ratios: &[f64]| -> Vec<RowConfidence> {
+        targets
+            .iter()
+            .zip(ratios)
+            .map(|(&(i, j), &confidence)| RowConfidence {
+                query: i,
+                reference: j,
+                confidence,
+            })
+            .collect()
+    };
     if let Some(g) = params.discount {
         if g.is_nan() || g <= 0.0 || g >= 1.0 {
             return Err(Error::param(
@@ -145,25 +171,47 @@ pub fn score_hypothesis(
                 format!("must be within (0, 1), got {g}"),
             ));
         }
-        let ratios = discounted::discounted_ratios(chat, graph, g, params.radius, &targets);
-        return Ok(targets
+        let all: Vec<(usize, usize)> = per_hypothesis.iter().flatten().copied().collect();
+        let readout = discounted::Readout {
+            radius: params.radius,
+            claim,
+        };
+        let read = discounted::discounted_readouts(chat, graph, g, readout, &all);
+        let mut read = read.into_iter();
+        return Ok(per_hypothesis
             .iter()
-            .zip(ratios)
-            .map(|(&(i, j), confidence)| RowConfidence {
-                query: i,
-                reference: j,
-                confidence,
+            .map(|targets| {
+                targets
+                    .iter()
+                    .zip(read.by_ref())
+                    .map(|(&(i, _), (j, confidence))| RowConfidence {
+                        query: i,
+                        reference: j,
+                        confidence,
+                    })
+                    .collect()
             })
             .collect());
     }
-    Ok(targets
-        .par_iter()
-        .map(|&(i, j)| RowConfidence {
-            query: i,
-            reference: j,
-            confidence: local_ratio(chat, graph, params, i, j),
+    Ok(per_hypothesis
+        .iter()
+        .map(|targets| {
+            let ratios: Vec<f64> = targets
+                .par_iter()
+                .map(|&(i, j)| local_ratio(chat, graph, params, i, j))
+                .collect();
+            rows(targets, &ratios)
         })
         .collect())
+}
+
+/// The `(row, reference)` a row of a hypothesis predicts: its match with the highest `ĉ`.
+fn predicted_at(row: &crate::solver::RowAssignment) -> Option<(usize, usize)> {
+    let best = row
+        .matches
+        .iter()
+        .max_by(|a, b| a.similarity.total_cmp(&b.similarity))?;
+    Some((row.query, best.reference))
 }
 
 fn local_ratio(
@@ -458,13 +506,21 @@ mod tests {
             horizontal: true,
             hidden_cost: 1.2,
         };
-        let conf = score_hypothesis(&chat, &g, &h, &ConfidenceParams::default()).unwrap();
-        assert_eq!(
+        let at = |conf: &[RowConfidence]| {
             conf.iter()
                 .map(|c| (c.query, c.reference))
-                .collect::<Vec<_>>(),
-            vec![(0, 0), (1, 2), (2, 3)]
-        );
+                .collect::<Vec<_>>()
+        };
+        for params in [ConfidenceParams::default(), ConfidenceParams::window()] {
+            let conf = score_hypothesis(&chat, &g, &h, &params).unwrap();
+            assert_eq!(at(&conf), vec![(0, 0), (1, 2), (2, 3)], "{params:?}");
+        }
+        // A claim of ±1 names, within one frame of each match, the frame whose ±1
+        // neighbourhood is best supported: on four columns the ends move inwards (their
+        // neighbourhoods hold two columns, the inner ones three).
+        let claimed =
+            score_hypotheses(&chat, &g, &[h.clone()], &ConfidenceParams::default(), 1).unwrap();
+        assert_eq!(at(&claimed[0]), vec![(0, 1), (1, 2), (2, 2)]);
         let none = score_hypothesis(
             &chat,
             &g,

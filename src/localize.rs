@@ -6,7 +6,7 @@
 
 use std::time::Instant;
 
-use crate::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
+use crate::confidence::{score_hypotheses, ConfidenceParams, GraphParams};
 use crate::picture::MatrixPicture;
 use crate::similarity::{self, Normalization};
 use crate::solver::{solve, Solution, SolverParams};
@@ -32,6 +32,11 @@ pub struct LocalizeOptions {
     pub normalization: Normalization,
     /// How per-query confidences are computed.
     pub confidence: ConfidenceParams,
+    /// Frames a prediction claims on each side of the frame it names (`c`; discounted
+    /// confidence only): 0 names the path's match; `c > 0` names the frame within `c` of it
+    /// whose `±c` neighbourhood the evidence supports best ([`crate::confidence::score_hypotheses`]).
+    /// `eval` sets it to its scoring tolerance.
+    pub claim: usize,
 }
 
 /// Seconds spent per stage.
@@ -101,16 +106,19 @@ fn localize_inspecting<T>(
 /// Solves the graph on a (normalised) similarity matrix and reduces the hypotheses to at most
 /// one prediction per query, so that further flows only add:
 ///
-/// * every row the first (rank 1) hypothesis matches keeps that hypothesis's prediction and
-///   confidence, whatever `F` is (greedy `F > 1` finds the `F = 1` path first, so `F = 2` never
-///   changes a prediction of `F = 1`);
-/// * a row the first hypothesis leaves hidden gets a further hypothesis's match only when that
-///   match is better supported than hiding the row: its confidence (the same local min-marginal
-///   ratio, [`crate::confidence`], whose "outside" includes every hidden route) is above 1.
-///   Among several such hypotheses the most confident wins.
+/// * the first (rank 1) hypothesis's prediction of a row stands unless the first's match is
+///   not preferred by the local evidence (its confidence, the local min-marginal ratio of
+///   [`crate::confidence`], is at most 1) and a further hypothesis matches that row where
+///   the local evidence prefers it over every alternative (confidence above 1);
+/// * a row the first hypothesis leaves hidden gets a further hypothesis's match on the same
+///   condition (confidence above 1: better supported than hiding the row, whose routes are in
+///   the ratio's "outside").
 ///
-/// This is how a loop (a section driven twice) is recovered with `F = 2` without letting a
-/// second, weaker hypothesis overwrite the first one's answers on a single traversal.
+/// Among several such hypotheses the most confident wins. The ratio is above 1 at one place of
+/// a row at most (up to the radius: the best route inside beats every route outside), so on
+/// a single traversal `F = 2` changes only rows where the first path goes against the local
+/// evidence; on a loop those are the rows of the second pass, which one route cannot drive
+/// back to.
 pub fn solve_with_confidence(
     chat: &Matrix,
     options: &LocalizeOptions,
@@ -121,23 +129,28 @@ pub fn solve_with_confidence(
         horizontal: options.solver.horizontal,
         hidden_cost: solution.hidden_cost,
     };
+    let scored = score_hypotheses(
+        chat,
+        &graph,
+        &solution.hypotheses,
+        &options.confidence,
+        options.claim,
+    )?;
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
-    let mut first_matched = vec![false; chat.rows()];
-    if let Some(h) = solution.hypotheses.first() {
-        for r in h.rows.iter().filter(|r| !r.matches.is_empty()) {
-            if let Some(m) = first_matched.get_mut(r.query) {
-                *m = true;
-            }
-        }
-    }
-    for (rank, hypothesis) in solution.hypotheses.iter().enumerate() {
-        let first = rank == 0;
-        for row in score_hypothesis(chat, &graph, hypothesis, &options.confidence)? {
-            let slot = &mut best[row.query];
-            let adds = first
-                || (row.confidence > 1.0
-                    && !first_matched[row.query]
-                    && slot.is_none_or(|p| row.confidence > p.confidence));
+    // Rows whose first prediction the local evidence prefers (ratio above 1): they stand.
+    let mut settled = vec![false; chat.rows()];
+    for (rank, rows) in scored.into_iter().enumerate() {
+        for row in rows {
+            let (Some(slot), Some(done)) = (best.get_mut(row.query), settled.get_mut(row.query))
+            else {
+                continue;
+            };
+            let adds = if rank == 0 {
+                *done = row.confidence > 1.0;
+                true
+            } else {
+                !*done && row.confidence > 1.0 && slot.is_none_or(|p| row.confidence > p.confidence)
+            };
             if adds {
                 *slot = Some(Prediction {
                     query: row.query,
@@ -196,7 +209,9 @@ mod tests {
         // F = 2 finds both passes.
         let (a2, b2) = (correct(&two, 0..30), correct(&two, 30..60));
         assert!(a2 >= 27 && b2 >= 27, "F=2: {a2} / {b2}");
-        // And changes none of F = 1's predictions.
+        // And changes none of F = 1's predictions: here the first path hides the second pass
+        // (fixed W), so it has no match the local evidence goes against. Replacing such
+        // matches is tested on derived loops (tests/derived_routes, `loop_route`).
         for p in &one {
             assert!(two.contains(p), "{p:?} changed with F = 2");
         }

@@ -183,6 +183,12 @@ pub struct EvalArgs {
     /// Flow confidence `discounted`: the weight `G` of a row one frame further away, 0 < G < 1.
     #[arg(long, default_value_t = crate::confidence::DEFAULT_DISCOUNT)]
     pub confidence_discount: f64,
+    /// Flow, `discounted`: frames a prediction claims on each side of the frame it names. The
+    /// frame named is the one within that many frames of the path's match whose neighbourhood
+    /// the evidence supports best (0: the path's match). Default: `--tolerance`, the precision
+    /// the predictions are scored at.
+    #[arg(long)]
+    pub claim: Option<usize>,
     /// Descriptor settings.
     #[command(flatten)]
     pub descriptor: DescriptorArgs,
@@ -516,6 +522,7 @@ fn run_job(args: &EvalArgs, methods: &[Method], job: &Job, started: Instant) -> 
             },
             ..ConfidenceParams::default()
         },
+        claim: args.claim.unwrap_or(args.tolerance),
     };
     let cooc_options = CoocOptions {
         sequence,

@@ -21,270 +21,102 @@
 //! Online (trips) the same statistic is causal with the backward part left out: `FX_i + 0`
 //! (the forward pass alone, the scored frame last).
 //!
-//! Memory `O(sqrt(Q)·D)`: the forward and the backward pass (run at the same time on two
-//! threads) keep every `s`-th row (`s = ceil(sqrt Q)`); then blocks of `s` rows are
-//! recomputed from their checkpoints, in parallel, and scored. Work: two forward and two
-//! backward passes.
+//! Computed by [`super::sweep`]: one forward and one backward pass in `f32` lanes, running on
+//! two threads and meeting in the middle (nothing recomputed); see there for the cost.
 
-use rayon::prelude::*;
-
-use crate::solver::{forward_values_row, match_cost, RowScratch};
-use crate::window::leading_min_in_place;
 use crate::Matrix;
 
+use super::sweep::{sweep, RowView};
 use super::GraphParams;
 
-/// The graph and the discount.
-#[derive(Clone, Copy)]
-struct Passes<'a> {
-    chat: &'a Matrix,
-    k: usize,
-    horizontal: bool,
-    w: f64,
-    g: f64,
+/// How a scored row is read out of its min-marginals.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Readout {
+    /// `r`: the confidence is the ratio with alternatives within `r` frames counted as the
+    /// same place.
+    pub radius: usize,
+    /// `c`: the frames a prediction claims on each side. The prediction is the frame within
+    /// `c` of the path's match whose `±c` neighbourhood the evidence supports best (the
+    /// largest ratio at radius `c`); 0 keeps the path's match.
+    pub claim: usize,
 }
 
-/// Two scratch rows of the backward step.
-type Tmp = (Vec<f64>, Vec<f64>);
-
-fn tmp(d: usize) -> Tmp {
-    (vec![0.0; d], vec![0.0; d])
-}
-
-/// Forward values of one row: `x`, `h`, `m` (cheapest discounted path ending at the node).
-#[derive(Clone)]
-struct Forward {
-    x: Vec<f64>,
-    h: Vec<f64>,
-    m: Vec<f64>,
-}
-
-/// Backward values of one row: `x`, `h` (cheapest discounted continuation after the node).
-#[derive(Clone)]
-struct Backward {
-    x: Vec<f64>,
-    h: Vec<f64>,
-}
-
-impl Passes<'_> {
-    /// Row `i`'s forward values from row `i-1`'s `m` (`None` for row 0: the source).
-    fn forward(
-        &self,
-        i: usize,
-        prev: Option<&[f64]>,
-        out: &mut Forward,
-        scaled: &mut [f64],
-        s: &mut RowScratch,
-    ) {
-        let prev = match prev {
-            Some(p) => {
-                for (o, &v) in scaled.iter_mut().zip(p) {
-                    *o = self.g * v;
-                }
-                Some(&scaled[..])
-            }
-            None => None,
-        };
-        let Forward { x, h, m } = out;
-        let out = (&mut x[..], &mut h[..], &mut m[..]);
-        forward_values_row(
-            self.chat.row(i),
-            prev,
-            self.k,
-            self.horizontal,
-            self.w,
-            out,
-            s,
-        );
-    }
-
-    /// Row `i`'s backward values from row `i+1`'s (`None` for the last row: the sink).
-    fn backward(&self, i: usize, next: Option<&Backward>, out: &mut Backward, tmp: &mut Tmp) {
-        let d = self.chat.cols();
-        let (succ, tmp) = (&mut tmp.0[..], &mut tmp.1[..]);
-        succ.fill(0.0);
-        if let Some(n) = next {
-            for (((s, &v), &x), &h) in succ
-                .iter_mut()
-                .zip(self.chat.row(i + 1))
-                .zip(&n.x)
-                .zip(&n.h)
-            {
-                *s = (match_cost(v) + x).min(self.w + h);
-            }
-            leading_min_in_place(succ, self.k, tmp);
-            for s in succ.iter_mut() {
-                *s *= self.g;
+/// Reads row `i` out for the path's match `j_star`: `(prediction, confidence)`, see
+/// [`Readout`].
+pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> (usize, f64) {
+    let d = view.lay.d;
+    // Every band the readout looks at lies within `span` of the match: keep those values,
+    // and the best route anywhere else (or hidden).
+    let span = ro.claim + ro.claim.max(ro.radius);
+    let lo = j_star.saturating_sub(span);
+    let hi = (j_star + span).min(d - 1);
+    let near: Vec<f32> = (lo..=hi).map(|j| view.through(j)).collect();
+    let far = view.best_outside(lo, hi).min(view.hidden);
+    let ratio = |centre: usize, r: usize| -> f64 {
+        let (a, b) = (centre.saturating_sub(r), centre + r);
+        let (mut inside, mut outside) = (f32::INFINITY, far);
+        for (j, &v) in (lo..=hi).zip(&near) {
+            if (a..=b).contains(&j) {
+                inside = inside.min(v);
+            } else {
+                outside = outside.min(v);
             }
         }
-        if self.horizontal {
-            let (mut right_x, mut right_h) = (f64::INFINITY, f64::INFINITY);
-            let row = self.chat.row(i);
-            for j in (0..d).rev() {
-                out.x[j] = succ[j].min(right_x);
-                out.h[j] = succ[j].min(right_h);
-                right_x = match_cost(row[j]) + out.x[j];
-                right_h = out.h[j];
-            }
+        if inside.is_finite() {
+            f64::from(outside) / f64::from(inside)
         } else {
-            out.x.copy_from_slice(succ);
-            out.h.copy_from_slice(succ);
+            0.0
+        }
+    };
+    let mut best = (j_star, ratio(j_star, ro.claim));
+    for delta in 1..=ro.claim {
+        let candidates = [j_star.checked_sub(delta), Some(j_star + delta)];
+        for c in candidates.into_iter().flatten().filter(|&c| c < d) {
+            let pinned = ratio(c, ro.claim);
+            if pinned > best.1 {
+                best = (c, pinned);
+            }
         }
     }
+    (best.0, ratio(best.0, ro.radius))
 }
 
-/// The ratio of row `i` from its forward and backward values, for the prediction `j_star`.
-fn ratio(f: &Forward, b: &Backward, radius: usize, j_star: usize) -> f64 {
-    let d = f.x.len();
-    let lo = j_star.saturating_sub(radius);
-    let hi = (j_star + radius).min(d - 1);
-    let mut inside = f64::INFINITY;
-    let mut outside = f64::INFINITY;
-    for j in 0..d {
-        let through = f.x[j] + b.x[j];
-        if (lo..=hi).contains(&j) {
-            inside = inside.min(through);
-        } else {
-            outside = outside.min(through);
-        }
-        outside = outside.min(f.h[j] + b.h[j]);
-    }
-    if inside.is_finite() {
-        outside / inside
-    } else {
-        0.0
-    }
-}
-
-/// The discounted min-marginal ratio of every `(row, prediction)` in `targets` on `chat`
-/// (see the module doc), in the order given. `discount` is `g` in `(0, 1]`; rows must be in
-/// the matrix (checked by the caller).
-pub(super) fn discounted_ratios(
+/// The discounted readout of every `(row, path match)` in `targets` on `chat`: `(prediction,
+/// confidence)` (see the module doc and [`Readout`]), in the order given. `discount` is `g`
+/// in `(0, 1)`; rows and columns must be in the matrix (checked by the caller).
+pub(super) fn discounted_readouts(
     chat: &Matrix,
     graph: &GraphParams,
     discount: f64,
-    radius: usize,
+    readout: Readout,
     targets: &[(usize, usize)],
-) -> Vec<f64> {
-    let (q, d) = (chat.rows(), chat.cols());
-    if q == 0 || d == 0 || targets.is_empty() {
-        return vec![0.0; targets.len()];
-    }
-    let p = Passes {
-        chat,
-        k: graph.fan_out,
-        horizontal: graph.horizontal,
-        w: graph.hidden_cost,
-        g: discount,
-    };
-    let s = ((q as f64).sqrt().ceil() as usize).max(1);
-    let blocks = q.div_ceil(s);
-    // Phase 1, two threads: forward checkpoints (`m` of the row before each block) and
-    // backward checkpoints (the row after each block).
-    let (f_marks, b_marks) = rayon::join(
-        || {
-            let mut marks: Vec<Option<Vec<f64>>> = vec![None; blocks];
-            let mut cur = Forward {
-                x: vec![0.0; d],
-                h: vec![0.0; d],
-                m: vec![0.0; d],
-            };
-            let mut prev = cur.m.clone();
-            let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
-            for i in 0..q.saturating_sub(1) {
-                p.forward(
-                    i,
-                    (i > 0).then_some(&prev[..]),
-                    &mut cur,
-                    &mut scaled,
-                    &mut scratch,
-                );
-                std::mem::swap(&mut prev, &mut cur.m);
-                if (i + 1) % s == 0 {
-                    marks[(i + 1) / s] = Some(prev.clone());
-                }
-            }
-            marks
-        },
-        || {
-            let mut marks: Vec<Option<Backward>> = vec![None; blocks];
-            let blank = Backward {
-                x: vec![0.0; d],
-                h: vec![0.0; d],
-            };
-            let (mut next, mut cur) = (blank.clone(), blank);
-            let mut tmp = tmp(d);
-            for i in (s..q).rev() {
-                p.backward(i, (i + 1 < q).then_some(&next), &mut cur, &mut tmp);
-                std::mem::swap(&mut next, &mut cur);
-                if i % s == 0 {
-                    marks[i / s - 1] = Some(next.clone());
-                }
-            }
-            marks
-        },
-    );
+) -> Vec<(usize, f64)> {
+    let q = chat.rows();
     let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); q];
     for (t, &(i, j)) in targets.iter().enumerate() {
         wanted[i].push((t, j));
     }
-    // Phase 2: each block recomputes its backward rows, then its forward rows, and scores.
-    let scored: Vec<Vec<(usize, f64)>> = (0..blocks)
-        .into_par_iter()
-        .map(|b| {
-            let (a, e) = (b * s, ((b + 1) * s).min(q));
-            if wanted[a..e].iter().all(Vec::is_empty) {
-                return Vec::new();
-            }
-            let blank = Backward {
-                x: vec![0.0; d],
-                h: vec![0.0; d],
-            };
-            let mut back = vec![blank; e - a];
-            let mut tmp = tmp(d);
-            for i in (a..e).rev() {
-                let (rows, after) = back.split_at_mut(i - a + 1);
-                let next = if i + 1 == e {
-                    b_marks[b].as_ref()
-                } else {
-                    after.first()
-                };
-                p.backward(i, next, &mut rows[i - a], &mut tmp);
-            }
-            let mut cur = Forward {
-                x: vec![0.0; d],
-                h: vec![0.0; d],
-                m: vec![0.0; d],
-            };
-            let mut prev = f_marks[b].clone().unwrap_or_else(|| vec![0.0; d]);
-            let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
-            let mut out = Vec::new();
-            for i in a..e {
-                p.forward(
-                    i,
-                    (i > 0).then_some(&prev[..]),
-                    &mut cur,
-                    &mut scaled,
-                    &mut scratch,
-                );
-                for &(t, j) in &wanted[i] {
-                    out.push((t, ratio(&cur, &back[i - a], radius, j)));
-                }
-                std::mem::swap(&mut prev, &mut cur.m);
-            }
-            out
-        })
-        .collect();
-    let mut result = vec![0.0; targets.len()];
-    for (t, r) in scored.into_iter().flatten() {
+    let scored: Vec<bool> = wanted.iter().map(|w| !w.is_empty()).collect();
+    let rows = sweep(chat, graph, discount, &scored, |i, view| {
+        wanted[i]
+            .iter()
+            .map(|&(t, j)| (t, read(view, readout, j)))
+            .collect::<Vec<_>>()
+    });
+    let mut result: Vec<(usize, f64)> = targets.iter().map(|&(_, j)| (j, 0.0)).collect();
+    for (t, r) in rows.into_iter().flat_map(|(_, r)| r) {
         result[t] = r;
     }
     result
 }
 
 #[cfg(test)]
+pub(super) mod plain;
+
+#[cfg(test)]
 mod tests {
     use super::*;
+    use crate::solver::match_cost;
     use proptest::prelude::*;
 
     /// Every route from row 0 to the last row by brute force, each node cost weighted by
@@ -362,67 +194,67 @@ mod tests {
             let gp = GraphParams { fan_out: k, horizontal, hidden_cost: w };
             let targets: Vec<(usize, usize)> =
                 (0..q).flat_map(|i| (0..d).map(move |j| (i, j))).collect();
-            let fast = discounted_ratios(&chat, &gp, g, r, &targets);
-            for (&(i, js), f) in targets.iter().zip(&fast) {
-                let slow = brute_force(&chat, &gp, g, r, i, js);
-                prop_assert!((f - slow).abs() <= 1e-9 * slow.abs().max(1.0),
-                    "row {i} col {js}: {f} vs {slow}");
+            // Brute force for every row and column, at radius r and at radius 1.
+            let at_r: Vec<Vec<f64>> = (0..q)
+                .map(|i| (0..d).map(|c| brute_force(&chat, &gp, g, r, i, c)).collect())
+                .collect();
+            let at_1: Vec<Vec<f64>> = (0..q)
+                .map(|i| (0..d).map(|c| brute_force(&chat, &gp, g, 1, i, c)).collect())
+                .collect();
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * b.abs().max(1.0);
+            // The ratio at the path's match (claim 0) ...
+            let ro = Readout { radius: r, claim: 0 };
+            let fast = discounted_readouts(&chat, &gp, g, ro, &targets);
+            for (&(i, js), &(at, f)) in targets.iter().zip(&fast) {
+                prop_assert_eq!(at, js);
+                prop_assert!(close(f, at_r[i][js]), "row {i} col {js}: {f} vs {}", at_r[i][js]);
+            }
+            // ... and the frame a claim of ±1 pins: the best-supported ±1 neighbourhood
+            // within one frame of the match (up to rounding), scored at radius r.
+            let ro = Readout { radius: r, claim: 1 };
+            let pinned = discounted_readouts(&chat, &gp, g, ro, &targets);
+            for (&(i, js), &(at, f)) in targets.iter().zip(&pinned) {
+                prop_assert!(at.abs_diff(js) <= 1 && at < d, "row {i}: {at} from {js}");
+                let best = (js.saturating_sub(1)..=(js + 1).min(d - 1))
+                    .map(|c| at_1[i][c])
+                    .fold(f64::NEG_INFINITY, f64::max);
+                prop_assert!(at_1[i][at] >= best - 1e-5 * best.abs().max(1.0),
+                    "row {i} col {js}: pinned {at} ({}) but the best is {best}", at_1[i][at]);
+                prop_assert!(close(f, at_r[i][at]), "row {i} col {at}: {f} vs {}", at_r[i][at]);
             }
         }
     }
 
-    #[test]
-    fn blocks_and_checkpoints_do_not_change_the_result() {
-        // 40 rows: 7 blocks of 7 rows (the last one shorter), against one sequential pass each
-        // way that keeps every row.
-        let (q, d) = (40, 9);
-        let data: Vec<f32> = (0..q * d)
-            .map(|n| ((n * 37 % 101) as f32) / 40.0 - 0.2)
-            .collect();
-        let chat = Matrix::from_vec(q, d, data).unwrap();
-        let gp = GraphParams {
-            fan_out: 2,
-            horizontal: true,
-            hidden_cost: 1.1,
-        };
-        let p = Passes {
-            chat: &chat,
-            k: 2,
-            horizontal: true,
-            w: 1.1,
-            g: 0.8,
-        };
-        let mut fw: Vec<Forward> = Vec::new();
-        let mut cur = Forward {
-            x: vec![0.0; d],
-            h: vec![0.0; d],
-            m: vec![0.0; d],
-        };
-        let (mut scaled, mut scratch) = (vec![0.0; d], RowScratch::default());
-        for i in 0..q {
-            let prev = if i > 0 {
-                Some(fw[i - 1].m.clone())
-            } else {
-                None
-            };
-            p.forward(i, prev.as_deref(), &mut cur, &mut scaled, &mut scratch);
-            fw.push(cur.clone());
-        }
-        let mut bw: Vec<Backward> = Vec::new();
-        let mut tmp = tmp(d);
-        for i in (0..q).rev() {
-            let mut out = Backward {
-                x: vec![0.0; d],
-                h: vec![0.0; d],
-            };
-            p.backward(i, bw.last(), &mut out, &mut tmp);
-            bw.push(out);
-        }
-        bw.reverse();
-        let targets: Vec<(usize, usize)> = (0..q).map(|i| (i, (i * 5) % d)).collect();
-        let fast = discounted_ratios(&chat, &gp, 0.8, 1, &targets);
-        for (&(i, j), f) in targets.iter().zip(&fast) {
-            assert_eq!(*f, ratio(&fw[i], &bw[i], 1, j), "row {i}");
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// The lanes (chunk borders, fix-ups, padding, windows longer than a chunk) and the
+        /// meeting in the middle against the plain `f64` passes, on matrices too large to
+        /// enumerate.
+        #[test]
+        fn the_sweep_matches_the_plain_passes(
+            q in 1usize..24, d in 1usize..90, k in 0usize..12, horizontal: bool,
+            w in 0.3f64..2.5, g in 0.3f64..0.95, r in 0usize..3, seed: u64,
+        ) {
+            let mut state = seed | 1;
+            let data: Vec<f32> = (0..q * d)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    (state >> 40) as f32 / (1u64 << 24) as f32 * 2.8 - 0.3
+                })
+                .collect();
+            let chat = Matrix::from_vec(q, d, data).unwrap();
+            let gp = GraphParams { fan_out: k, horizontal, hidden_cost: w };
+            let targets: Vec<(usize, usize)> =
+                (0..q).flat_map(|i| [(i, (i * 7) % d), (i, (i * 13 + 5) % d)]).collect();
+            let ro = Readout { radius: r, claim: 0 };
+            let fast = discounted_readouts(&chat, &gp, g, ro, &targets);
+            let plain = plain::discounted_ratios(&chat, &gp, g, r, &targets);
+            for ((&(i, j), (_, f)), p) in targets.iter().zip(&fast).zip(&plain) {
+                prop_assert!((f - p).abs() <= 1e-5 * p.abs().max(1.0),
+                    "row {i} col {j}: {f} vs {p}");
+            }
         }
     }
 }

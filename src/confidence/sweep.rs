@@ -1,0 +1,653 @@
+//! The two passes of the discounted min-marginals, fast: `f32` lanes, one pass each way, the
+//! two running at the same time and meeting in the middle.
+//!
+//! What is computed is [`super::discounted`]'s definition: the forward values `FX_i`, `FH_i`
+//! (cheapest discounted path from the source to `x_ij` / `h_ij`, row `t` weighted `g^(i-t)`) and
+//! the backward values `BX_i`, `BH_i` (cheapest discounted continuation after the node, row
+//! `t > i` weighted `g^(t-i)`), so that `FX_i[j] + BX_i[j]` is the cheapest route through
+//! `x_ij` and `min_j FH_i[j] + BH_i[j]` the cheapest route hidden at row `i`. How it is fast:
+//!
+//! * **Lanes.** A row's `D` columns are cut into [`LANES`] contiguous chunks of `n` columns and
+//!   stored transposed (`[t][l]` = column `l·n + t`), so every recurrence along a row (the
+//!   horizontal steps, the running minimum of the hidden nodes, the window minimum) runs on all
+//!   chunks at once as plain element-wise operations on `[f32; LANES]` that the compiler
+//!   vectorises. Each chunk starts from a `+inf` carry; afterwards chunks are fixed up from the
+//!   true carry of the chunk before, exactly as the solver's kernel does (`solver/kernel.rs`):
+//!   the `X` chain is re-walked only while the carry changes it, the `H` chain (a running
+//!   minimum) takes `min(carry, local)`.
+//! * **`f32`.** Values are `f32` (node costs `1/ĉ` of the `f32` matrix), half the memory
+//!   traffic and twice the lanes of `f64`. The discount keeps sums short (a route's weight
+//!   `Σ g^|t-i|` is at most `(1+g)/(1-g)`), so rounding stays at a few `f32` ulps of the result;
+//!   the property tests compare with the `f64` brute force at a relative `1e-5`. The solver's
+//!   path and costs stay `f64`: only the confidence, a ranking, is `f32`.
+//! * **Meeting in the middle, nothing recomputed.** Phase 1 runs the forward pass over the top
+//!   half of the rows on one thread while the backward pass runs over the bottom half on the
+//!   other, each keeping its values of the rows to score. Phase 2 continues both passes into
+//!   the other half, where each row's own values meet the stored ones of the other pass. One
+//!   forward and one backward pass in total, on two threads; memory: the `X` values of the
+//!   scored rows (`4·D` bytes a row; 664 MB for every row of a 5,392 x 30,790 matrix) and, for
+//!   the hidden nodes, only the steps of `H` (with horizontal edges `FH_i` is non-increasing
+//!   and `BH_i` non-decreasing in `j`, so `min_j FH_i[j] + BH_i[j]` is reached at a step of the
+//!   stored one). Stored rows are freed as soon as they are scored.
+
+// Lane code indexes several `[f32; LANES]` rows (and chunk rows `t`) by the same index;
+// iterator chains over four or five zipped rows would hide the recurrences.
+#![allow(clippy::needless_range_loop)]
+
+use super::GraphParams;
+use crate::Matrix;
+
+/// Chunks processed together (eight `f32`: one AVX register, two SSE registers).
+pub(super) const LANES: usize = 8;
+
+/// One transposed row: `v[t][l]` is column `l·n + t`.
+type Lanes = Vec<[f32; LANES]>;
+
+/// The transposed layout of a row of `d` columns.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Layout {
+    /// Columns.
+    pub d: usize,
+    /// Chunk length: `ceil(d / LANES)`.
+    pub n: usize,
+}
+
+impl Layout {
+    pub(super) fn new(d: usize) -> Self {
+        Layout {
+            d,
+            n: d.div_ceil(LANES).max(1),
+        }
+    }
+
+    /// `(t, l)` of column `j`.
+    #[inline]
+    pub(super) fn at(&self, j: usize) -> (usize, usize) {
+        (j % self.n, j / self.n)
+    }
+
+    /// Column of `(t, l)` (may be `>= d`: padding).
+    #[inline]
+    fn col(&self, t: usize, l: usize) -> usize {
+        l * self.n + t
+    }
+
+    fn blank(&self) -> Lanes {
+        vec![[f32::INFINITY; LANES]; self.n]
+    }
+}
+
+/// The graph and the discount, as the passes use them.
+#[derive(Clone, Copy)]
+struct Graph {
+    k: usize,
+    horizontal: bool,
+    w: f32,
+    g: f32,
+    lay: Layout,
+}
+
+/// Node costs of one row in the lane layout: `1/ĉ` (`+inf` when `ĉ <= 0` and in the padding).
+fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
+    let (n, d) = (lay.n, lay.d);
+    // Transpose: row t of the layout takes column l·n + t of every chunk l (eight sequential
+    // read streams, one sequential write stream). Rows below `full` have all eight columns.
+    let full = d.saturating_sub((LANES - 1) * n).min(n);
+    let chunks: [&[f32]; LANES] = std::array::from_fn(|l| &row[(l * n).min(d)..]);
+    for (t, o) in out[..full].iter_mut().enumerate() {
+        for l in 0..LANES {
+            o[l] = chunks[l][t];
+        }
+    }
+    for (t, o) in out.iter_mut().enumerate().skip(full) {
+        for l in 0..LANES {
+            o[l] = chunks[l]
+                .get(t)
+                .copied()
+                .filter(|_| l * n + t < d)
+                .unwrap_or(0.0);
+        }
+    }
+    for c in out.as_flattened_mut() {
+        *c = if *c > 0.0 { 1.0 / *c } else { f32::INFINITY };
+    }
+}
+
+/// Sets the padding columns (`>= d`) to `+inf`: the tail of the last chunks only.
+fn pad(lay: &Layout, v: &mut Lanes) {
+    for l in lay.d / lay.n..LANES {
+        let first = lay.d.saturating_sub(l * lay.n).min(lay.n);
+        for row in &mut v[first..] {
+            row[l] = f32::INFINITY;
+        }
+    }
+}
+
+/// The value at column `j` (`+inf` out of range).
+#[inline]
+fn get(lay: &Layout, v: &Lanes, j: usize) -> f32 {
+    if j >= lay.d {
+        return f32::INFINITY;
+    }
+    let (t, l) = lay.at(j);
+    v[t][l]
+}
+
+#[inline(always)]
+fn min(a: f32, b: f32) -> f32 {
+    if b < a {
+        b
+    } else {
+        a
+    }
+}
+
+/// `out[t] = min(out[t], v[t - o])` for `t >= o` (chunk-internal shift by `o` rows), flat.
+#[inline(always)]
+fn min_shifted_down(out: &mut Lanes, v: &Lanes, o: usize) {
+    let (out, v) = (out.as_flattened_mut(), v.as_flattened());
+    let s = o * LANES;
+    for (a, &b) in out[s..].iter_mut().zip(&v[..v.len() - s]) {
+        *a = min(*a, b);
+    }
+}
+
+/// `out[t] = min(out[t], v[t + o])` for `t + o < n`, flat.
+#[inline(always)]
+fn min_shifted_up(out: &mut Lanes, v: &Lanes, o: usize) {
+    let (out, v) = (out.as_flattened_mut(), v.as_flattened());
+    let s = o * LANES;
+    let len = out.len() - s;
+    for (a, &b) in out[..len].iter_mut().zip(&v[s..]) {
+        *a = min(*a, b);
+    }
+}
+
+/// `v *= scale`, flat.
+#[inline(always)]
+fn scale_all(v: &mut Lanes, scale: f32) {
+    for x in v.as_flattened_mut() {
+        *x *= scale;
+    }
+}
+
+/// `out[j] = scale · min v[j-K ..= j]` (trailing window, clamped at column 0).
+fn trailing_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
+    let (lay, k) = (g.lay, g.k);
+    let n = lay.n;
+    // Inside a chunk: shifted minima (the first shift also copies).
+    if k == 0 || n == 1 {
+        out.copy_from_slice(v);
+    } else {
+        out[0] = v[0];
+        let (o, (a, b)) = (out.as_flattened_mut(), (v.as_flattened(), v.as_flattened()));
+        for ((x, &p), &q) in o[LANES..]
+            .iter_mut()
+            .zip(&a[LANES..])
+            .zip(&b[..b.len() - LANES])
+        {
+            *x = min(p, q);
+        }
+        for o in 2..=k.min(n - 1) {
+            min_shifted_down(out, v, o);
+        }
+    }
+    if k >= n {
+        // A window longer than a chunk: column by column (tiny rows only).
+        for t in 0..n {
+            for l in 0..LANES {
+                let j = lay.col(t, l);
+                let mut m = f32::INFINITY;
+                for jj in j.saturating_sub(k)..=j {
+                    m = min(m, get(&lay, v, jj));
+                }
+                out[t][l] = m;
+            }
+        }
+    } else {
+        // The first K rows of each chunk also see the end of the chunk before.
+        for t in 0..k {
+            for l in 1..LANES {
+                let mut m = out[t][l];
+                for tt in n + t - k..n {
+                    m = min(m, v[tt][l - 1]);
+                }
+                out[t][l] = m;
+            }
+        }
+    }
+    scale_all(out, scale);
+}
+
+/// `out[j] = scale · min v[j ..= j+K]` (leading window, clamped at the last column).
+fn leading_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
+    let (lay, k) = (g.lay, g.k);
+    let n = lay.n;
+    if k == 0 || n == 1 {
+        out.copy_from_slice(v);
+    } else {
+        out[n - 1] = v[n - 1];
+        let (o, a) = (out.as_flattened_mut(), v.as_flattened());
+        let len = o.len() - LANES;
+        for ((x, &p), &q) in o[..len].iter_mut().zip(&a[..len]).zip(&a[LANES..]) {
+            *x = min(p, q);
+        }
+        for o in 2..=k.min(n - 1) {
+            min_shifted_up(out, v, o);
+        }
+    }
+    if k >= n {
+        for t in 0..n {
+            for l in 0..LANES {
+                let j = lay.col(t, l);
+                let mut m = f32::INFINITY;
+                for jj in j..=j + k {
+                    m = min(m, get(&lay, v, jj));
+                }
+                out[t][l] = m;
+            }
+        }
+    } else {
+        // The last K rows of each chunk also see the start of the chunk after.
+        for t in n - k..n {
+            for l in 0..LANES - 1 {
+                let mut m = out[t][l];
+                for tt in 0..=t + k - n {
+                    m = min(m, v[tt][l + 1]);
+                }
+                out[t][l] = m;
+            }
+        }
+    }
+    scale_all(out, scale);
+}
+
+/// One row's values of one pass.
+#[derive(Clone)]
+pub(super) struct RowValues {
+    /// `X` (forward: `FX`, backward: `BX`).
+    pub x: Lanes,
+    /// `H` (forward: `FH`, backward: `BH`).
+    pub h: Lanes,
+}
+
+impl RowValues {
+    fn new(lay: &Layout) -> Self {
+        RowValues {
+            x: lay.blank(),
+            h: lay.blank(),
+        }
+    }
+}
+
+/// Work rows of a pass.
+struct Work {
+    cost: Lanes,
+    cost_next: Lanes,
+    base: Lanes,
+    m: Lanes,
+}
+
+impl Work {
+    fn new(lay: &Layout) -> Self {
+        Work {
+            cost: lay.blank(),
+            cost_next: lay.blank(),
+            base: lay.blank(),
+            m: lay.blank(),
+        }
+    }
+}
+
+impl Graph {
+    /// Forward row `i` from `M = min(X, H)` of row `i-1` in `w.m` (`has_prev` false: the
+    /// source). Expects `w.cost` to hold row `i`'s costs; leaves `M` of row `i` in `w.m`.
+    fn forward(&self, has_prev: bool, w: &mut Work, out: &mut RowValues) {
+        let n = self.lay.n;
+        if has_prev {
+            trailing_min(self, &w.m, self.g, &mut w.base);
+        } else {
+            w.base.as_flattened_mut().fill(0.0);
+        }
+        let (cost, base) = (&w.cost, &w.base);
+        let wv = self.w;
+        if self.horizontal {
+            // Local scans of every chunk from a +inf carry, all chunks at once.
+            let (mut lx, mut lh) = ([f32::INFINITY; LANES], [f32::INFINITY; LANES]);
+            for (((c, b), x), h) in cost.iter().zip(base).zip(&mut out.x).zip(&mut out.h) {
+                for l in 0..LANES {
+                    lx[l] = c[l] + min(b[l], lx[l]);
+                    lh[l] = min(b[l] + wv, lh[l]);
+                }
+                *x = lx;
+                *h = lh;
+            }
+            // Fix up chunk l from the true carry of chunk l-1.
+            let mut carry_h = [f32::INFINITY; LANES];
+            for l in 1..LANES {
+                let mut left = out.x[n - 1][l - 1];
+                for t in 0..n {
+                    let v = cost[t][l] + min(base[t][l], left);
+                    if v == out.x[t][l] {
+                        break;
+                    }
+                    out.x[t][l] = v;
+                    left = v;
+                }
+                carry_h[l] = min(carry_h[l - 1], out.h[n - 1][l - 1]);
+            }
+            for h in out.h.iter_mut() {
+                for l in 0..LANES {
+                    h[l] = min(h[l], carry_h[l]);
+                }
+            }
+        } else {
+            let (c, b) = (cost.as_flattened(), base.as_flattened());
+            for ((x, &c), &b) in out.x.as_flattened_mut().iter_mut().zip(c).zip(b) {
+                *x = c + b;
+            }
+            for (h, &b) in out.h.as_flattened_mut().iter_mut().zip(b) {
+                *h = b + wv;
+            }
+        }
+        pad(&self.lay, &mut out.x);
+        pad(&self.lay, &mut out.h);
+        let (x, h) = (out.x.as_flattened(), out.h.as_flattened());
+        for ((m, &x), &h) in w.m.as_flattened_mut().iter_mut().zip(x).zip(h) {
+            *m = min(x, h);
+        }
+    }
+
+    /// Backward row `i` from row `i+1`'s values `next` (`None`: the sink). Expects `w.cost` to
+    /// hold row `i`'s costs and `w.cost_next` row `i+1`'s.
+    fn backward(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+        let n = self.lay.n;
+        match next {
+            Some(nx) => {
+                let wv = self.w;
+                let (x, h) = (nx.x.as_flattened(), nx.h.as_flattened());
+                let c = w.cost_next.as_flattened();
+                for (((m, &c), &x), &h) in w.m.as_flattened_mut().iter_mut().zip(c).zip(x).zip(h) {
+                    *m = min(c + x, wv + h);
+                }
+                leading_min(self, &w.m, self.g, &mut w.base);
+            }
+            None => w.base.as_flattened_mut().fill(0.0),
+        }
+        pad(&self.lay, &mut w.base);
+        let (cost, succ) = (&w.cost, &w.base);
+        if self.horizontal {
+            // BX[j] = min(succ[j], Y[j+1]) with Y[j] = c[j] + BX[j]; BH a running minimum.
+            let (mut ly, mut lh) = ([f32::INFINITY; LANES], [f32::INFINITY; LANES]);
+            let rows = cost
+                .iter()
+                .zip(succ)
+                .zip(out.x.iter_mut().zip(out.h.iter_mut()));
+            for ((c, s), (x, h)) in rows.rev() {
+                for l in 0..LANES {
+                    let bx = min(s[l], ly[l]);
+                    x[l] = bx;
+                    ly[l] = c[l] + bx;
+                    lh[l] = min(s[l], lh[l]);
+                }
+                *h = lh;
+            }
+            let mut carry_h = [f32::INFINITY; LANES];
+            for l in (0..LANES - 1).rev() {
+                let mut right = cost[0][l + 1] + out.x[0][l + 1];
+                for t in (0..n).rev() {
+                    let v = min(succ[t][l], right);
+                    if v == out.x[t][l] {
+                        break;
+                    }
+                    out.x[t][l] = v;
+                    right = cost[t][l] + v;
+                }
+                carry_h[l] = min(carry_h[l + 1], out.h[0][l + 1]);
+            }
+            for h in out.h.iter_mut() {
+                for l in 0..LANES {
+                    h[l] = min(h[l], carry_h[l]);
+                }
+            }
+        } else {
+            out.x.copy_from_slice(succ);
+            out.h.copy_from_slice(succ);
+        }
+        pad(&self.lay, &mut out.x);
+        pad(&self.lay, &mut out.h);
+    }
+}
+
+/// The hidden nodes of a stored row, reduced to the columns where the minimum over `j` of
+/// `H_stored[j] + H_other[j]` can be reached (see the module doc): `(column, value)`.
+fn hidden_steps(lay: &Layout, h: &Lanes, forward: bool, horizontal: bool) -> Vec<(u32, f32)> {
+    let (n, d) = (lay.n, lay.d);
+    // Columns fit in u32: a row of 2^32 columns would not fit in memory as f32 lanes.
+    let entry = |j: usize| (j as u32, get(lay, h, j));
+    if !horizontal {
+        return (0..d).map(entry).filter(|e| e.1.is_finite()).collect();
+    }
+    // With horizontal edges `H` is monotone along the row and changes at a few columns only:
+    // find them by comparing each layout row with the next (all chunks at once).
+    let mut changes: Vec<usize> = Vec::new(); // columns j with H[j] != H[j+1]
+    for t in 0..n.saturating_sub(1) {
+        if h[t] != h[t + 1] {
+            for l in 0..LANES {
+                if h[t][l] != h[t + 1][l] {
+                    changes.push(lay.col(t, l));
+                }
+            }
+        }
+    }
+    for l in 0..LANES - 1 {
+        if h[n - 1][l] != h[0][l + 1] {
+            changes.push(lay.col(n - 1, l));
+        }
+    }
+    changes.retain(|&j| j + 1 < d);
+    let columns: Vec<usize> = if forward {
+        // FH non-increasing: the first column of each constant run (BH is smallest there).
+        std::iter::once(0)
+            .chain(changes.iter().map(|&j| j + 1))
+            .collect()
+    } else {
+        // BH non-decreasing: the last column of each constant run (FH is smallest there).
+        changes
+            .iter()
+            .copied()
+            .chain(std::iter::once(d - 1))
+            .collect()
+    };
+    columns
+        .into_iter()
+        .map(entry)
+        .filter(|e| e.1.is_finite())
+        .collect()
+}
+
+/// A row kept by one pass for the other.
+struct Stored {
+    x: Lanes,
+    hidden: Vec<(u32, f32)>,
+}
+
+/// What a scored row's reader sees: the two passes' `X` values and the best hidden route.
+pub(super) struct RowView<'a> {
+    /// The layout of `fx` and `bx`.
+    pub lay: Layout,
+    /// `FX_i` (lane layout).
+    pub fx: &'a [[f32; LANES]],
+    /// `BX_i` (lane layout).
+    pub bx: &'a [[f32; LANES]],
+    /// `min_j FH_i[j] + BH_i[j]`: the cheapest route hidden at row `i`.
+    pub hidden: f32,
+}
+
+impl RowView<'_> {
+    /// `m(x_ij) = FX_i[j] + BX_i[j]`: the cheapest route through `x_ij`.
+    #[inline]
+    pub(super) fn through(&self, j: usize) -> f32 {
+        let (t, l) = self.lay.at(j);
+        self.fx[t][l] + self.bx[t][l]
+    }
+
+    /// The cheapest route through a matching node of a column outside `lo ..= hi` (`+inf`
+    /// when there is none), in one pass over the row.
+    pub(super) fn best_outside(&self, lo: usize, hi: usize) -> f32 {
+        let lay = self.lay;
+        // The rows `t` of the lane layout that hold a column of `lo ..= hi`.
+        let mut skip: Vec<usize> = (lo..=hi.min(lay.d - 1)).map(|j| lay.at(j).0).collect();
+        skip.sort_unstable();
+        skip.dedup();
+        let mut acc = [f32::INFINITY; LANES];
+        let mut from = 0;
+        for &t in skip.iter().chain(std::iter::once(&lay.n)) {
+            for (f, b) in self.fx[from..t].iter().zip(&self.bx[from..t]) {
+                for l in 0..LANES {
+                    acc[l] = min(acc[l], f[l] + b[l]);
+                }
+            }
+            if t < lay.n {
+                for l in 0..LANES {
+                    let j = lay.col(t, l);
+                    if !(lo..=hi).contains(&j) {
+                        acc[l] = min(acc[l], self.fx[t][l] + self.bx[t][l]);
+                    }
+                }
+            }
+            from = t + 1;
+        }
+        acc.into_iter().fold(f32::INFINITY, min)
+    }
+}
+
+/// Runs both passes over `chat` and calls `read(i, view)` for every row `i` with
+/// `scored[i]`, from two threads; returns the readings in row order.
+pub(super) fn sweep<R: Send>(
+    chat: &Matrix,
+    graph: &GraphParams,
+    discount: f64,
+    scored: &[bool],
+    read: impl Fn(usize, &RowView<'_>) -> R + Sync,
+) -> Vec<(usize, R)> {
+    let (q, d) = (chat.rows(), chat.cols());
+    if q == 0 || d == 0 {
+        return Vec::new();
+    }
+    let lay = Layout::new(d);
+    let g = Graph {
+        k: graph.fan_out,
+        horizontal: graph.horizontal,
+        w: graph.hidden_cost as f32,
+        g: discount as f32,
+        lay,
+    };
+    let mid = q / 2;
+    // Pass state carried from phase 1 to phase 2.
+    let mut fw = Work::new(&lay);
+    let mut fcur = RowValues::new(&lay);
+    let mut bw = Work::new(&lay);
+    let mut bcur = RowValues::new(&lay);
+    let mut bnext = RowValues::new(&lay);
+
+    // Phase 1: forward over rows 0..mid, backward over rows q-1 down to mid.
+    let (top, bottom) = rayon::join(
+        || {
+            let mut kept: Vec<Option<Stored>> = (0..mid).map(|_| None).collect();
+            for i in 0..mid {
+                costs(chat.row(i), &lay, &mut fw.cost);
+                g.forward(i > 0, &mut fw, &mut fcur);
+                if scored[i] {
+                    kept[i] = Some(Stored {
+                        x: fcur.x.clone(),
+                        hidden: hidden_steps(&lay, &fcur.h, true, g.horizontal),
+                    });
+                }
+            }
+            kept
+        },
+        || {
+            let mut kept: Vec<Option<Stored>> = (mid..q).map(|_| None).collect();
+            let mut first = true;
+            for i in (mid..q).rev() {
+                if first {
+                    costs(chat.row(i), &lay, &mut bw.cost);
+                } else {
+                    std::mem::swap(&mut bw.cost, &mut bw.cost_next);
+                    costs(chat.row(i), &lay, &mut bw.cost);
+                }
+                let next = (!first).then_some(&bnext);
+                g.backward(next, &mut bw, &mut bcur);
+                std::mem::swap(&mut bcur, &mut bnext);
+                first = false;
+                if scored[i] {
+                    kept[i - mid] = Some(Stored {
+                        x: bnext.x.clone(),
+                        hidden: hidden_steps(&lay, &bnext.h, false, g.horizontal),
+                    });
+                }
+            }
+            kept
+        },
+    );
+
+    // Phase 2: each pass continues into the other half and meets the stored rows there.
+    let combine = |stored: &Stored, own_h: &Lanes| {
+        stored
+            .hidden
+            .iter()
+            .map(|&(j, v)| v + get(&lay, own_h, j as usize))
+            .fold(f32::INFINITY, min)
+    };
+    let (mut upper, mut lower) = rayon::join(
+        || {
+            let mut bottom = bottom;
+            let mut out = Vec::new();
+            for i in mid..q {
+                costs(chat.row(i), &lay, &mut fw.cost);
+                g.forward(i > 0, &mut fw, &mut fcur);
+                if let Some(b) = bottom[i - mid].take() {
+                    let view = RowView {
+                        lay,
+                        fx: &fcur.x,
+                        bx: &b.x,
+                        hidden: combine(&b, &fcur.h),
+                    };
+                    out.push((i, read(i, &view)));
+                }
+            }
+            out
+        },
+        || {
+            let mut top = top;
+            let mut out = Vec::new();
+            let mut first = mid == q;
+            for i in (0..mid).rev() {
+                if first {
+                    costs(chat.row(i), &lay, &mut bw.cost);
+                } else {
+                    std::mem::swap(&mut bw.cost, &mut bw.cost_next);
+                    costs(chat.row(i), &lay, &mut bw.cost);
+                }
+                let next = (!first).then_some(&bnext);
+                g.backward(next, &mut bw, &mut bcur);
+                std::mem::swap(&mut bcur, &mut bnext);
+                first = false;
+                if let Some(f) = top[i].take() {
+                    let view = RowView {
+                        lay,
+                        fx: &f.x,
+                        bx: &bnext.x,
+                        hidden: combine(&f, &bnext.h),
+                    };
+                    out.push((i, read(i, &view)));
+                }
+            }
+            out
+        },
+    );
+    lower.reverse();
+    lower.append(&mut upper);
+    lower
+}
