@@ -20,9 +20,10 @@
 //! (property test `trip_confidence_is_the_offline_discounted_ratio_of_the_prefix`). Only the
 //! paper's graph is scored (no relocalization edges), as offline.
 //!
-//! The row steps are the offline ones: [`crate::solver::forward_values_row`] and the same
-//! backward arithmetic as `confidence/discounted.rs` (written out here because that module's
-//! step is private to it), so the values are bit-identical. The forward and the backward pass
+//! The row steps are the exact (`f64`) ones: [`crate::solver::forward_values_row`] and the
+//! backward arithmetic of the offline reference passes (`confidence/discounted/plain.rs`); the
+//! shipped offline sweep runs the same steps in `f32` lanes (`confidence/sweep.rs`), so the
+//! two agree up to that rounding (relative 1e-5 in the property test). The forward and the backward pass
 //! over the window run on two threads; their buffers are kept per thread between batches.
 
 use std::cell::RefCell;

@@ -1023,8 +1023,8 @@ mod confidence_tests {
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(64))]
         /// After every batch, every frame the trip reports (its new frames and the re-traced
-        /// lag window) carries exactly the offline discounted ratio computed on the frames so
-        /// far; for the newest frame that is the forward pass alone (its backward part is
+        /// lag window) carries the offline discounted ratio computed on the frames so far (up
+        /// to the offline sweep's f32 rounding); for the newest frame that is the forward pass alone (its backward part is
         /// empty). Raw rows (no online normalisation) so the offline matrix is the same `ĉ`.
         #[test]
         fn trip_confidence_is_the_offline_discounted_ratio_of_the_prefix(
@@ -1058,8 +1058,12 @@ mod confidence_tests {
                 for e in u.window.iter().chain(u.estimates.iter().filter(|e| !window_frames.contains(&e.frame))) {
                     match e.reference {
                         Some(j) if window_frames.contains(&e.frame) => {
+                            // The trip's passes are f64, the offline sweep's f32 lanes
+                            // (`confidence/sweep.rs`): equal up to that rounding, the
+                            // tolerance of the offline sweep's own brute-force test.
                             let want = offline(&prefix, &graph, &params.confidence, e.frame, j);
-                            prop_assert_eq!(e.confidence, want, "frame {} of {}", e.frame, start);
+                            prop_assert!((e.confidence - want).abs() <= 1e-5 * want.abs().max(1.0),
+                                "frame {} of {}: {} vs {}", e.frame, start, e.confidence, want);
                         }
                         Some(_) => {} // left the window within this batch: scored on an earlier prefix
                         None => prop_assert_eq!(e.confidence, 0.0),
