@@ -349,7 +349,11 @@ pub fn resize_gray(image: &GrayImage, width: u32, height: u32) -> Result<Cow<'_,
         return Ok(Cow::Borrowed(image));
     }
     let (w, h) = image.dimensions();
-    let out = resize_u8(image.as_raw(), (w, h), (width, height), fir::PixelType::U8)?;
+    // Enlarging (two taps per axis): the dedicated kernel, bit for bit the same output.
+    let out = match super::bilinear::resize_gray_2tap(image.as_raw(), (w, h), (width, height)) {
+        Some(out) => out,
+        None => resize_u8(image.as_raw(), (w, h), (width, height), fir::PixelType::U8)?,
+    };
     GrayImage::from_raw(width, height, out)
         .map(Cow::Owned)
         .ok_or_else(|| buffer_error(width, height))

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::{Error, Matrix, Result};
 
+mod bilinear;
 pub mod cnn;
 pub mod geometry;
 pub mod hog;
