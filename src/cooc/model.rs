@@ -5,7 +5,9 @@
 //! observed. It is stored sparsely: `words` (sorted, row `r` is `words[r]`), and per row `a` a
 //! sorted run of packed `(row_b, spatial word)` entries with `row_a <= row_b` and the spatial
 //! word oriented from `a` to `b` (for `row_a == row_b` both orientations are stored), so a
-//! lookup is one short binary search inside a row and the matrix takes 4 bytes per entry.
+//! lookup is one short binary search inside a row and the matrix takes 4 bytes per entry. The
+//! spatial word is stored as the signed cell offset it stands for (`dx`, `dy`, one byte each),
+//! so the consistency test on the recognition path is two subtractions, not a division.
 //!
 //! **One model per training image.** The paper scores a location by "groups of features in the
 //! query image that have all co-occurred together in one of the training images for this
@@ -75,7 +77,8 @@ pub struct LocationModel {
     words: Vec<u32>,
     /// `row_start[a]..row_start[a + 1]` are row `a`'s entries in `pairs`.
     row_start: Vec<u32>,
-    /// `(row_b << 16) | spatial word`, sorted within each row.
+    /// `(row_b << 16) | (dx as u8) << 8 | (dy as u8)`: the spatial word as its signed cell
+    /// offset; sorted within each row.
     pairs: Vec<u32>,
 }
 
@@ -92,7 +95,10 @@ impl LocationModel {
             )));
         }
         let row = |w: u32| words.partition_point(|&x| x < w) as u64;
-        let pack = |a: u64, b: u64, s: u16| (a << 32) | (b << 16) | u64::from(s);
+        let pack = |a: u64, b: u64, s: u16| {
+            let (dx, dy) = grid.offset(s);
+            (a << 32) | (b << 16) | u64::from(dx as u8) << 8 | u64::from(dy as u8)
+        };
         let total: usize = sets.iter().map(|s| s.len() * s.len()).sum();
         let mut packed = Vec::with_capacity(total / 2 + 1);
         let mut rows = Vec::new();
@@ -136,7 +142,7 @@ impl LocationModel {
         &self.words
     }
 
-    /// Number of distinct `(word pair, spatial word)` entries.
+    /// Number of distinct `(word pair, signed cell offset)` entries.
     pub fn entries(&self) -> usize {
         self.pairs.len()
     }
@@ -149,28 +155,34 @@ impl LocationModel {
     /// Whether rows `a` and `b` co-occurred with a spatial word matching `observed` (the signed
     /// cell offset from `a`'s feature to `b`'s in the query) within `tolerance`.
     #[inline]
-    pub fn consistent(
-        &self,
-        a: u32,
-        b: u32,
-        observed: (i16, i16),
-        grid: &SpatialGrid,
-        tolerance: u16,
-    ) -> bool {
+    pub fn consistent(&self, a: u32, b: u32, observed: (i16, i16), tolerance: u16) -> bool {
         let (lo, hi, obs) = if a <= b {
             (a, b, observed)
         } else {
             (b, a, (-observed.0, -observed.1))
         };
-        let run = &self.pairs
-            [self.row_start[lo as usize] as usize..self.row_start[lo as usize + 1] as usize];
+        let run = self.run(lo);
         let start = hi << 16;
         let first = run.partition_point(|&p| p < start);
         run[first..]
             .iter()
             .take_while(|&&p| p >> 16 == hi)
-            .any(|&p| grid.consistent((p & 0xffff) as u16, obs, tolerance))
+            .any(|&p| entry_matches(p, obs, tolerance as i16))
     }
+
+    /// Row `a`'s packed entries (`row_b >= a`), sorted by `row_b` (see [`LocationModel`]).
+    #[inline]
+    pub(crate) fn run(&self, a: u32) -> &[u32] {
+        &self.pairs[self.row_start[a as usize] as usize..self.row_start[a as usize + 1] as usize]
+    }
+}
+
+/// Whether a packed entry's cell offset is within `tolerance` of `observed` on both axes.
+#[inline]
+pub(crate) fn entry_matches(entry: u32, observed: (i16, i16), tolerance: i16) -> bool {
+    let dx = i16::from((entry >> 8) as u8 as i8);
+    let dy = i16::from(entry as u8 as i8);
+    (dx - observed.0).abs() <= tolerance && (dy - observed.1).abs() <= tolerance
 }
 
 /// What one mapping drive saw: its time and, per location, its images' quantised features.
@@ -389,26 +401,24 @@ mod tests {
         let img1 = vec![Word::new(0, 0.2, 0.5), Word::new(1, 0.6, 0.5)];
         let img2 = vec![Word::new(0, 0.7, 0.8), Word::new(1, 0.3, 0.3)];
         let m = LocationModel::build(&[img1, img2], &grid()).unwrap();
-        let g = grid();
         assert_eq!(m.words(), &[0, 1]);
         // From A to B: B is 4 cells right (image 1), or 4 left and 4 up (image 2).
-        assert!(m.consistent(0, 1, (4, 0), &g, 0));
-        assert!(m.consistent(0, 1, (-4, -4), &g, 0));
+        assert!(m.consistent(0, 1, (4, 0), 0));
+        assert!(m.consistent(0, 1, (-4, -4), 0));
         // From B to A: the mirror offsets.
-        assert!(m.consistent(1, 0, (-4, 0), &g, 0));
-        assert!(m.consistent(1, 0, (4, 4), &g, 0));
+        assert!(m.consistent(1, 0, (-4, 0), 0));
+        assert!(m.consistent(1, 0, (4, 4), 0));
         // Unseen arrangement.
-        assert!(!m.consistent(0, 1, (0, 3), &g, 0));
-        assert!(m.consistent(0, 1, (3, 1), &g, 1));
+        assert!(!m.consistent(0, 1, (0, 3), 0));
+        assert!(m.consistent(0, 1, (3, 1), 1));
     }
 
     #[test]
     fn repeated_words_store_both_orientations() {
         let img = vec![Word::new(5, 0.1, 0.1), Word::new(5, 0.5, 0.1)];
         let m = LocationModel::build(&[img], &grid()).unwrap();
-        let g = grid();
-        assert!(m.consistent(0, 0, (4, 0), &g, 0));
-        assert!(m.consistent(0, 0, (-4, 0), &g, 0));
+        assert!(m.consistent(0, 0, (4, 0), 0));
+        assert!(m.consistent(0, 0, (-4, 0), 0));
         assert_eq!(m.entries(), 2);
     }
 
@@ -430,12 +440,11 @@ mod tests {
             })
             .unwrap();
         }
-        let g = grid();
         // Plain: one set per image; merged: also the virtual image day + night.
         assert_eq!(plain.sets(0).len(), 2);
         assert_eq!(merged.sets(0).len(), 3);
         let virtual_image = &merged.sets(0)[2];
-        assert!(virtual_image.consistent(0, 1, (6, 0), &g, 0));
+        assert!(virtual_image.consistent(0, 1, (6, 0), 0));
         assert!(plain.sets(0).iter().all(|m| m.words().len() == 1));
         // Word 2 is in the night set (entity 1, row 0) and the virtual image (entity 2, row 1).
         assert_eq!(merged.postings(2), &[(1, 0), (2, 1)]);
@@ -470,13 +479,13 @@ mod tests {
         }
         let times: Vec<f64> = map.drives().iter().map(|d| d.time).collect();
         assert_eq!(times, vec![10.0, 15.0, 20.0]);
-        let (g, sets) = (grid(), map.sets(0));
+        let sets = map.sets(0);
         // Three images, then the virtual images 10h+15h and 15h+20h; never 10h+20h.
         assert_eq!(sets.len(), 5);
         assert_eq!(sets[3].words(), &[1, 2]);
-        assert!(sets[3].consistent(0, 1, (4, 0), &g, 0)); // 10h with 15h
+        assert!(sets[3].consistent(0, 1, (4, 0), 0)); // 10h with 15h
         assert_eq!(sets[4].words(), &[2, 3]);
-        assert!(sets[4].consistent(0, 1, (4, 0), &g, 0)); // 15h with 20h
+        assert!(sets[4].consistent(0, 1, (4, 0), 0)); // 15h with 20h
         assert!(sets.iter().all(|m| m.words() != [1, 3]));
     }
 
