@@ -273,6 +273,7 @@ mod tests {
                 max_step: 2,
                 exclusion: 2,
                 contrast_window: 0,
+                ..SequenceParams::default()
             },
             ..CoocOptions::default()
         };

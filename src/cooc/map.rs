@@ -522,6 +522,7 @@ pub(crate) mod tests {
             max_step: 2,
             exclusion: 2,
             contrast_window: 0,
+            ..SequenceParams::default()
         };
         let p = sequence_match(&map, &queries, &seq);
         assert_eq!(p.len(), path.len());
