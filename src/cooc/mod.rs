@@ -32,7 +32,7 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
-pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
+pub use map::{extract_all, flow_similarity, fused_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;

@@ -185,6 +185,9 @@ pub(crate) fn entry_matches(entry: u32, observed: (i16, i16), tolerance: i16) ->
     (dx - observed.0).abs() <= tolerance && (dy - observed.1).abs() <= tolerance
 }
 
+/// One location's training-set models and, per set, its time and whether it is virtual.
+type LocationSets = (Vec<LocationModel>, Vec<(f64, bool)>);
+
 /// What one mapping drive saw: its time and, per location, its images' quantised features.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveRecord {
@@ -203,6 +206,13 @@ pub struct LocationMap {
     drives: Vec<DriveRecord>,
     /// Per location, the models of its training sets.
     models: Vec<Vec<LocationModel>>,
+    /// Per location, the time of each training set (for a virtual image: the earlier of its
+    /// two times) and whether it is virtual; [`LocationMap::sources`] are derived from them.
+    set_times: Vec<Vec<(f64, bool)>>,
+    /// The source of every entity (see [`LocationMap::entity_source`]).
+    entity_source: Vec<u32>,
+    /// Number of sources.
+    sources: usize,
     /// `first_entity[l]..first_entity[l + 1]` are location `l`'s entities (one per set).
     first_entity: Vec<u32>,
     /// The location of every entity.
@@ -220,6 +230,9 @@ impl LocationMap {
             merge_adjacent,
             drives: Vec::new(),
             models: Vec::new(),
+            set_times: Vec::new(),
+            entity_source: Vec::new(),
+            sources: 0,
             first_entity: vec![0],
             entity_location: Vec::new(),
             index: Vec::new(),
@@ -253,21 +266,24 @@ impl LocationMap {
         let needed = touched.last().map_or(0, |&l| l as usize + 1);
         if needed > self.models.len() {
             self.models.resize(needed, Vec::new());
+            self.set_times.resize(needed, Vec::new());
         }
-        let rebuilt: Vec<Vec<LocationModel>> = touched
+        let rebuilt: Vec<LocationSets> = touched
             .par_iter()
             .map(|&loc| self.build_sets(loc))
             .collect::<Result<_>>()?;
-        for (&loc, sets) in touched.iter().zip(rebuilt) {
+        for (&loc, (sets, times)) in touched.iter().zip(rebuilt) {
             self.models[loc as usize] = sets;
+            self.set_times[loc as usize] = times;
         }
         self.rebuild_index();
         Ok(())
     }
 
     /// The training sets of one location: every image of it, then (interpolation on) the
-    /// union of every two images of drives adjacent in time (Section II-E).
-    fn training_sets(&self, loc: u32) -> Vec<Vec<Word>> {
+    /// union of every two images of drives adjacent in time (Section II-E); each with its time
+    /// (a virtual image: the earlier one) and whether it is virtual.
+    fn training_sets(&self, loc: u32) -> Vec<(f64, bool, Vec<Word>)> {
         // Per distinct time, in time order: the images of that time at `loc`.
         let mut per_time: Vec<(f64, Vec<&Vec<Word>>)> = Vec::new();
         for d in &self.drives {
@@ -278,15 +294,16 @@ impl LocationMap {
             }
         }
         per_time.retain(|(_, v)| !v.is_empty());
-        let mut sets: Vec<Vec<Word>> = per_time
+        let mut sets: Vec<(f64, bool, Vec<Word>)> = per_time
             .iter()
-            .flat_map(|(_, v)| v.iter().map(|f| (*f).clone()))
+            .flat_map(|(t, v)| v.iter().map(|f| (*t, false, (*f).clone())))
             .collect();
         if self.merge_adjacent {
             for pair in per_time.windows(2) {
                 for a in &pair[0].1 {
                     for b in &pair[1].1 {
-                        sets.push(a.iter().chain(b.iter()).copied().collect());
+                        let union = a.iter().chain(b.iter()).copied().collect();
+                        sets.push((pair[0].0, true, union));
                     }
                 }
             }
@@ -294,11 +311,13 @@ impl LocationMap {
         sets
     }
 
-    fn build_sets(&self, loc: u32) -> Result<Vec<LocationModel>> {
-        self.training_sets(loc)
+    fn build_sets(&self, loc: u32) -> Result<LocationSets> {
+        let sets = self.training_sets(loc);
+        let models = sets
             .iter()
-            .map(|set| LocationModel::build(std::slice::from_ref(set), &self.grid))
-            .collect()
+            .map(|(_, _, set)| LocationModel::build(std::slice::from_ref(set), &self.grid))
+            .collect::<Result<_>>()?;
+        Ok((models, sets.iter().map(|&(t, v, _)| (t, v)).collect()))
     }
 
     fn rebuild_index(&mut self) {
@@ -326,6 +345,22 @@ impl LocationMap {
         self.index = index;
         self.first_entity = first_entity;
         self.entity_location = entity_location;
+        // Sources: the distinct drive times in order, then one per virtual time pair.
+        let mut times: Vec<f64> = self.drives.iter().map(|d| d.time).collect();
+        times.dedup();
+        let slot = |t: f64| times.partition_point(|&x| x < t) as u32;
+        self.entity_source = self
+            .set_times
+            .iter()
+            .flatten()
+            .map(|&(t, v)| slot(t) + if v { times.len() as u32 } else { 0 })
+            .collect();
+        self.sources = times.len()
+            + if self.merge_adjacent {
+                times.len().saturating_sub(1)
+            } else {
+                0
+            };
     }
 
     /// Number of locations.
@@ -341,6 +376,37 @@ impl LocationMap {
     /// Number of entities (training sets over all locations).
     pub fn entities(&self) -> usize {
         self.entity_location.len()
+    }
+
+    /// Number of sources: one per distinct drive time (drives at the same time are one
+    /// appearance), in time order, then (interpolation on) one per pair of adjacent times for
+    /// the virtual images. A location's score from one source is comparable across locations;
+    /// sources differ in their chance level (`docs/cooc.md`).
+    pub fn sources(&self) -> usize {
+        self.sources
+    }
+
+    /// Which locations each source has a training set of: `sources() x locations()`,
+    /// source-major. A location without any training set counts as source 0's (its score is 0
+    /// everywhere, as in the maximum over sources).
+    pub fn source_present(&self) -> Vec<bool> {
+        let l = self.locations();
+        let mut present = vec![false; self.sources.max(1) * l];
+        for (e, &loc) in self.entity_location.iter().enumerate() {
+            present[self.entity_source[e] as usize * l + loc as usize] = true;
+        }
+        for (loc, sets) in self.models.iter().enumerate() {
+            if sets.is_empty() {
+                present[loc] = true;
+            }
+        }
+        present
+    }
+
+    /// The source of entity `e`, `< sources()`.
+    #[inline]
+    pub fn entity_source(&self, e: u32) -> usize {
+        self.entity_source[e as usize] as usize
     }
 
     /// The location of entity `e`.
@@ -487,6 +553,49 @@ mod tests {
         assert_eq!(sets[4].words(), &[2, 3]);
         assert!(sets[4].consistent(0, 1, (4, 0), 0)); // 15h with 20h
         assert!(sets.iter().all(|m| m.words() != [1, 3]));
+    }
+
+    #[test]
+    fn sources_are_drive_times_then_virtual_pairs() {
+        let img = |w: u32| vec![Word::new(w, 0.2, 0.5), Word::new(w + 1, 0.6, 0.5)];
+        for merge in [false, true] {
+            let mut map = LocationMap::new(grid(), 0, merge);
+            for (t, loc) in [(22.0, 0), (12.0, 0), (12.0, 1)] {
+                map.add_drive(DriveRecord {
+                    time: t,
+                    images: vec![(loc, img(loc * 10))],
+                })
+                .unwrap();
+            }
+            // Times 12 (two drives: one appearance) and 22.
+            let expected = if merge { 3 } else { 2 };
+            assert_eq!(map.sources(), expected);
+            let sources: Vec<usize> = (0..map.entities() as u32)
+                .map(|e| map.entity_source(e))
+                .collect();
+            // Location 0: the 12 h image, the 22 h image (and their virtual image); location 1:
+            // the 12 h image.
+            let want = if merge {
+                vec![0, 1, 2, 0]
+            } else {
+                vec![0, 1, 0]
+            };
+            assert_eq!(sources, want, "merge {merge}");
+            let present = map.source_present();
+            assert_eq!(&present[..4], &[true, true, true, false]);
+            // A drive at an earlier time renumbers the sources of every location.
+            map.add_drive(DriveRecord {
+                time: 6.0,
+                images: vec![(1, img(50))],
+            })
+            .unwrap();
+            assert_eq!(map.sources(), if merge { 5 } else { 3 });
+            assert_eq!(
+                map.entity_source(0),
+                1,
+                "location 0's 12 h image is now source 1"
+            );
+        }
     }
 
     #[test]

@@ -250,13 +250,33 @@ fn consistency(
 /// Every location's score for `query` (0 where it has no candidate): full elimination of each
 /// entity, the best entity per location.
 pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
+    best_per_slot(map, query, map.locations(), |e| map.entity_location(e))
+}
+
+/// Every location's score for `query` from each source separately
+/// ([`LocationMap::sources`]): `sources x locations`, source-major, 0 where the source has no
+/// candidate at the location. The maximum over the sources is [`scores`].
+pub fn scores_by_source(map: &LocationMap, query: &[Word]) -> Vec<u32> {
+    let l = map.locations();
+    best_per_slot(map, query, map.sources() * l, |e| {
+        map.entity_source(e) * l + map.entity_location(e)
+    })
+}
+
+/// Full elimination of every entity with a candidate; the best score per `slot(entity)`.
+fn best_per_slot(
+    map: &LocationMap,
+    query: &[Word],
+    slots: usize,
+    slot: impl Fn(u32) -> usize,
+) -> Vec<u32> {
     let geo = QueryGeometry::new(map, query);
     let cands = Candidates::gather(map, query);
-    let mut out = vec![0u32; map.locations()];
+    let mut out = vec![0u32; slots];
     for g in 0..cands.groups.len() {
-        let loc = map.entity_location(cands.groups[g].0);
+        let k = slot(cands.groups[g].0);
         let s = cands.elimination(map, &geo, g).run() as u32;
-        out[loc] = out[loc].max(s);
+        out[k] = out[k].max(s);
     }
     out
 }
