@@ -25,10 +25,10 @@ pub struct CoocArgs {
     /// Co-occurrence: bilinear upsampling before corner detection [default: 2].
     #[arg(long)]
     pub cooc_upsample: Option<u32>,
-    /// Co-occurrence: at most this many keypoints per image [default: 80].
+    /// Co-occurrence: at most this many keypoints per image [default: 300].
     #[arg(long)]
     pub cooc_max_keypoints: Option<usize>,
-    /// Co-occurrence: branching factor of the vocabulary tree [default: 16].
+    /// Co-occurrence: branching factor of the vocabulary tree [default: 32].
     #[arg(long)]
     pub cooc_branching: Option<usize>,
     /// Co-occurrence: depth of the vocabulary tree (words = branching^depth) [default: 2].
