@@ -368,9 +368,9 @@ fn bench_recognition_gardens(c: &mut Criterion) {
         })
     });
     group.finish();
-    // The same map with the paper's vocabulary size: 22^3 = 10,648 words (fewer candidate
-    // correspondences per location, so a cheaper `J` and a tighter bound; measured to cost
-    // cross-condition quality on Gardens Point, docs/cooc.md).
+    // The same map with the paper's vocabulary size: at most 22^3 = 10,648 words (fewer
+    // candidate correspondences per location, so a cheaper `J` and a tighter bound; measured
+    // to cost day-night sequence matching on Gardens Point, docs/cooc.md).
     let paper = CoocParams {
         vocabulary_branching: 22,
         vocabulary_depth: 3,
