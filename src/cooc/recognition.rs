@@ -234,6 +234,10 @@ fn consistency(
             while k < run.len() && run[k] >> 16 < rb {
                 k += 1;
             }
+            if k == run.len() {
+                // The run is exhausted: no candidate of a higher row can match.
+                break;
+            }
             let obs = offsets[qb as usize];
             if run[k..]
                 .iter()
