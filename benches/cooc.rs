@@ -1,15 +1,18 @@
 //! Co-occurrence map benches: simultaneous matching with the maximum-potential-score bound
 //! (lockstep as in the paper, and best-first) against matching every location separately, on a
-//! generated map of 2,400 locations; keypoint extraction on a 64x32 and a 960x540 frame.
+//! generated map of 2,400 locations, the real Nordland map (2,400 frames) and a map of 2,200
+//! camera locations from real Gardens Point frames ([`bench_recognition_gardens`]); keypoint
+//! extraction on a 64x32 and a 960x540 frame; vocabulary training.
 //!
 //! Run: `cargo bench --bench cooc -- --warm-up-time 1 --measurement-time 3`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use image::{GrayImage, Luma};
-use seasonloc::cooc::keypoints::{extract, KeypointParams};
+use seasonloc::cooc::keypoints::{extract, KeypointParams, DESCRIPTOR_DIM};
 use seasonloc::cooc::model::{DriveRecord, LocationMap, Word};
 use seasonloc::cooc::recognition::{recognize_query, Schedule};
 use seasonloc::cooc::spatial::SpatialGrid;
+use seasonloc::cooc::vocabulary::{TreeSpec, Vocabulary};
 use seasonloc::cooc::{CoocMap, CoocParams, Drive};
 
 /// SplitMix64, so the fixture is identical on every run.
@@ -236,11 +239,215 @@ fn bench_keypoints_960x540(c: &mut Criterion) {
     });
 }
 
+/// The Gardens Point dev folder (`../shared` beside the repository or `../../shared`).
+fn gardens_dir() -> Option<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    ["../shared", "../../shared"]
+        .iter()
+        .map(|s| root.join(s).join("data/gardenspoint_dev"))
+        .find(|d| d.join("day_right").is_dir())
+}
+
+/// The 3 x 3 non-overlapping tiles of a frame, row by row: nine images that share no pixel.
+fn tiles(img: &GrayImage) -> Vec<GrayImage> {
+    let (w, h) = (img.width() / 3, img.height() / 3);
+    (0..9)
+        .map(|t| image::imageops::crop_imm(img, (t % 3) * w, (t / 3) * h, w, h).to_image())
+        .collect()
+}
+
+/// Recognition on a map of 2,200 camera locations built from real frames, with the default
+/// (camera) parameters. Gardens Point has 300 frames, not 2,200 places, so every frame is cut
+/// into its 3 x 3 non-overlapping tiles (each worked at the same 640 px width as a whole
+/// frame): the tiles of day_right and night_right (1,800) and of day_left frames 0-44 (405),
+/// the first 2,200 of them in that order. No two locations share pixels; what they share is
+/// what a real fused route shares (consecutive frames overlap, and a place is seen by up to three
+/// walks), unlike the earlier map of 11 crops of each frame, whose near-duplicates kept every
+/// location a candidate. Queries: 20 day_left tiles of frames 50-69 (tile `k % 9` of frame
+/// `50 + k`), places the map holds from the two other walks only. Skipped without the data.
+fn bench_recognition_gardens(c: &mut Criterion) {
+    let Some(dir) = gardens_dir() else {
+        eprintln!("../shared/data/gardenspoint_dev not found: skipping the Gardens Point bench");
+        return;
+    };
+    let walk = |name: &str| -> Vec<GrayImage> {
+        let files = seasonloc::features::list_images(&dir.join(name)).expect("image folder");
+        files
+            .iter()
+            .map(|f| {
+                seasonloc::features::load_image_file(f)
+                    .expect("readable frame")
+                    .to_luma8()
+            })
+            .collect()
+    };
+    let (left, right, night) = (walk("day_left"), walk("day_right"), walk("night_right"));
+    let mut map_images: Vec<GrayImage> = Vec::new();
+    for frame in right.iter().chain(&night).chain(&left[..45]) {
+        map_images.extend(tiles(frame));
+    }
+    map_images.truncate(2200);
+    // Place of map location `l`: (frame, tile).
+    let place = |l: usize| (l / 9 % 100, l % 9);
+    let params = CoocParams::default();
+    let started = std::time::Instant::now();
+    let features = seasonloc::cooc::extract_all(&params, 0, &map_images).expect("map features");
+    let extract_s = started.elapsed().as_secs_f64();
+    let started = std::time::Instant::now();
+    let drive = seasonloc::cooc::DriveFeatures {
+        time: 0.0,
+        features: features.clone(),
+        locations: (0..map_images.len()).collect(),
+    };
+    let map = CoocMap::from_features(&params, &[drive]).expect("map builds");
+    eprintln!(
+        "Gardens Point tiles: {} locations, {} words; extraction {:.1} ms per tile (wall, rayon), \
+         vocabulary + models {:.1} s",
+        map.location_count(),
+        map.vocabulary().len(),
+        extract_s * 1000.0 / map_images.len() as f64,
+        started.elapsed().as_secs_f64()
+    );
+    let queries: Vec<(usize, usize, Vec<Word>)> = (0..20)
+        .map(|k| {
+            let (frame, tile) = (50 + k, k % 9);
+            let q = map
+                .quantize("day_left tile", &tiles(&left[frame])[tile])
+                .expect("valid tile");
+            (frame, tile, q)
+        })
+        .collect();
+    for schedule in [Schedule::Exhaustive, Schedule::BestFirst] {
+        let (mut built, mut found) = (0, 0);
+        for (frame, tile, q) in &queries {
+            if let Some(r) = map.recognize_words(q, schedule) {
+                built += r.evaluated;
+                let (f, t) = place(r.location);
+                found += usize::from(t == *tile && f.abs_diff(*frame) <= 2);
+            }
+        }
+        eprintln!(
+            "Gardens Point {schedule:?}: consistency matrices built per query = {:.1}, \
+             answers at the query's place {found}/{}",
+            built as f64 / queries.len() as f64,
+            queries.len()
+        );
+    }
+    let mut group = c.benchmark_group("cooc_recognize_gardens_2200");
+    group.sample_size(10);
+    for schedule in [Schedule::Exhaustive, Schedule::BestFirst] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for (_, _, q) in &queries {
+                        std::hint::black_box(map.recognize_words(q, s));
+                    }
+                })
+            },
+        );
+    }
+    // What cooc-seq and cooc-flow need: every location's score, then the sequence matching.
+    let words: Vec<Vec<Word>> = queries.iter().map(|(_, _, q)| q.clone()).collect();
+    group.bench_function("score_rows", |b| {
+        b.iter(|| {
+            for q in &words {
+                std::hint::black_box(seasonloc::cooc::recognition::scores(map.locations(), q));
+            }
+        })
+    });
+    let scores = map.score_matrix_words(&words);
+    group.bench_function("sequence_matching", |b| {
+        b.iter(|| {
+            seasonloc::cooc::sequence::match_sequences(
+                std::hint::black_box(&scores),
+                &seasonloc::cooc::SequenceParams::default(),
+            )
+            .expect("valid scores")
+        })
+    });
+    group.finish();
+    // The same map with the paper's vocabulary size: at most 22^3 = 10,648 words (fewer
+    // candidate correspondences per location, so a cheaper `J` and a tighter bound; measured
+    // to cost day-night sequence matching on Gardens Point, docs/cooc.md).
+    let paper = CoocParams {
+        vocabulary_branching: 22,
+        vocabulary_depth: 3,
+        ..params.clone()
+    };
+    let drive = seasonloc::cooc::DriveFeatures {
+        time: 0.0,
+        features: features.clone(),
+        locations: (0..map_images.len()).collect(),
+    };
+    let big = CoocMap::from_features(&paper, &[drive]).expect("map builds");
+    let big_queries: Vec<Vec<Word>> = (0..20)
+        .map(|k| {
+            big.quantize("day_left tile", &tiles(&left[50 + k])[k % 9])
+                .expect("valid tile")
+        })
+        .collect();
+    let built: usize = big_queries
+        .iter()
+        .filter_map(|q| big.recognize_words(q, Schedule::BestFirst))
+        .map(|r| r.evaluated)
+        .sum();
+    eprintln!(
+        "Gardens Point, {} words: BestFirst consistency matrices built per query = {:.1}",
+        big.vocabulary().len(),
+        built as f64 / big_queries.len() as f64
+    );
+    let mut group = c.benchmark_group("cooc_recognize_gardens_2200_10k_words");
+    group.sample_size(10);
+    for schedule in [Schedule::Exhaustive, Schedule::BestFirst] {
+        group.bench_with_input(
+            BenchmarkId::from_parameter(format!("{schedule:?}")),
+            &schedule,
+            |b, &s| {
+                b.iter(|| {
+                    for q in &big_queries {
+                        std::hint::black_box(big.recognize_words(q, s));
+                    }
+                })
+            },
+        );
+    }
+    group.finish();
+    // Vocabulary training on the map's descriptors (as many as the map trains on).
+    let all: Vec<f32> = features
+        .iter()
+        .flat_map(|f| f.descriptors.iter().copied())
+        .collect();
+    let n = all.len() / DESCRIPTOR_DIM;
+    let stride = n.div_ceil(params.max_training_descriptors);
+    let training: Vec<f32> = all
+        .chunks_exact(DESCRIPTOR_DIM)
+        .step_by(stride)
+        .flatten()
+        .copied()
+        .collect();
+    let spec = TreeSpec {
+        branching: params.vocabulary_branching,
+        depth: params.vocabulary_depth,
+        iterations: params.kmeans_iterations,
+        seed: params.seed,
+    };
+    let mut group = c.benchmark_group("cooc_vocabulary");
+    group.sample_size(10);
+    group.bench_function(
+        format!("train_{}_descriptors", training.len() / DESCRIPTOR_DIM),
+        |b| b.iter(|| Vocabulary::train(&training, DESCRIPTOR_DIM, spec).expect("trains")),
+    );
+    group.finish();
+}
+
 criterion_group!(
     benches,
     bench_recognition,
     bench_keypoints,
     bench_keypoints_960x540,
-    bench_recognition_nordland
+    bench_recognition_nordland,
+    bench_recognition_gardens
 );
 criterion_main!(benches);

@@ -6,11 +6,14 @@
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
-//! (`CxR`), `tol`, `merge` (0/1), `train` (max training descriptors), `seed`, `vocab` (`all`:
+//! (`CxR`), `tol`, `merge` (0/1), `train` (max training descriptors), `seed`, `seqnorm`
+//! (`cooc-seq`'s score normalisation: `floored`, the default, `eq2` or `none`), `vocab` (`all`:
 //! trained on every drive of the map, the default here; `first`: on the first drive, as `eval`
 //! and the service; `sep`: on the traversal that is neither mapped nor queried, the paper's
 //! separate training images), and `maps`
-//! (`pairs`: the single-drive and fused maps of the issue; `loo`: leave-one-out only; `scale`:
+//! (`pairs`: the single-drive and fused maps of the issue; `loo`: leave-one-out only; `fusion`:
+//! every single-drive map, then the same map, same vocabulary, plus the third walk; `fused`: the
+//! fused maps of `fusion` only; `main`: day_right -> day_left; `day`: the two day pairs; `scale`:
 //! recognition time per query on a map of 2,200 locations, see [`scale`]).
 //!
 //! Several settings run one after the other (images loaded once, features re-extracted only
@@ -31,6 +34,7 @@ use seasonloc::cooc::{
 };
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
 use seasonloc::features::{list_images, load_image_file};
+use seasonloc::similarity::Normalization;
 
 const TRAVERSALS: [&str; 3] = ["day_left", "day_right", "night_right"];
 /// Time of day of each traversal (only the order matters): both day walks, then night.
@@ -44,8 +48,9 @@ fn load(dir: &Path) -> Vec<GrayImage> {
         .collect()
 }
 
-fn parse_params(args: &[String]) -> (CoocParams, String, String) {
+fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization) {
     let mut p = CoocParams::default();
+    let mut seqnorm = SequenceParams::default().normalization;
     let mut maps = "pairs".to_string();
     let mut vocab = "all".to_string();
     for a in args {
@@ -76,11 +81,19 @@ fn parse_params(args: &[String]) -> (CoocParams, String, String) {
             }
             "maps" => maps = v.to_string(),
             "vocab" => vocab = v.to_string(),
+            "seqnorm" => {
+                seqnorm = match v {
+                    "none" => Normalization::None,
+                    "eq2" => Normalization::Columns,
+                    "floored" => Normalization::FlooredColumns,
+                    other => panic!("seqnorm: none, eq2 or floored, not {other}"),
+                }
+            }
             other => panic!("unknown setting {other}"),
         }
     }
     p.validate().expect("valid settings");
-    (p, maps, vocab)
+    (p, maps, vocab, seqnorm)
 }
 
 fn main() {
@@ -96,7 +109,7 @@ fn main() {
     let images: Vec<Vec<GrayImage>> = TRAVERSALS.iter().map(|t| load(&dir.join(t))).collect();
     let mut cached: Option<(KeypointParams, Vec<Vec<Features>>)> = None;
     for config in rest.split(|a| a == "/") {
-        let (params, maps, vocab) = parse_params(config);
+        let (params, maps, vocab, seqnorm) = parse_params(config);
         if cached.as_ref().is_none_or(|c| c.0 != params.keypoints) {
             cached = Some((params.keypoints.clone(), extract(&params, &images)));
         }
@@ -104,7 +117,7 @@ fn main() {
         if maps == "scale" {
             scale(&params, &images, &features[0]);
         } else {
-            run(&params, &maps, &vocab, &images, features);
+            run(&params, &maps, &vocab, seqnorm, &images, features);
         }
     }
 }
@@ -130,6 +143,7 @@ fn run(
     params: &CoocParams,
     maps: &str,
     vocab: &str,
+    seqnorm: Normalization,
     images: &[Vec<GrayImage>],
     features: &[Vec<Features>],
 ) {
@@ -161,14 +175,37 @@ fn run(
             (vec![0], 2),
         ],
         "loo" => vec![(vec![1, 2], 0), (vec![0, 2], 1), (vec![0, 1], 2)],
+        // Every single-drive map, then the same map (same vocabulary) plus the third drive.
+        "fusion" => vec![
+            (vec![1], 0),
+            (vec![1, 2], 0),
+            (vec![2], 0),
+            (vec![2, 1], 0),
+            (vec![0], 1),
+            (vec![0, 2], 1),
+            (vec![2], 1),
+            (vec![2, 0], 1),
+            (vec![0], 2),
+            (vec![0, 1], 2),
+            (vec![1], 2),
+            (vec![1, 0], 2),
+        ],
+        "fused" => vec![
+            (vec![1, 2], 0),
+            (vec![2, 1], 0),
+            (vec![0, 2], 1),
+            (vec![2, 0], 1),
+            (vec![0, 1], 2),
+            (vec![1, 0], 2),
+        ],
         "main" => vec![(vec![1], 0)],
         "day" => vec![(vec![1], 0), (vec![0], 1)],
         other => panic!("unknown maps={other}"),
     };
     println!(
-        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | seq contrast 10 AP | size AP | margin AP | ratio AP | build s | score s |"
+        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | seq contrast 10 AP | top/true/wrong | size AP | margin AP | ratio AP | build s | score s |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for (map_drives, query) in sets {
         let started = Instant::now();
         let drives: Vec<DriveFeatures> = map_drives.iter().map(|&t| drive(t)).collect();
@@ -195,7 +232,13 @@ fn run(
             .map(|f| map.quantize_features(f))
             .collect();
         let queries = CoocQueries::from_words(&map, words);
-        let options = CoocOptions::default();
+        let options = CoocOptions {
+            sequence: SequenceParams {
+                normalization: seqnorm,
+                ..SequenceParams::default()
+            },
+            ..CoocOptions::default()
+        };
         let mut row = Vec::new();
         for method in CoocMethod::ALL {
             let r = queries.localize(method, &options).expect("localize");
@@ -213,6 +256,27 @@ fn run(
         let p = match_sequences(queries.scores(), &contrast).expect("sequences");
         let m = evaluate(&p, &gt, n, 2, &Exclusions::none()).expect("metrics");
         row.push(format!("{:.3}", m.ap));
+        // Diagnosis: how often the true place (within 2) has the top score, mean true score,
+        // mean best wrong score.
+        let s = queries.scores();
+        let (mut top, mut tsum, mut wsum) = (0usize, 0f64, 0f64);
+        for q in 0..s.rows() {
+            let r = s.row(q);
+            let t = (q.saturating_sub(2)..=(q + 2).min(r.len() - 1))
+                .map(|l| r[l])
+                .fold(0f32, f32::max);
+            let w = r
+                .iter()
+                .enumerate()
+                .filter(|(l, _)| l.abs_diff(q) > 2)
+                .map(|(_, &v)| v)
+                .fold(0f32, f32::max);
+            top += usize::from(t > w);
+            tsum += f64::from(t);
+            wsum += f64::from(w);
+        }
+        let nq = s.rows() as f64;
+        row.push(format!("{top} {:.1} {:.1}", tsum / nq, wsum / nq));
         // Single image from the full scores with three confidences: the group size (the paper's),
         // and its margin over the best location more than 10 locations away (difference, ratio).
         for mode in [0, 1, 2] {

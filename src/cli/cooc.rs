@@ -25,10 +25,10 @@ pub struct CoocArgs {
     /// Co-occurrence: bilinear upsampling before corner detection [default: 2].
     #[arg(long)]
     pub cooc_upsample: Option<u32>,
-    /// Co-occurrence: at most this many keypoints per image [default: 80].
+    /// Co-occurrence: at most this many keypoints per image [default: 300].
     #[arg(long)]
     pub cooc_max_keypoints: Option<usize>,
-    /// Co-occurrence: branching factor of the vocabulary tree [default: 16].
+    /// Co-occurrence: branching factor of the vocabulary tree [default: 32].
     #[arg(long)]
     pub cooc_branching: Option<usize>,
     /// Co-occurrence: depth of the vocabulary tree (words = branching^depth) [default: 2].
@@ -57,6 +57,11 @@ pub struct CoocArgs {
     /// locations (0 = off) [default: the library's].
     #[arg(long)]
     pub seq_contrast_window: Option<usize>,
+    /// `cooc-seq`: per-location normalisation of the scores before the dissimilarity (floored =
+    /// the flow method's floored Eq. 2 on `s + 1`, as `cooc-flow`; eq2 = Eq. 2 exactly; none =
+    /// raw scores) [default: floored].
+    #[arg(long, value_enum)]
+    pub seq_normalization: Option<super::eval::NormalizationArg>,
 }
 
 impl CoocArgs {
@@ -102,6 +107,7 @@ impl CoocArgs {
             max_step: self.seq_max_step.unwrap_or(d.max_step),
             exclusion: self.seq_exclusion.unwrap_or(d.exclusion),
             contrast_window: self.seq_contrast_window.unwrap_or(d.contrast_window),
+            normalization: self.seq_normalization.map_or(d.normalization, Into::into),
         };
         p.validate()?;
         Ok(p)

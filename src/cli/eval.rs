@@ -645,7 +645,8 @@ fn run_method(
             CoocMethod::Sequence => {
                 let s = &cooc_options.sequence;
                 json!({"length": s.length, "max_step": s.max_step, "exclusion": s.exclusion,
-                       "contrast_window": s.contrast_window})
+                       "contrast_window": s.contrast_window,
+                       "normalization": format!("{:?}", s.normalization)})
             }
             CoocMethod::Flow => flow_params(&result.solution),
         };

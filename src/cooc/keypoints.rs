@@ -71,7 +71,7 @@ impl Default for KeypointParams {
         KeypointParams {
             upsample: 2,
             max_width: 640,
-            max_keypoints: 80,
+            max_keypoints: 300,
             harris_k: 0.04,
             relative_threshold: 1e-5,
             min_response: 0.0,

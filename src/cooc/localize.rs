@@ -11,7 +11,9 @@
 //! * [`CoocMethod::Sequence`] (`cooc-seq`) — the paper's forward-only, variable-speed sequence
 //!   matching (II-F) on the score matrix; one prediction per query; no hypotheses.
 //! * [`CoocMethod::Flow`] (`cooc-flow`) — the score matrix as the similarity matrix of the
-//!   flow paper's graph ([`flow_similarity`], then the options' normalisation), solved with the
+//!   flow paper's graph ([`super::flow_similarity`], then the options' normalisation; on a map
+//!   fused from several drives each drive's scores are normalised before the best is taken,
+//!   [`fused_similarity`], as for `cooc-seq`), solved with the
 //!   same solver and confidence as HOG/CNN maps.
 //!
 //! Why one place: the CLI and the service used to choose between the methods separately, with
@@ -25,12 +27,13 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use super::map::{flow_similarity, CoocMap};
+use super::map::{fused_similarity, CoocMap};
 use super::model::Word;
 use super::recognition::Schedule;
 use super::sequence::{match_sequences, SequenceParams};
 use crate::localize::Prediction;
 use crate::localize::{solve_with_confidence, Localization, LocalizeOptions, StageTimings};
+use crate::similarity::Normalization;
 use crate::solver::Solution;
 use crate::{Error, Matrix, Result};
 
@@ -102,7 +105,15 @@ pub struct CoocOptions {
 pub struct CoocQueries<'m> {
     map: &'m CoocMap,
     words: Vec<Vec<Word>>,
-    scores: OnceLock<(Matrix, f64)>,
+    scores: OnceLock<Scored>,
+}
+
+/// The score matrix (maximum over sources), the per-source matrices when the map has more
+/// than one source, and the seconds they took.
+struct Scored {
+    max: Matrix,
+    per_source: Vec<Matrix>,
+    seconds: f64,
 }
 
 impl<'m> CoocQueries<'m> {
@@ -142,20 +153,49 @@ impl<'m> CoocQueries<'m> {
 
     /// The `Q x L` score matrix (consistent-group sizes), computed once.
     pub fn scores(&self) -> &Matrix {
-        &self.scored().0
+        &self.scored().max
     }
 
     /// Seconds the score matrix took (0 before it is computed).
     pub fn score_seconds(&self) -> f64 {
-        self.scores.get().map_or(0.0, |s| s.1)
+        self.scores.get().map_or(0.0, |s| s.seconds)
     }
 
-    fn scored(&self) -> &(Matrix, f64) {
+    fn scored(&self) -> &Scored {
         self.scores.get_or_init(|| {
             let t = Instant::now();
-            let s = self.map.score_matrix_words(&self.words);
-            (s, t.elapsed().as_secs_f64())
+            let (max, per_source) = if self.map.locations().sources() > 1 {
+                let per_source = self.map.score_matrices_by_source(&self.words);
+                let mut max = per_source[0].clone();
+                for m in &per_source[1..] {
+                    for (a, &b) in max.as_mut_slice().iter_mut().zip(m.as_slice()) {
+                        *a = a.max(b);
+                    }
+                }
+                (max, per_source)
+            } else {
+                (self.map.score_matrix_words(&self.words), Vec::new())
+            };
+            Scored {
+                max,
+                per_source,
+                seconds: t.elapsed().as_secs_f64(),
+            }
         })
+    }
+
+    /// The similarity `ĉ` of the sequence matching and the flow graph under `normalization`:
+    /// [`fused_similarity`] of the per-source scores (with one source: `normalization` of
+    /// `scores + 1`).
+    pub fn similarity(&self, normalization: Normalization) -> Result<Matrix> {
+        let scored = self.scored();
+        if scored.per_source.is_empty() {
+            let present = vec![true; scored.max.cols()];
+            fused_similarity(std::slice::from_ref(&scored.max), &present, normalization)
+        } else {
+            let present = self.map.locations().source_present();
+            fused_similarity(&scored.per_source, &present, normalization)
+        }
     }
 
     /// Localizes the sequence with `method`. `timings.similarity` is the score matrix (when this
@@ -182,11 +222,28 @@ impl<'m> CoocQueries<'m> {
                 })
             }
             CoocMethod::Sequence => {
-                options.sequence.validate()?;
-                let scores = self.scores();
+                let params = options.sequence;
+                params.validate()?;
+                // Several sources: normalise each before the best is taken (fused_similarity);
+                // the sequence matching then works on that similarity as it is.
+                let fused = self.map.locations().sources() > 1
+                    && params.normalization != Normalization::None;
+                let input = if fused {
+                    self.similarity(params.normalization)?
+                } else {
+                    self.scores().clone()
+                };
+                let params = SequenceParams {
+                    normalization: if fused {
+                        Normalization::None
+                    } else {
+                        params.normalization
+                    },
+                    ..params
+                };
                 let similarity = started.elapsed().as_secs_f64();
                 let t = Instant::now();
-                let predictions = match_sequences(scores, &options.sequence)?;
+                let predictions = match_sequences(&input, &params)?;
                 Ok(Localization {
                     solution: empty,
                     predictions,
@@ -198,10 +255,7 @@ impl<'m> CoocQueries<'m> {
             }
             CoocMethod::Flow => {
                 options.flow.solver.validate()?;
-                let chat = options
-                    .flow
-                    .normalization
-                    .apply(&flow_similarity(self.scores()))?;
+                let chat = self.similarity(options.flow.normalization)?;
                 let similarity = started.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let (solution, predictions) = solve_with_confidence(&chat, &options.flow)?;
@@ -273,6 +327,7 @@ mod tests {
                 max_step: 2,
                 exclusion: 2,
                 contrast_window: 0,
+                ..SequenceParams::default()
             },
             ..CoocOptions::default()
         };

@@ -245,6 +245,27 @@ impl CoocMap {
         m
     }
 
+    /// [`CoocMap::score_matrix_words`] per source ([`LocationMap::sources`]: one per drive
+    /// time, then the virtual images'), each `Q x L`; their maximum is the score matrix.
+    pub fn score_matrices_by_source(&self, queries: &[Vec<Word>]) -> Vec<Matrix> {
+        let (l, sources) = (self.locations.locations(), self.locations.sources().max(1));
+        let rows: Vec<Vec<u32>> = queries
+            .par_iter()
+            .map(|q| recognition::scores_by_source(&self.locations, q))
+            .collect();
+        (0..sources)
+            .map(|d| {
+                let mut m = Matrix::zeros(queries.len(), l);
+                for (i, r) in rows.iter().enumerate() {
+                    for (o, &v) in m.row_mut(i).iter_mut().zip(&r[d * l..(d + 1) * l]) {
+                        *o = v as f32;
+                    }
+                }
+                m
+            })
+            .collect()
+    }
+
     /// The rows an online trip feeds its graph with: [`flow_similarity`] of the score matrix
     /// of the quantised frames (`Q x L`), the same similarity `cooc-flow` solves offline.
     pub fn trip_rows(&self, frames: &[Vec<Word>]) -> Matrix {
@@ -338,6 +359,63 @@ pub fn extract_all(
         .collect()
 }
 
+/// The similarity `ĉ` the sequence matching and the flow graph use on a map fused from
+/// several drives: each source's scores ([`CoocMap::score_matrices_by_source`]) become
+/// [`flow_similarity`] and are normalised over that source's locations (`present`, from
+/// [`LocationMap::source_present`]), then every entry takes its best source.
+///
+/// Why per source: a location scores its best training image, and a drive the queries do not
+/// resemble (night for day queries) only adds chance groups, at a chance level of its own per
+/// location. Taking the maximum of the raw scores lets those chance groups compete with the
+/// true matches of the drive that does resemble the queries, and fusing such a drive made
+/// `cooc-seq` and `cooc-flow` worse; normalising each drive's evidence first (Eq. 2 per
+/// source) keeps a non-matching drive near its column mean, below the matching drive's peaks
+/// (`docs/cooc.md`, measured). With one source this is `normalization` applied to
+/// [`flow_similarity`] of the scores, as before.
+pub fn fused_similarity(
+    per_source: &[Matrix],
+    present: &[bool],
+    normalization: crate::similarity::Normalization,
+) -> Result<Matrix> {
+    let Some(first) = per_source.first() else {
+        return Err(Error::Empty("no score matrix to fuse".into()));
+    };
+    let (q, l) = (first.rows(), first.cols());
+    if present.len() != per_source.len() * l
+        || per_source.iter().any(|m| m.cols() != l || m.rows() != q)
+    {
+        return Err(Error::Shape(format!(
+            "{} score matrices of {q}x{l} and {} presence flags do not match",
+            per_source.len(),
+            present.len()
+        )));
+    }
+    let mut out = Matrix::zeros(q, l);
+    let mut filled = vec![false; l];
+    for (d, s) in per_source.iter().enumerate() {
+        let cols: Vec<usize> = (0..l).filter(|&j| present[d * l + j]).collect();
+        if cols.is_empty() {
+            continue;
+        }
+        let mut c = Matrix::zeros(q, cols.len());
+        for i in 0..q {
+            let (src, dst) = (s.row(i), c.row_mut(i));
+            for (o, &j) in dst.iter_mut().zip(&cols) {
+                *o = src[j] + 1.0;
+            }
+        }
+        let c = normalization.apply(&c)?;
+        for i in 0..q {
+            let (src, dst) = (c.row(i), out.row_mut(i));
+            for (&v, &j) in src.iter().zip(&cols) {
+                dst[j] = if filled[j] { dst[j].max(v) } else { v };
+            }
+        }
+        cols.iter().for_each(|&j| filled[j] = true);
+    }
+    Ok(out)
+}
+
 /// The co-occurrence scores as the similarity matrix `C` of the network-flow graph: `s + 1`.
 ///
 /// Most scores are 0 (no shared word, or no consistent pair), and a graph node with similarity 0
@@ -357,6 +435,7 @@ pub(crate) mod tests {
     use super::super::{localize, CoocMethod, CoocOptions, SequenceParams};
     use super::*;
     use crate::localize::Prediction;
+    use crate::similarity::Normalization;
 
     fn recognize(map: &CoocMap, queries: &[GrayImage]) -> Vec<Prediction> {
         localize(map, queries, CoocMethod::Single, &CoocOptions::default())
@@ -522,6 +601,7 @@ pub(crate) mod tests {
             max_step: 2,
             exclusion: 2,
             contrast_window: 0,
+            ..SequenceParams::default()
         };
         let p = sequence_match(&map, &queries, &seq);
         assert_eq!(p.len(), path.len());
@@ -530,6 +610,74 @@ pub(crate) mod tests {
         }
         let back = CoocMap::from_bytes(&map.to_bytes()).unwrap();
         assert_eq!(sequence_match(&back, &queries, &seq), p);
+    }
+
+    #[test]
+    fn fused_similarity_of_one_source_is_the_normalised_flow_similarity() {
+        let mut rng = crate::cooc::SplitMix64::new(3);
+        let data = (0..6 * 9).map(|_| rng.below(7) as f32).collect();
+        let s = Matrix::from_vec(6, 9, data).unwrap();
+        for n in [
+            Normalization::None,
+            Normalization::Columns,
+            Normalization::FlooredColumns,
+        ] {
+            let fused = fused_similarity(std::slice::from_ref(&s), &[true; 9], n).unwrap();
+            assert_eq!(fused, n.apply(&flow_similarity(&s)).unwrap(), "{n:?}");
+        }
+        let err = fused_similarity(&[s], &[true; 3], Normalization::None).unwrap_err();
+        assert!(err.to_string().contains("presence"), "{err}");
+        assert!(fused_similarity(&[], &[], Normalization::None).is_err());
+    }
+
+    #[test]
+    fn a_source_the_queries_do_not_resemble_cannot_outvote_the_one_they_do() {
+        // Source 0 (day): query i scores 6 at location i, 0-2 elsewhere. Source 1 (night): no
+        // true match, but a chance level of 5-8 everywhere, higher at some locations.
+        let (q, l) = (8, 12);
+        let mut rng = crate::cooc::SplitMix64::new(11);
+        let mut day = Matrix::zeros(q, l);
+        let mut night = Matrix::zeros(q, l);
+        for i in 0..q {
+            for j in 0..l {
+                day.set(i, j, rng.below(3) as f32);
+                night.set(i, j, 5.0 + rng.below(4) as f32);
+            }
+            day.set(i, i, 6.0);
+        }
+        let argmax = |m: &Matrix| -> Vec<usize> {
+            (0..q)
+                .map(|i| (0..l).fold(0, |b, j| if m.get(i, j) > m.get(i, b) { j } else { b }))
+                .collect()
+        };
+        let truth: Vec<usize> = (0..q).collect();
+        let mut raw_max = day.clone();
+        for (a, &b) in raw_max.as_mut_slice().iter_mut().zip(night.as_slice()) {
+            *a = a.max(b);
+        }
+        let raw_hits = argmax(&raw_max)
+            .iter()
+            .zip(&truth)
+            .filter(|(a, b)| a == b)
+            .count();
+        assert!(
+            raw_hits < q / 2,
+            "the night chance level wins the raw maximum ({raw_hits})"
+        );
+        let present = vec![true; 2 * l];
+        let fused =
+            fused_similarity(&[day, night], &present, Normalization::FlooredColumns).unwrap();
+        assert_eq!(argmax(&fused), truth);
+        // A location the night drive did not see takes the day source's value alone.
+        let mut present = present;
+        present[l + 3] = false;
+        let day_only = fused_similarity(
+            &[raw_max.clone(), raw_max.clone()],
+            &present,
+            Normalization::None,
+        )
+        .unwrap();
+        assert_eq!(day_only.get(0, 3), raw_max.get(0, 3) + 1.0);
     }
 
     #[test]

@@ -32,7 +32,7 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
-pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
+pub use map::{extract_all, flow_similarity, fused_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;
@@ -61,6 +61,10 @@ pub struct CoocParams {
     /// many cells per axis (0 = the paper's exact equality).
     pub spatial_tolerance: u16,
     /// Merge the features of drives adjacent in time into "virtual" images (Section II-E).
+    /// Off by default: it assumes drives close in appearance (the paper's tours were 1-2 h
+    /// apart); where adjacent drives differ (viewpoint, day and night) a virtual image has up to
+    /// twice the features of a real one and raises every wrong location's chance score, so
+    /// fusing a drive made the map worse (`docs/cooc.md`, measured).
     pub merge_adjacent_drives: bool,
     /// Seed of every random choice (k-means initialisation, descriptor sampling).
     pub seed: u64,
@@ -70,14 +74,14 @@ impl Default for CoocParams {
     fn default() -> Self {
         CoocParams {
             keypoints: keypoints::KeypointParams::default(),
-            vocabulary_branching: 16,
+            vocabulary_branching: 32,
             vocabulary_depth: 2,
             kmeans_iterations: 8,
             max_training_descriptors: 40_000,
             grid_cols: 12,
             grid_rows: 8,
             spatial_tolerance: 1,
-            merge_adjacent_drives: true,
+            merge_adjacent_drives: false,
             seed: 0x5ea5_0c00,
         }
     }

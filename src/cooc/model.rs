@@ -5,7 +5,9 @@
 //! observed. It is stored sparsely: `words` (sorted, row `r` is `words[r]`), and per row `a` a
 //! sorted run of packed `(row_b, spatial word)` entries with `row_a <= row_b` and the spatial
 //! word oriented from `a` to `b` (for `row_a == row_b` both orientations are stored), so a
-//! lookup is one short binary search inside a row and the matrix takes 4 bytes per entry.
+//! lookup is one short binary search inside a row and the matrix takes 4 bytes per entry. The
+//! spatial word is stored as the signed cell offset it stands for (`dx`, `dy`, one byte each),
+//! so the consistency test on the recognition path is two subtractions, not a division.
 //!
 //! **One model per training image.** The paper scores a location by "groups of features in the
 //! query image that have all co-occurred together in one of the training images for this
@@ -75,7 +77,8 @@ pub struct LocationModel {
     words: Vec<u32>,
     /// `row_start[a]..row_start[a + 1]` are row `a`'s entries in `pairs`.
     row_start: Vec<u32>,
-    /// `(row_b << 16) | spatial word`, sorted within each row.
+    /// `(row_b << 16) | (dx as u8) << 8 | (dy as u8)`: the spatial word as its signed cell
+    /// offset; sorted within each row.
     pairs: Vec<u32>,
 }
 
@@ -92,7 +95,10 @@ impl LocationModel {
             )));
         }
         let row = |w: u32| words.partition_point(|&x| x < w) as u64;
-        let pack = |a: u64, b: u64, s: u16| (a << 32) | (b << 16) | u64::from(s);
+        let pack = |a: u64, b: u64, s: u16| {
+            let (dx, dy) = grid.offset(s);
+            (a << 32) | (b << 16) | u64::from(dx as u8) << 8 | u64::from(dy as u8)
+        };
         let total: usize = sets.iter().map(|s| s.len() * s.len()).sum();
         let mut packed = Vec::with_capacity(total / 2 + 1);
         let mut rows = Vec::new();
@@ -136,7 +142,7 @@ impl LocationModel {
         &self.words
     }
 
-    /// Number of distinct `(word pair, spatial word)` entries.
+    /// Number of distinct `(word pair, signed cell offset)` entries.
     pub fn entries(&self) -> usize {
         self.pairs.len()
     }
@@ -149,29 +155,38 @@ impl LocationModel {
     /// Whether rows `a` and `b` co-occurred with a spatial word matching `observed` (the signed
     /// cell offset from `a`'s feature to `b`'s in the query) within `tolerance`.
     #[inline]
-    pub fn consistent(
-        &self,
-        a: u32,
-        b: u32,
-        observed: (i16, i16),
-        grid: &SpatialGrid,
-        tolerance: u16,
-    ) -> bool {
+    pub fn consistent(&self, a: u32, b: u32, observed: (i16, i16), tolerance: u16) -> bool {
         let (lo, hi, obs) = if a <= b {
             (a, b, observed)
         } else {
             (b, a, (-observed.0, -observed.1))
         };
-        let run = &self.pairs
-            [self.row_start[lo as usize] as usize..self.row_start[lo as usize + 1] as usize];
+        let run = self.run(lo);
         let start = hi << 16;
         let first = run.partition_point(|&p| p < start);
         run[first..]
             .iter()
             .take_while(|&&p| p >> 16 == hi)
-            .any(|&p| grid.consistent((p & 0xffff) as u16, obs, tolerance))
+            .any(|&p| entry_matches(p, obs, tolerance as i16))
+    }
+
+    /// Row `a`'s packed entries (`row_b >= a`), sorted by `row_b` (see [`LocationModel`]).
+    #[inline]
+    pub(crate) fn run(&self, a: u32) -> &[u32] {
+        &self.pairs[self.row_start[a as usize] as usize..self.row_start[a as usize + 1] as usize]
     }
 }
+
+/// Whether a packed entry's cell offset is within `tolerance` of `observed` on both axes.
+#[inline]
+pub(crate) fn entry_matches(entry: u32, observed: (i16, i16), tolerance: i16) -> bool {
+    let dx = i16::from((entry >> 8) as u8 as i8);
+    let dy = i16::from(entry as u8 as i8);
+    (dx - observed.0).abs() <= tolerance && (dy - observed.1).abs() <= tolerance
+}
+
+/// One location's training-set models and, per set, its time and whether it is virtual.
+type LocationSets = (Vec<LocationModel>, Vec<(f64, bool)>);
 
 /// What one mapping drive saw: its time and, per location, its images' quantised features.
 #[derive(Clone, Debug, PartialEq)]
@@ -191,6 +206,13 @@ pub struct LocationMap {
     drives: Vec<DriveRecord>,
     /// Per location, the models of its training sets.
     models: Vec<Vec<LocationModel>>,
+    /// Per location, the time of each training set (for a virtual image: the earlier of its
+    /// two times) and whether it is virtual; [`LocationMap::sources`] are derived from them.
+    set_times: Vec<Vec<(f64, bool)>>,
+    /// The source of every entity (see [`LocationMap::entity_source`]).
+    entity_source: Vec<u32>,
+    /// Number of sources.
+    sources: usize,
     /// `first_entity[l]..first_entity[l + 1]` are location `l`'s entities (one per set).
     first_entity: Vec<u32>,
     /// The location of every entity.
@@ -208,6 +230,9 @@ impl LocationMap {
             merge_adjacent,
             drives: Vec::new(),
             models: Vec::new(),
+            set_times: Vec::new(),
+            entity_source: Vec::new(),
+            sources: 0,
             first_entity: vec![0],
             entity_location: Vec::new(),
             index: Vec::new(),
@@ -241,21 +266,24 @@ impl LocationMap {
         let needed = touched.last().map_or(0, |&l| l as usize + 1);
         if needed > self.models.len() {
             self.models.resize(needed, Vec::new());
+            self.set_times.resize(needed, Vec::new());
         }
-        let rebuilt: Vec<Vec<LocationModel>> = touched
+        let rebuilt: Vec<LocationSets> = touched
             .par_iter()
             .map(|&loc| self.build_sets(loc))
             .collect::<Result<_>>()?;
-        for (&loc, sets) in touched.iter().zip(rebuilt) {
+        for (&loc, (sets, times)) in touched.iter().zip(rebuilt) {
             self.models[loc as usize] = sets;
+            self.set_times[loc as usize] = times;
         }
         self.rebuild_index();
         Ok(())
     }
 
     /// The training sets of one location: every image of it, then (interpolation on) the
-    /// union of every two images of drives adjacent in time (Section II-E).
-    fn training_sets(&self, loc: u32) -> Vec<Vec<Word>> {
+    /// union of every two images of drives adjacent in time (Section II-E); each with its time
+    /// (a virtual image: the earlier one) and whether it is virtual.
+    fn training_sets(&self, loc: u32) -> Vec<(f64, bool, Vec<Word>)> {
         // Per distinct time, in time order: the images of that time at `loc`.
         let mut per_time: Vec<(f64, Vec<&Vec<Word>>)> = Vec::new();
         for d in &self.drives {
@@ -266,15 +294,16 @@ impl LocationMap {
             }
         }
         per_time.retain(|(_, v)| !v.is_empty());
-        let mut sets: Vec<Vec<Word>> = per_time
+        let mut sets: Vec<(f64, bool, Vec<Word>)> = per_time
             .iter()
-            .flat_map(|(_, v)| v.iter().map(|f| (*f).clone()))
+            .flat_map(|(t, v)| v.iter().map(|f| (*t, false, (*f).clone())))
             .collect();
         if self.merge_adjacent {
             for pair in per_time.windows(2) {
                 for a in &pair[0].1 {
                     for b in &pair[1].1 {
-                        sets.push(a.iter().chain(b.iter()).copied().collect());
+                        let union = a.iter().chain(b.iter()).copied().collect();
+                        sets.push((pair[0].0, true, union));
                     }
                 }
             }
@@ -282,11 +311,13 @@ impl LocationMap {
         sets
     }
 
-    fn build_sets(&self, loc: u32) -> Result<Vec<LocationModel>> {
-        self.training_sets(loc)
+    fn build_sets(&self, loc: u32) -> Result<LocationSets> {
+        let sets = self.training_sets(loc);
+        let models = sets
             .iter()
-            .map(|set| LocationModel::build(std::slice::from_ref(set), &self.grid))
-            .collect()
+            .map(|(_, _, set)| LocationModel::build(std::slice::from_ref(set), &self.grid))
+            .collect::<Result<_>>()?;
+        Ok((models, sets.iter().map(|&(t, v, _)| (t, v)).collect()))
     }
 
     fn rebuild_index(&mut self) {
@@ -314,6 +345,22 @@ impl LocationMap {
         self.index = index;
         self.first_entity = first_entity;
         self.entity_location = entity_location;
+        // Sources: the distinct drive times in order, then one per virtual time pair.
+        let mut times: Vec<f64> = self.drives.iter().map(|d| d.time).collect();
+        times.dedup();
+        let slot = |t: f64| times.partition_point(|&x| x < t) as u32;
+        self.entity_source = self
+            .set_times
+            .iter()
+            .flatten()
+            .map(|&(t, v)| slot(t) + if v { times.len() as u32 } else { 0 })
+            .collect();
+        self.sources = times.len()
+            + if self.merge_adjacent {
+                times.len().saturating_sub(1)
+            } else {
+                0
+            };
     }
 
     /// Number of locations.
@@ -329,6 +376,37 @@ impl LocationMap {
     /// Number of entities (training sets over all locations).
     pub fn entities(&self) -> usize {
         self.entity_location.len()
+    }
+
+    /// Number of sources: one per distinct drive time (drives at the same time are one
+    /// appearance), in time order, then (interpolation on) one per pair of adjacent times for
+    /// the virtual images. A location's score from one source is comparable across locations;
+    /// sources differ in their chance level (`docs/cooc.md`).
+    pub fn sources(&self) -> usize {
+        self.sources
+    }
+
+    /// Which locations each source has a training set of: `sources() x locations()`,
+    /// source-major. A location without any training set counts as source 0's (its score is 0
+    /// everywhere, as in the maximum over sources).
+    pub fn source_present(&self) -> Vec<bool> {
+        let l = self.locations();
+        let mut present = vec![false; self.sources.max(1) * l];
+        for (e, &loc) in self.entity_location.iter().enumerate() {
+            present[self.entity_source[e] as usize * l + loc as usize] = true;
+        }
+        for (loc, sets) in self.models.iter().enumerate() {
+            if sets.is_empty() {
+                present[loc] = true;
+            }
+        }
+        present
+    }
+
+    /// The source of entity `e`, `< sources()`.
+    #[inline]
+    pub fn entity_source(&self, e: u32) -> usize {
+        self.entity_source[e as usize] as usize
     }
 
     /// The location of entity `e`.
@@ -389,26 +467,24 @@ mod tests {
         let img1 = vec![Word::new(0, 0.2, 0.5), Word::new(1, 0.6, 0.5)];
         let img2 = vec![Word::new(0, 0.7, 0.8), Word::new(1, 0.3, 0.3)];
         let m = LocationModel::build(&[img1, img2], &grid()).unwrap();
-        let g = grid();
         assert_eq!(m.words(), &[0, 1]);
         // From A to B: B is 4 cells right (image 1), or 4 left and 4 up (image 2).
-        assert!(m.consistent(0, 1, (4, 0), &g, 0));
-        assert!(m.consistent(0, 1, (-4, -4), &g, 0));
+        assert!(m.consistent(0, 1, (4, 0), 0));
+        assert!(m.consistent(0, 1, (-4, -4), 0));
         // From B to A: the mirror offsets.
-        assert!(m.consistent(1, 0, (-4, 0), &g, 0));
-        assert!(m.consistent(1, 0, (4, 4), &g, 0));
+        assert!(m.consistent(1, 0, (-4, 0), 0));
+        assert!(m.consistent(1, 0, (4, 4), 0));
         // Unseen arrangement.
-        assert!(!m.consistent(0, 1, (0, 3), &g, 0));
-        assert!(m.consistent(0, 1, (3, 1), &g, 1));
+        assert!(!m.consistent(0, 1, (0, 3), 0));
+        assert!(m.consistent(0, 1, (3, 1), 1));
     }
 
     #[test]
     fn repeated_words_store_both_orientations() {
         let img = vec![Word::new(5, 0.1, 0.1), Word::new(5, 0.5, 0.1)];
         let m = LocationModel::build(&[img], &grid()).unwrap();
-        let g = grid();
-        assert!(m.consistent(0, 0, (4, 0), &g, 0));
-        assert!(m.consistent(0, 0, (-4, 0), &g, 0));
+        assert!(m.consistent(0, 0, (4, 0), 0));
+        assert!(m.consistent(0, 0, (-4, 0), 0));
         assert_eq!(m.entries(), 2);
     }
 
@@ -430,12 +506,11 @@ mod tests {
             })
             .unwrap();
         }
-        let g = grid();
         // Plain: one set per image; merged: also the virtual image day + night.
         assert_eq!(plain.sets(0).len(), 2);
         assert_eq!(merged.sets(0).len(), 3);
         let virtual_image = &merged.sets(0)[2];
-        assert!(virtual_image.consistent(0, 1, (6, 0), &g, 0));
+        assert!(virtual_image.consistent(0, 1, (6, 0), 0));
         assert!(plain.sets(0).iter().all(|m| m.words().len() == 1));
         // Word 2 is in the night set (entity 1, row 0) and the virtual image (entity 2, row 1).
         assert_eq!(merged.postings(2), &[(1, 0), (2, 1)]);
@@ -470,14 +545,57 @@ mod tests {
         }
         let times: Vec<f64> = map.drives().iter().map(|d| d.time).collect();
         assert_eq!(times, vec![10.0, 15.0, 20.0]);
-        let (g, sets) = (grid(), map.sets(0));
+        let sets = map.sets(0);
         // Three images, then the virtual images 10h+15h and 15h+20h; never 10h+20h.
         assert_eq!(sets.len(), 5);
         assert_eq!(sets[3].words(), &[1, 2]);
-        assert!(sets[3].consistent(0, 1, (4, 0), &g, 0)); // 10h with 15h
+        assert!(sets[3].consistent(0, 1, (4, 0), 0)); // 10h with 15h
         assert_eq!(sets[4].words(), &[2, 3]);
-        assert!(sets[4].consistent(0, 1, (4, 0), &g, 0)); // 15h with 20h
+        assert!(sets[4].consistent(0, 1, (4, 0), 0)); // 15h with 20h
         assert!(sets.iter().all(|m| m.words() != [1, 3]));
+    }
+
+    #[test]
+    fn sources_are_drive_times_then_virtual_pairs() {
+        let img = |w: u32| vec![Word::new(w, 0.2, 0.5), Word::new(w + 1, 0.6, 0.5)];
+        for merge in [false, true] {
+            let mut map = LocationMap::new(grid(), 0, merge);
+            for (t, loc) in [(22.0, 0), (12.0, 0), (12.0, 1)] {
+                map.add_drive(DriveRecord {
+                    time: t,
+                    images: vec![(loc, img(loc * 10))],
+                })
+                .unwrap();
+            }
+            // Times 12 (two drives: one appearance) and 22.
+            let expected = if merge { 3 } else { 2 };
+            assert_eq!(map.sources(), expected);
+            let sources: Vec<usize> = (0..map.entities() as u32)
+                .map(|e| map.entity_source(e))
+                .collect();
+            // Location 0: the 12 h image, the 22 h image (and their virtual image); location 1:
+            // the 12 h image.
+            let want = if merge {
+                vec![0, 1, 2, 0]
+            } else {
+                vec![0, 1, 0]
+            };
+            assert_eq!(sources, want, "merge {merge}");
+            let present = map.source_present();
+            assert_eq!(&present[..4], &[true, true, true, false]);
+            // A drive at an earlier time renumbers the sources of every location.
+            map.add_drive(DriveRecord {
+                time: 6.0,
+                images: vec![(1, img(50))],
+            })
+            .unwrap();
+            assert_eq!(map.sources(), if merge { 5 } else { 3 });
+            assert_eq!(
+                map.entity_source(0),
+                1,
+                "location 0's 12 h image is now source 1"
+            );
+        }
     }
 
     #[test]

@@ -29,7 +29,7 @@
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
 
-use super::model::{LocationMap, Word};
+use super::model::{entry_matches, LocationMap, Word};
 
 /// How [`recognize_query`] searches the locations.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -66,25 +66,36 @@ pub struct Elimination {
 impl Elimination {
     /// Builds `J` for `n` candidates; `consistent(a, b)` is asked once per pair `a < b`.
     pub fn new(n: usize, mut consistent: impl FnMut(usize, usize) -> bool) -> Self {
-        let stride = n.div_ceil(64);
-        let mut bits = vec![0u64; n * stride];
-        let mut score = vec![0u32; n];
+        let mut e = Elimination::empty(n);
         for a in 0..n {
             for b in a + 1..n {
                 if consistent(a, b) {
-                    bits[a * stride + b / 64] |= 1 << (b % 64);
-                    bits[b * stride + a / 64] |= 1 << (a % 64);
-                    score[a] += 1;
-                    score[b] += 1;
+                    e.connect(a, b);
                 }
             }
         }
+        e
+    }
+
+    /// `J` of `n` candidates without any consistent pair yet.
+    fn empty(n: usize) -> Self {
+        let stride = n.div_ceil(64);
         Elimination {
             stride,
-            bits,
+            bits: vec![0u64; n * stride],
             alive: (0..n as u32).collect(),
-            score,
+            score: vec![0u32; n],
         }
+    }
+
+    /// Records that candidates `a != b` are consistent (each pair at most once).
+    #[inline]
+    fn connect(&mut self, a: usize, b: usize) {
+        let stride = self.stride;
+        self.bits[a * stride + b / 64] |= 1 << (b % 64);
+        self.bits[b * stride + a / 64] |= 1 << (a % 64);
+        self.score[a] += 1;
+        self.score[b] += 1;
     }
 
     /// The maximum potential score: the number of candidates still in `J`.
@@ -195,6 +206,12 @@ impl Candidates {
 }
 
 /// The consistency matrix `J` of `entity` for candidates `(query feature, row)`.
+///
+/// Built by a merge join rather than one lookup per pair: the candidates are visited in row
+/// order, and for candidate `a` the model's run of row `a` (sorted by the other row) is walked
+/// once alongside the candidates of higher rows, so a row costs `O(run + n)` instead of `n`
+/// binary searches. Same matrix as asking [`super::model::LocationModel::consistent`] for
+/// every pair (property-tested).
 fn consistency(
     map: &LocationMap,
     geo: &QueryGeometry,
@@ -202,25 +219,68 @@ fn consistency(
     items: &[(u32, u32)],
 ) -> Elimination {
     let model = map.entity_model(entity);
-    let (grid, tol) = (map.grid(), map.tolerance());
-    Elimination::new(items.len(), |a, b| {
-        let (qa, ra) = items[a];
-        let (qb, rb) = items[b];
-        let obs = geo.offsets[qa as usize * geo.n + qb as usize];
-        model.consistent(ra, rb, obs, grid, tol)
-    })
+    let tol = map.tolerance() as i16;
+    let n = items.len();
+    let mut by_row: Vec<u32> = (0..n as u32).collect();
+    by_row.sort_unstable_by_key(|&i| (items[i as usize].1, i));
+    let mut e = Elimination::empty(n);
+    for (pos, &a) in by_row.iter().enumerate() {
+        let (qa, ra) = items[a as usize];
+        let run = model.run(ra);
+        let offsets = &geo.offsets[qa as usize * geo.n..(qa as usize + 1) * geo.n];
+        let mut k = 0;
+        for &b in &by_row[pos + 1..] {
+            let (qb, rb) = items[b as usize];
+            while k < run.len() && run[k] >> 16 < rb {
+                k += 1;
+            }
+            if k == run.len() {
+                // The run is exhausted: no candidate of a higher row can match.
+                break;
+            }
+            let obs = offsets[qb as usize];
+            if run[k..]
+                .iter()
+                .take_while(|&&p| p >> 16 == rb)
+                .any(|&p| entry_matches(p, obs, tol))
+            {
+                e.connect(a as usize, b as usize);
+            }
+        }
+    }
+    e
 }
 
 /// Every location's score for `query` (0 where it has no candidate): full elimination of each
 /// entity, the best entity per location.
 pub fn scores(map: &LocationMap, query: &[Word]) -> Vec<u32> {
+    best_per_slot(map, query, map.locations(), |e| map.entity_location(e))
+}
+
+/// Every location's score for `query` from each source separately
+/// ([`LocationMap::sources`]): `sources x locations`, source-major, 0 where the source has no
+/// candidate at the location. The maximum over the sources is [`scores`].
+pub fn scores_by_source(map: &LocationMap, query: &[Word]) -> Vec<u32> {
+    let l = map.locations();
+    best_per_slot(map, query, map.sources() * l, |e| {
+        map.entity_source(e) * l + map.entity_location(e)
+    })
+}
+
+/// Full elimination of every entity with a candidate; the best score per `slot(entity)`.
+fn best_per_slot(
+    map: &LocationMap,
+    query: &[Word],
+    slots: usize,
+    slot: impl Fn(u32) -> usize,
+) -> Vec<u32> {
     let geo = QueryGeometry::new(map, query);
     let cands = Candidates::gather(map, query);
-    let mut out = vec![0u32; map.locations()];
+    let mut out = vec![0u32; slots];
     for g in 0..cands.groups.len() {
-        let loc = map.entity_location(cands.groups[g].0);
+        let k = slot(cands.groups[g].0);
         let s = cands.elimination(map, &geo, g).run() as u32;
-        out[loc] = out[loc].max(s);
+        out[k] = out[k].max(s);
     }
     out
 }
@@ -506,6 +566,34 @@ mod tests {
             ));
         }
         q
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        #[test]
+        fn merge_join_builds_the_same_matrix_as_pairwise_lookups(seed in 0u64..1000, vocab in 4u32..60, tol in 0u16..3) {
+            // Small vocabularies: repeated words, equal rows and many pairs per row.
+            let (_, scenes) = random_map(8, 20, vocab, seed);
+            let mut map = LocationMap::new(SpatialGrid::new(12, 8).unwrap(), tol, false);
+            let images = scenes.iter().enumerate().map(|(l, s)| (l as u32, s.clone())).collect();
+            map.add_drive(DriveRecord { time: 0.0, images }).unwrap();
+            let q = noisy_query(&scenes[seed as usize % 8], vocab, seed + 3);
+            let geo = QueryGeometry::new(&map, &q);
+            let cands = Candidates::gather(&map, &q);
+            for g in 0..cands.groups.len() {
+                let (entity, s0, e0) = cands.groups[g];
+                let items = &cands.items[s0..e0];
+                let fast = consistency(&map, &geo, entity, items);
+                let model = map.entity_model(entity);
+                let slow = Elimination::new(items.len(), |a, b| {
+                    let (qa, ra) = items[a];
+                    let (qb, rb) = items[b];
+                    model.consistent(ra, rb, geo.offsets[qa as usize * geo.n + qb as usize], tol)
+                });
+                prop_assert_eq!(&fast.bits, &slow.bits);
+                prop_assert_eq!(&fast.score, &slow.score);
+            }
+        }
     }
 
     #[test]

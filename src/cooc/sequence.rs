@@ -2,8 +2,13 @@
 //! to a path of locations, with the path allowed to take any forward-only shape, so the query
 //! drive may accelerate (skip locations) or decelerate (repeat them) relative to the map.
 //!
-//! Input is a score matrix (`Q x L`, higher = more similar, e.g. co-occurrence scores). Each row
-//! becomes a dissimilarity `d_ij = 1 - s_ij / max_j s_ij` (all ones for a row without any score).
+//! Input is a score matrix (`Q x L`, higher = more similar, e.g. co-occurrence scores). It is
+//! first normalised per location ([`SequenceParams::normalization`], by default the flow
+//! method's floored Eq. 2 on `s + 1`, the same similarity `cooc-flow` solves): a group size is
+//! not comparable across locations, since a feature-rich location gathers a large chance group
+//! with every query, and a path through such locations otherwise beats the true one. With many
+//! keypoints per image this is what decides (`docs/cooc.md`). Each row then becomes a
+//! dissimilarity `d_ij = 1 - s_ij / max_j s_ij` (all ones for a row without any score).
 //! With `contrast_window = w > 0` that dissimilarity is then contrast-enhanced as SeqSLAM does
 //! (the paper keeps SeqSLAM's parameters apart from the path shape): each `d_ij` becomes
 //! `(d_ij - mean) / std` over its `w` neighbours along the location axis
@@ -26,6 +31,7 @@
 use rayon::prelude::*;
 
 use crate::localize::Prediction;
+use crate::similarity::Normalization;
 use crate::{Error, Matrix, Result};
 
 /// Settings of [`match_sequences`].
@@ -40,6 +46,10 @@ pub struct SequenceParams {
     /// SeqSLAM's local contrast enhancement of the dissimilarities over this many locations
     /// (0 = off: the row-max dissimilarity only; otherwise at least 2).
     pub contrast_window: usize,
+    /// Per-location normalisation of the scores before the dissimilarity: `None` uses the raw
+    /// scores; `Columns` / `FlooredColumns` divide `s + 1` by its column mean (Eq. 2 of the
+    /// flow paper, floored as [`crate::similarity::normalize_columns_floored`] floors it).
+    pub normalization: Normalization,
 }
 
 impl Default for SequenceParams {
@@ -49,6 +59,7 @@ impl Default for SequenceParams {
             max_step: 3,
             exclusion: 10,
             contrast_window: 0,
+            normalization: Normalization::FlooredColumns,
         }
     }
 }
@@ -75,10 +86,9 @@ impl SequenceParams {
     }
 }
 
-/// Row-wise dissimilarities `1 - s / max(row)`; rejects negative or non-finite scores.
-fn dissimilarity(scores: &Matrix) -> Result<Matrix> {
+/// Rejects negative or non-finite scores.
+fn check_scores(scores: &Matrix) -> Result<()> {
     scores.check_finite("co-occurrence score matrix")?;
-    let mut d = Matrix::zeros(scores.rows(), scores.cols());
     for i in 0..scores.rows() {
         let row = scores.row(i);
         if let Some(j) = row.iter().position(|&v| v < 0.0) {
@@ -87,12 +97,21 @@ fn dissimilarity(scores: &Matrix) -> Result<Matrix> {
                 format!("score ({i}, {j}) is negative ({})", row[j]),
             ));
         }
+    }
+    Ok(())
+}
+
+/// Row-wise dissimilarities `1 - s / max(row)` of checked scores.
+fn dissimilarity(scores: &Matrix) -> Matrix {
+    let mut d = Matrix::zeros(scores.rows(), scores.cols());
+    for i in 0..scores.rows() {
+        let row = scores.row(i);
         let max = row.iter().copied().fold(0.0f32, f32::max);
         for (o, &v) in d.row_mut(i).iter_mut().zip(row) {
             *o = if max > 0.0 { 1.0 - v / max } else { 1.0 };
         }
     }
-    Ok(d)
+    d
 }
 
 /// SeqSLAM's local contrast enhancement of the dissimilarities `d`, scaled back to `[0, 1]`.
@@ -144,7 +163,15 @@ pub fn match_sequences(scores: &Matrix, params: &SequenceParams) -> Result<Vec<P
     if scores.cols() == 0 {
         return Err(Error::Empty("the score matrix has no locations".into()));
     }
-    let mut d = dissimilarity(scores)?;
+    check_scores(scores)?;
+    let mut d = match params.normalization {
+        Normalization::None => dissimilarity(scores),
+        n => {
+            let mut shifted = scores.clone();
+            shifted.as_mut_slice().iter_mut().for_each(|v| *v += 1.0);
+            dissimilarity(&n.apply(&shifted)?)
+        }
+    };
     if params.contrast_window > 0 {
         d = contrast_enhanced(&d, params.contrast_window)?;
     }
@@ -281,6 +308,7 @@ mod tests {
         let found = |contrast_window| {
             let p = SequenceParams {
                 contrast_window,
+                normalization: Normalization::None,
                 ..SequenceParams::default()
             };
             let out = match_sequences(&s, &p).unwrap();
@@ -298,6 +326,50 @@ mod tests {
     }
 
     #[test]
+    fn column_normalisation_discounts_locations_that_match_every_query() {
+        // Feature-rich locations 5..15 gather a chance group of 9-11 with every query; the true
+        // locations score 6 with their query and 0-4 with the others.
+        let path: Vec<usize> = (0..20).map(|i| 30 + i).collect();
+        let mut rng = crate::cooc::SplitMix64::new(5);
+        let mut s = Matrix::zeros(path.len(), 80);
+        for (i, &p) in path.iter().enumerate() {
+            for j in 0..80 {
+                let base = if (5..15).contains(&j) { 9.0 } else { 0.0 };
+                s.set(
+                    i,
+                    j,
+                    base + (rng.next_f64() * 2.0) as f32
+                        + if j == p {
+                            0.0
+                        } else {
+                            2.0 * rng.next_f64() as f32
+                        },
+                );
+            }
+            s.set(i, p, 6.0);
+        }
+        let found = |normalization| {
+            let p = SequenceParams {
+                normalization,
+                ..SequenceParams::default()
+            };
+            match_sequences(&s, &p)
+                .unwrap()
+                .iter()
+                .skip(9)
+                .filter(|x| x.reference == path[x.query])
+                .count()
+        };
+        assert_eq!(
+            found(Normalization::None),
+            0,
+            "raw scores follow the rich band"
+        );
+        assert_eq!(found(Normalization::FlooredColumns), 11);
+        assert_eq!(found(Normalization::Columns), 11);
+    }
+
+    #[test]
     fn confidence_is_bounded() {
         let s = path_scores(20, &[10, 9, 8, 7, 6], 3);
         let p = match_sequences(
@@ -307,6 +379,7 @@ mod tests {
                 max_step: 2,
                 exclusion: 2,
                 contrast_window: 0,
+                ..SequenceParams::default()
             },
         )
         .unwrap();

@@ -94,10 +94,18 @@ pub(crate) fn cnn_stretch() -> CnnSettings {
     }
 }
 
+/// The co-occurrence settings the golden map was written with: the library defaults of that
+/// commit spelled out (80 keypoints, virtual images on), so that a later change of the defaults
+/// cannot change what the stored record is expected to hold.
 pub(crate) fn cooc_params() -> crate::cooc::CoocParams {
     crate::cooc::CoocParams {
+        keypoints: crate::cooc::keypoints::KeypointParams {
+            max_keypoints: 80,
+            ..crate::cooc::keypoints::KeypointParams::default()
+        },
         vocabulary_branching: 4,
         vocabulary_depth: 2,
+        merge_adjacent_drives: true,
         ..crate::cooc::CoocParams::default()
     }
 }
