@@ -6,7 +6,8 @@
 //!
 //! Run: `cargo bench --bench cooc -- --warm-up-time 1 --measurement-time 3`.
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use criterion::measurement::WallTime;
+use criterion::{criterion_group, criterion_main, BenchmarkGroup, BenchmarkId, Criterion};
 use image::{GrayImage, Luma};
 use seasonloc::cooc::keypoints::{extract, KeypointParams, DESCRIPTOR_DIM};
 use seasonloc::cooc::model::{DriveRecord, LocationMap, Word};
@@ -173,24 +174,40 @@ fn bench_recognition_nordland(c: &mut Criterion) {
     }
     let mut group = c.benchmark_group("cooc_recognize_nordland_2400");
     group.sample_size(10);
-    for schedule in [
-        Schedule::Exhaustive,
-        Schedule::Lockstep,
-        Schedule::BestFirst,
-    ] {
+    let words: Vec<&[Word]> = queries.iter().map(Vec::as_slice).collect();
+    bench_schedules(
+        &mut group,
+        &map,
+        &words,
+        &[
+            Schedule::Exhaustive,
+            Schedule::Lockstep,
+            Schedule::BestFirst,
+        ],
+    );
+    group.finish();
+}
+
+/// One bench per schedule in `group`: recognising every query of `queries` on `map`.
+fn bench_schedules(
+    group: &mut BenchmarkGroup<'_, WallTime>,
+    map: &CoocMap,
+    queries: &[&[Word]],
+    schedules: &[Schedule],
+) {
+    for &schedule in schedules {
         group.bench_with_input(
             BenchmarkId::from_parameter(format!("{schedule:?}")),
             &schedule,
             |b, &s| {
                 b.iter(|| {
-                    for q in &queries {
+                    for q in queries {
                         std::hint::black_box(map.recognize_words(q, s));
                     }
                 })
             },
         );
     }
-    group.finish();
 }
 
 fn bench_keypoints(c: &mut Criterion) {
@@ -335,19 +352,13 @@ fn bench_recognition_gardens(c: &mut Criterion) {
     }
     let mut group = c.benchmark_group("cooc_recognize_gardens_2200");
     group.sample_size(10);
-    for schedule in [Schedule::Exhaustive, Schedule::BestFirst] {
-        group.bench_with_input(
-            BenchmarkId::from_parameter(format!("{schedule:?}")),
-            &schedule,
-            |b, &s| {
-                b.iter(|| {
-                    for (_, _, q) in &queries {
-                        std::hint::black_box(map.recognize_words(q, s));
-                    }
-                })
-            },
-        );
-    }
+    let query_words: Vec<&[Word]> = queries.iter().map(|(_, _, q)| q.as_slice()).collect();
+    bench_schedules(
+        &mut group,
+        &map,
+        &query_words,
+        &[Schedule::Exhaustive, Schedule::BestFirst],
+    );
     // What cooc-seq and cooc-flow need: every location's score, then the sequence matching.
     let words: Vec<Vec<Word>> = queries.iter().map(|(_, _, q)| q.clone()).collect();
     group.bench_function("score_rows", |b| {
@@ -400,19 +411,13 @@ fn bench_recognition_gardens(c: &mut Criterion) {
     );
     let mut group = c.benchmark_group("cooc_recognize_gardens_2200_10k_words");
     group.sample_size(10);
-    for schedule in [Schedule::Exhaustive, Schedule::BestFirst] {
-        group.bench_with_input(
-            BenchmarkId::from_parameter(format!("{schedule:?}")),
-            &schedule,
-            |b, &s| {
-                b.iter(|| {
-                    for q in &big_queries {
-                        std::hint::black_box(big.recognize_words(q, s));
-                    }
-                })
-            },
-        );
-    }
+    let big_words: Vec<&[Word]> = big_queries.iter().map(Vec::as_slice).collect();
+    bench_schedules(
+        &mut group,
+        &big,
+        &big_words,
+        &[Schedule::Exhaustive, Schedule::BestFirst],
+    );
     group.finish();
     // Vocabulary training on the map's descriptors (as many as the map trains on).
     let all: Vec<f32> = features

@@ -32,6 +32,29 @@ pub const MIN_COLUMN_MEAN: f64 = 1e-12;
 /// [`Error::Shape`] when the descriptor lengths differ, and [`Error::NonFinite`] on NaN or
 /// infinite input. A zero descriptor has similarity 0 with everything.
 pub fn cosine_matrix(queries: &Matrix, references: &Matrix) -> Result<Matrix> {
+    check_pair(queries, references)?;
+    references.check_finite("reference descriptors")?;
+    Ok(normalized_product(queries, &l2_normalized_rows(references)))
+}
+
+/// [`cosine_matrix`] against references normalised beforehand with [`l2_normalized_rows`]:
+/// the same values bit for bit (the same normalisation, product and clamp), without copying,
+/// checking and normalising the reference matrix per call. For a trip's batch of a few frames
+/// on a city-scale map (30,790 x 756) that per-call work on the references is about 100 ms,
+/// the product itself a few; callers keep the normalised matrix per map version
+/// (`app::cache`). `normalized_references` must come from [`l2_normalized_rows`] of finite
+/// descriptors (unchecked here).
+pub fn cosine_matrix_normalized(
+    queries: &Matrix,
+    normalized_references: &Matrix,
+) -> Result<Matrix> {
+    check_pair(queries, normalized_references)?;
+    Ok(normalized_product(queries, normalized_references))
+}
+
+/// The checks both cosine entry points make, in their order: neither set empty, equal and
+/// non-zero descriptor lengths, finite queries.
+fn check_pair(queries: &Matrix, references: &Matrix) -> Result<()> {
     if queries.rows() == 0 {
         return Err(Error::Empty("query descriptor set has no rows".into()));
     }
@@ -48,54 +71,18 @@ pub fn cosine_matrix(queries: &Matrix, references: &Matrix) -> Result<Matrix> {
     if queries.cols() == 0 {
         return Err(Error::Empty("descriptors have length 0".into()));
     }
-    queries.check_finite("query descriptors")?;
-    references.check_finite("reference descriptors")?;
-
-    let qn = l2_normalized_rows(queries);
-    let dn = l2_normalized_rows(references);
-    let mut out = Matrix::zeros(queries.rows(), references.rows());
-    matmul_abt(&qn, &dn, &mut out);
-    out.as_mut_slice()
-        .par_chunks_mut(4096)
-        .for_each(|chunk| chunk.iter_mut().for_each(|v| *v = v.clamp(-1.0, 1.0)));
-    Ok(out)
+    queries.check_finite("query descriptors")
 }
 
-/// [`cosine_matrix`] against references normalised beforehand with [`l2_normalized_rows`]:
-/// the same values bit for bit (the same normalisation, product and clamp), without copying,
-/// checking and normalising the reference matrix per call. For a trip's batch of a few frames
-/// on a city-scale map (30,790 x 756) that per-call work on the references is about 100 ms,
-/// the product itself a few; callers keep the normalised matrix per map version
-/// (`app::cache`). `normalized_references` must come from [`l2_normalized_rows`] of finite
-/// descriptors (unchecked here).
-pub fn cosine_matrix_normalized(
-    queries: &Matrix,
-    normalized_references: &Matrix,
-) -> Result<Matrix> {
-    if queries.rows() == 0 {
-        return Err(Error::Empty("query descriptor set has no rows".into()));
-    }
-    if normalized_references.rows() == 0 {
-        return Err(Error::Empty("reference descriptor set has no rows".into()));
-    }
-    if queries.cols() != normalized_references.cols() {
-        return Err(Error::Shape(format!(
-            "query descriptors have length {}, reference descriptors have length {}",
-            queries.cols(),
-            normalized_references.cols()
-        )));
-    }
-    if queries.cols() == 0 {
-        return Err(Error::Empty("descriptors have length 0".into()));
-    }
-    queries.check_finite("query descriptors")?;
+/// The clamped cosines of `queries` (normalised here) against unit-norm reference rows.
+fn normalized_product(queries: &Matrix, normalized_references: &Matrix) -> Matrix {
     let qn = l2_normalized_rows(queries);
     let mut out = Matrix::zeros(queries.rows(), normalized_references.rows());
     matmul_abt(&qn, normalized_references, &mut out);
     out.as_mut_slice()
         .par_chunks_mut(4096)
         .for_each(|chunk| chunk.iter_mut().for_each(|v| *v = v.clamp(-1.0, 1.0)));
-    Ok(out)
+    out
 }
 
 /// A copy of `m` with every row scaled to unit L2 norm; all-zero rows stay zero.

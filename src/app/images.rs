@@ -94,13 +94,7 @@ pub fn describe_with_thumbnails(
     let descriptors = if extractor.pixels() == features::Pixels::Colour {
         features::extract_batch(extractor, &images)?
     } else {
-        let own = parts
-            .par_iter()
-            .map(|p| {
-                features::decode_image_as(&p.name, &p.bytes, max_pixels, extractor.pixels())
-                    .map_err(AppError::from)
-            })
-            .collect::<AppResult<Vec<_>>>()?;
+        let own = decode_all(parts, max_pixels, extractor.pixels())?;
         features::extract_batch(extractor, &own)?
     };
     let thumbnails = images
@@ -172,6 +166,15 @@ fn decode_checked(
             Some(_) => {}
         }
     }
+    decode_all(parts, max_pixels, pixels)
+}
+
+/// Decodes every part as `pixels`, in order (headers already checked). Blocking.
+fn decode_all(
+    parts: &[ImageInput],
+    max_pixels: u64,
+    pixels: features::Pixels,
+) -> AppResult<Vec<image::DynamicImage>> {
     parts
         .par_iter()
         .map(|p| {

@@ -180,11 +180,11 @@ fn trailing_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
         out.copy_from_slice(v);
     } else {
         out[0] = v[0];
-        let (o, (a, b)) = (out.as_flattened_mut(), (v.as_flattened(), v.as_flattened()));
+        let (o, a) = (out.as_flattened_mut(), v.as_flattened());
         for ((x, &p), &q) in o[LANES..]
             .iter_mut()
             .zip(&a[LANES..])
-            .zip(&b[..b.len() - LANES])
+            .zip(&a[..a.len() - LANES])
         {
             *x = min(p, q);
         }
