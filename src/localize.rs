@@ -9,7 +9,7 @@ use std::time::Instant;
 use crate::confidence::{score_hypotheses, ConfidenceParams, GraphParams};
 use crate::picture::MatrixPicture;
 use crate::similarity::{self, Normalization};
-use crate::solver::{solve, Solution, SolverParams};
+use crate::solver::{solve, Hypothesis, Solution, SolverParams};
 use crate::{Matrix, Result};
 
 /// One method's answer for one query: at most one per query, higher confidence = more certain.
@@ -112,13 +112,19 @@ fn localize_inspecting<T>(
 ///   the local evidence prefers it over every alternative (confidence above 1);
 /// * a row the first hypothesis leaves hidden gets a further hypothesis's match on the same
 ///   condition (confidence above 1: better supported than hiding the row, whose routes are in
-///   the ratio's "outside").
+///   the ratio's "outside");
+/// * and in both cases only when the further hypothesis is a *second visit*, not another
+///   timing of the first's one: it names a place the first hypothesis does not match
+///   (within the ratio's radius `r`) on any row within the confidence's evidence span of the
+///   row ([`evidence_span`]). Within that span the ratio cannot tell "the route passes this
+///   place again" from "the route passes it a few frames earlier or later", and between two
+///   timings of one traversal the first hypothesis, the best complete route, is the better
+///   supported one.
 ///
-/// Among several such hypotheses the most confident wins. The ratio is above 1 at one place of
-/// a row at most (up to the radius: the best route inside beats every route outside), so on
-/// a single traversal `F = 2` changes only rows where the first path goes against the local
-/// evidence; on a loop those are the rows of the second pass, which one route cannot drive
-/// back to.
+/// Among several such hypotheses the most confident wins. On a single traversal the further
+/// hypotheses are other timings of the one traversal, so `F = 2` keeps `F = 1`'s predictions;
+/// on a loop the rows of the second pass revisit places the first matched a whole loop
+/// earlier, which one route cannot drive back to.
 pub fn solve_with_confidence(
     chat: &Matrix,
     options: &LocalizeOptions,
@@ -136,6 +142,11 @@ pub fn solve_with_confidence(
         &options.confidence,
         options.claim,
     )?;
+    let span = evidence_span(&options.confidence);
+    let first = solution
+        .hypotheses
+        .first()
+        .map(|h| FirstVisits::new(h, chat.rows()));
     let mut best: Vec<Option<Prediction>> = vec![None; chat.rows()];
     // Rows whose first prediction the local evidence prefers (ratio above 1): they stand.
     let mut settled = vec![false; chat.rows()];
@@ -149,7 +160,12 @@ pub fn solve_with_confidence(
                 *done = row.confidence > 1.0;
                 true
             } else {
-                !*done && row.confidence > 1.0 && slot.is_none_or(|p| row.confidence > p.confidence)
+                !*done
+                    && row.confidence > 1.0
+                    && slot.is_none_or(|p| row.confidence > p.confidence)
+                    && first.as_ref().is_none_or(|f| {
+                        !f.visits_near(row.query, row.reference, span, options.confidence.radius)
+                    })
             };
             if adds {
                 *slot = Some(Prediction {
@@ -161,6 +177,46 @@ pub fn solve_with_confidence(
         }
     }
     Ok((solution, best.into_iter().flatten().collect()))
+}
+
+/// The rows on each side of a scored row whose evidence its confidence rests on: the box
+/// window's half-width `L`, or for the discounted ratio the mean distance of its row weights
+/// `g^k`, `g / (1 - g)` (5 for the default `g = 5/6`, the `L` it was derived from).
+pub fn evidence_span(params: &ConfidenceParams) -> usize {
+    match params.discount {
+        Some(g) if g > 0.0 && g < 1.0 => (g / (1.0 - g)).round() as usize,
+        _ => params.half_window,
+    }
+}
+
+/// The references the first hypothesis matches, per query row (all of a row's matches).
+struct FirstVisits {
+    matched: Vec<Vec<usize>>,
+}
+
+impl FirstVisits {
+    fn new(first: &Hypothesis, rows: usize) -> Self {
+        let mut matched = vec![Vec::new(); rows];
+        for row in &first.rows {
+            if let Some(m) = matched.get_mut(row.query) {
+                m.extend(row.matches.iter().map(|m| m.reference));
+            }
+        }
+        FirstVisits { matched }
+    }
+
+    /// Whether the first hypothesis matches a reference within `radius` of `reference` on a
+    /// row within `span` of `query`.
+    fn visits_near(&self, query: usize, reference: usize, span: usize, radius: usize) -> bool {
+        let rows =
+            query.saturating_sub(span)..=(query + span).min(self.matched.len().saturating_sub(1));
+        self.matched
+            .get(rows)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|&j| j.abs_diff(reference) <= radius)
+    }
 }
 
 #[cfg(test)]

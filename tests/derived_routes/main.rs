@@ -9,6 +9,7 @@
 mod routes;
 
 use routes::{Case, Data, Expectation};
+use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
 use seasonloc::localize::{localize, LocalizeOptions, Prediction};
 use seasonloc::solver::SolverParams;
 
@@ -113,6 +114,55 @@ fn loop_route(data: &Data) {
         "{} / loop: {replaced} of F = 1's predictions replaced",
         data.name
     );
+}
+
+/// The map driven once (every row's true place is its own frame), scored as `seasonloc eval`
+/// does (claim = tolerance): `F = 2` keeps every `F = 1` prediction the local evidence
+/// prefers, and its AP is not lower than `F = 1`'s.
+fn single_traversal(data: &Data) {
+    let frames: Vec<usize> = (0..data.map_len).collect();
+    let queries = data.queries(&frames);
+    let run = |flows: usize| {
+        let options = LocalizeOptions {
+            claim: data.tolerance,
+            ..options(flows)
+        };
+        let result = localize(&queries, &data.references, &options).unwrap();
+        let gt = GroundTruth::from_pairs(frames.iter().map(|&f| (f, f)));
+        let metrics = evaluate(
+            &result.predictions,
+            &gt,
+            frames.len(),
+            data.tolerance,
+            &Exclusions::none(),
+        )
+        .unwrap();
+        (result.predictions, metrics.ap)
+    };
+    let (one, ap1) = run(1);
+    let (two, ap2) = run(2);
+    let changed = one.iter().filter(|p| !two.contains(p)).count();
+    eprintln!(
+        "{} / single traversal: AP {ap1:.4} (F = 1), {ap2:.4} (F = 2), {changed} of {} predictions changed",
+        data.name,
+        one.len()
+    );
+    for p in one.iter().filter(|p| p.confidence > 1.0) {
+        assert!(two.contains(p), "{p:?} changed with F = 2");
+    }
+    assert!(ap2 >= ap1, "{}: F = 2 AP {ap2} < F = 1 AP {ap1}", data.name);
+}
+
+#[test]
+fn a_second_flow_never_lowers_ap_on_a_single_traversal() {
+    single_traversal(&Data::generated());
+}
+
+#[test]
+fn nordland_a_second_flow_never_lowers_ap_on_a_single_traversal() {
+    if let Some(data) = Data::nordland() {
+        single_traversal(&data);
+    }
 }
 
 #[test]
