@@ -262,6 +262,11 @@ fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
         if i >= hq {
             break;
         }
+        if sw == 2 {
+            let start = py * 2 * len + i * wq;
+            deinterleave(src_row, pl, len, &mut phases[start..start + len + wq]);
+            continue;
+        }
         for px in 0..sw {
             // Padded column `j * sw + px` is input column `j * sw + px - pl`: the first input
             // column of this phase and the phase column it lands in.
@@ -280,6 +285,44 @@ fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
                     *d = *s;
                 }
             }
+        }
+    }
+}
+
+/// Stride 2 along columns: input column `x` is padded column `x + pl`, which goes to phase
+/// `(x + pl) % 2` at column `(x + pl) / 2`. `rows` starts with the row of phase 0 and ends with
+/// the `wq` values of phase 1's row, `len` (a phase's length) after it. Both rows are filled in
+/// one pass over pairs of columns (vectorised) instead of two strided passes.
+#[inline(always)]
+fn deinterleave(src_row: &[f32], pl: usize, len: usize, rows: &mut [f32]) {
+    let (first, second) = rows.split_at_mut(len);
+    let wq = second.len();
+    let first = &mut first[..wq];
+    // Even input columns land in phase `pl % 2`, odd ones in the other.
+    let (even, odd) = if pl % 2 == 0 {
+        (first, second)
+    } else {
+        (second, first)
+    };
+    let (even, odd) = (
+        &mut even[(pl / 2).min(wq)..],
+        &mut odd[pl.div_ceil(2).min(wq)..],
+    );
+    let pairs = (src_row.len() / 2).min(even.len()).min(odd.len());
+    for ((pair, e), o) in src_row
+        .chunks_exact(2)
+        .take(pairs)
+        .zip(even.iter_mut())
+        .zip(odd.iter_mut())
+    {
+        *e = pair[0];
+        *o = pair[1];
+    }
+    // An odd last column, or the columns past the shorter phase row.
+    for (x, &v) in src_row.iter().enumerate().skip(2 * pairs) {
+        let dst = if x % 2 == 0 { &mut *even } else { &mut *odd };
+        if let Some(d) = dst.get_mut(x / 2) {
+            *d = v;
         }
     }
 }

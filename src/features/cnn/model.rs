@@ -69,6 +69,7 @@ impl std::fmt::Debug for LoadedModel {
             .field("sha256", &self.sha256)
             .field("input_size", &self.input_size)
             .field("output_shape", &self.output_shape)
+            .field("depthwise_rewritten", &self.depthwise_rewritten)
             .finish_non_exhaustive()
     }
 }
@@ -305,6 +306,7 @@ impl LoadedModel {
     }
 
     /// How many depthwise convolutions run on [`depthwise::DepthwiseConv`].
+    #[cfg(test)]
     pub(crate) fn depthwise_rewritten(&self) -> usize {
         self.depthwise_rewritten
     }
