@@ -38,7 +38,7 @@ fn main() -> anyhow::Result<()> {
         e.1 += 1;
     }
     let mut by_op: Vec<_> = by_op.into_iter().collect();
-    by_op.sort_by(|a, b| b.1 .0.cmp(&a.1 .0));
+    by_op.sort_by_key(|(_, (d, _))| std::cmp::Reverse(*d));
     println!("\nby operator (ms/image, nodes):");
     for (op, (d, n)) in by_op {
         println!("  {:>7.3}  {n:>3}  {op}", ms(d));

@@ -301,7 +301,7 @@ impl LoadedModel {
                 total: totals[node.id],
             })
             .collect();
-        times.sort_by(|a, b| b.total.cmp(&a.total));
+        times.sort_by_key(|t| std::cmp::Reverse(t.total));
         Ok(times)
     }
 
