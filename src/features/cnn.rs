@@ -23,6 +23,7 @@
 //! (images are resized to the input size first), is finite, and has unit L2 norm unless the
 //! layer's output is all zeros (then it stays all zeros; cosine similarity treats it as 0).
 
+mod depthwise;
 mod model;
 mod preprocess;
 
@@ -30,7 +31,8 @@ use std::fmt;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use self::model::LoadedModel;
+pub use self::model::NodeTime;
+use self::model::{Kernels, LoadedModel};
 use super::Extractor;
 use crate::{Error, Result};
 
@@ -229,7 +231,12 @@ impl CnnSpec {
     /// model apart from the others.
     pub fn new_uncached(options: CnnOptions) -> Result<Self> {
         options.validate()?;
-        let model = LoadedModel::uncached(&options.model, &options.layer, options.input_size)?;
+        let model = LoadedModel::uncached(
+            &options.model,
+            &options.layer,
+            options.input_size,
+            Kernels::Seasonloc,
+        )?;
         Ok(CnnSpec {
             options,
             model: Arc::new(model),
@@ -274,6 +281,12 @@ impl CnnSpec {
     /// resizing and `(x - mean) / scale`. What the model sees, for inspection and benchmarks.
     pub fn preprocess(&self, image: &image::DynamicImage) -> Result<Vec<f32>> {
         preprocess::preprocess(&self.options, image)
+    }
+
+    /// Per-node wall time of `runs` inferences on `image`, slowest first: where an inference
+    /// spends its time (`examples/cnn_profile.rs`).
+    pub fn node_times(&self, image: &image::DynamicImage, runs: usize) -> Result<Vec<NodeTime>> {
+        self.model.node_times(&self.preprocess(image)?, runs)
     }
 
     /// The layer's flattened output for one image, before normalisation (e.g. class logits).
@@ -616,6 +629,60 @@ mod tests {
             };
             assert!(worst < tol, "{}: max |diff| {worst}", file.display());
             assert!(cos > min_cos, "{}: cosine {cos}", file.display());
+        }
+    }
+
+    /// The depthwise operator that replaces tract's (`cnn/depthwise.rs`) keeps descriptors
+    /// within 1e-4 of tract's own operators, on the sample photos and Nordland frames, for
+    /// layers before and after the stride-2 5x5 layers and with both resize modes.
+    #[test]
+    fn seasonloc_depthwise_matches_tracts_operators_within_1e_4() {
+        let Some(model) = shipped_model() else { return };
+        let mut files: Vec<PathBuf> = ["dog.jpg", "eagle.jpg", "horses.jpg", "giraffe.jpg"]
+            .iter()
+            .map(|f| model.with_file_name("samples").join(f))
+            .collect();
+        let nordland = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32");
+        for frame in ["winter/images-00100.png", "summer/images-01230.png"] {
+            let path = nordland.join(frame);
+            if path.is_file() {
+                files.push(path);
+            } else {
+                eprintln!("{} absent: checking the sample photos only", path.display());
+            }
+        }
+        let images: Vec<image::DynamicImage> =
+            files.iter().map(|f| image::open(f).unwrap()).collect();
+        for (layer, resize) in [
+            ("block10", CnnResize::Stretch),
+            ("block10", CnnResize::ShortSideCrop { short_side: 256 }),
+            ("block14", CnnResize::Stretch),
+            ("logits", CnnResize::Stretch),
+        ] {
+            let fast = spec(&model, layer, resize);
+            let mut options = fast.options().clone();
+            options.layer = layer.into();
+            let reference =
+                LoadedModel::uncached(&options.model, layer, options.input_size, Kernels::Tract)
+                    .unwrap();
+            // EfficientNet-Lite0 has 11 depthwise layers up to block10 and 16 in all.
+            assert!(fast.model.depthwise_rewritten() >= 11, "{layer}");
+            assert_eq!(reference.depthwise_rewritten(), 0);
+            for (file, img) in files.iter().zip(&images) {
+                let new = fast.extract(img).unwrap();
+                let mut old = reference.run(fast.preprocess(img).unwrap()).unwrap();
+                l2_normalize(&mut old);
+                let worst = new
+                    .iter()
+                    .zip(&old)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0f32, f32::max);
+                eprintln!(
+                    "{layer} {resize}, {}: max |diff| {worst:.2e}",
+                    file.display()
+                );
+                assert!(worst < 1e-4, "{layer}, {}: {worst}", file.display());
+            }
         }
     }
 

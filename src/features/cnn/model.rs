@@ -16,7 +16,18 @@ use std::sync::{Arc, Mutex};
 use sha2::{Digest, Sha256};
 use tract_onnx::prelude::*;
 
+use super::depthwise;
 use crate::{Error, Result};
+
+/// Which implementation runs the depthwise convolutions.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Kernels {
+    /// [`depthwise::DepthwiseConv`] (with the clamp after it): what every extractor uses.
+    Seasonloc,
+    /// tract's own operators only: the reference the fast path is tested against.
+    #[cfg_attr(not(test), allow(dead_code))]
+    Tract,
+}
 
 /// A model ready to run: the optimised tract plan computing one chosen output.
 pub(crate) struct LoadedModel {
@@ -26,6 +37,21 @@ pub(crate) struct LoadedModel {
     input_size: (u32, u32),
     output_shape: Vec<usize>,
     outputs: Vec<String>,
+    /// Depthwise convolutions run by [`depthwise::DepthwiseConv`] instead of tract.
+    depthwise_rewritten: usize,
+}
+
+/// Time spent in one node of the plan ([`LoadedModel::node_times`]).
+#[derive(Clone, Debug)]
+pub struct NodeTime {
+    /// Operator kind, e.g. `OptMatMul` or `SeasonlocDepthwiseConv`.
+    pub op: String,
+    /// Node name in the optimised graph.
+    pub name: String,
+    /// Output shape.
+    pub shape: String,
+    /// Summed over all timed runs.
+    pub total: std::time::Duration,
 }
 
 /// (canonical path, file sha256, layer, input size): what makes two loads interchangeable.
@@ -43,6 +69,7 @@ impl std::fmt::Debug for LoadedModel {
             .field("sha256", &self.sha256)
             .field("input_size", &self.input_size)
             .field("output_shape", &self.output_shape)
+            .field("depthwise_rewritten", &self.depthwise_rewritten)
             .finish_non_exhaustive()
     }
 }
@@ -65,15 +92,27 @@ impl LoadedModel {
         if let Some((_, model)) = cache.iter().find(|(k, _)| *k == key) {
             return Ok(Arc::clone(model));
         }
-        let model = Arc::new(Self::load(path, &bytes, key.1.clone(), layer, input_size)?);
+        let model = Arc::new(Self::load(
+            path,
+            &bytes,
+            key.1.clone(),
+            layer,
+            input_size,
+            Kernels::Seasonloc,
+        )?);
         cache.push((key, Arc::clone(&model)));
         Ok(model)
     }
 
     /// A private copy of the model, neither taken from nor added to the cache.
-    pub(crate) fn uncached(path: &Path, layer: &str, input_size: (u32, u32)) -> Result<Self> {
+    pub(crate) fn uncached(
+        path: &Path,
+        layer: &str,
+        input_size: (u32, u32),
+        kernels: Kernels,
+    ) -> Result<Self> {
         let (bytes, sha256) = read_and_hash(path)?;
-        Self::load(path, &bytes, sha256, layer, input_size)
+        Self::load(path, &bytes, sha256, layer, input_size, kernels)
     }
 
     fn load(
@@ -82,6 +121,7 @@ impl LoadedModel {
         sha256: String,
         layer: &str,
         (width, height): (u32, u32),
+        kernels: Kernels,
     ) -> Result<Self> {
         let shown = path.display();
         let bad_model = |what: &str, e: TractError| {
@@ -142,9 +182,18 @@ impl LoadedModel {
                 ),
             )
         };
-        let plan = model
+        let mut typed = model
             .with_input_fact(0, f32::fact(shape).into())
-            .and_then(|m| m.into_optimized())
+            .and_then(|m| m.into_typed())
+            .and_then(|m| m.into_decluttered())
+            .map_err(wrong_size)?;
+        let depthwise_rewritten = match kernels {
+            Kernels::Seasonloc => depthwise::rewrite(&mut typed)
+                .map_err(|e| bad_model("depthwise convolutions cannot be rewritten", e))?,
+            Kernels::Tract => 0,
+        };
+        let plan = typed
+            .into_optimized()
             .map_err(wrong_size)?
             .into_runnable()
             .map_err(|e| bad_model("cannot be made runnable", e))?;
@@ -155,6 +204,7 @@ impl LoadedModel {
             input_size: (width, height),
             output_shape: Vec::new(),
             outputs,
+            depthwise_rewritten,
         };
         // Running one zero image proves that the input size is accepted end to end and gives
         // the true output shape (symbolic shapes are only resolved by running).
@@ -203,6 +253,62 @@ impl LoadedModel {
         let out = out.cast_to::<f32>()?;
         let values = out.to_plain_array_view::<f32>()?.iter().copied().collect();
         Ok((values, out.shape().to_vec()))
+    }
+
+    /// Wall time of every node of the plan over `runs` inferences on `input` (after one
+    /// untimed run), slowest first: `(operator, node name, output shape, total time)`.
+    pub(crate) fn node_times(&self, input: &[f32], runs: usize) -> Result<Vec<NodeTime>> {
+        let (w, h) = self.input_size;
+        let failed = |e: TractError| {
+            Error::inconsistent(
+                "cnn_model",
+                format!("inference with {} failed: {e:#}", self.path.display()),
+            )
+        };
+        let tensor =
+            tract_ndarray::Array4::from_shape_vec((1, 3, h as usize, w as usize), input.to_vec())
+                .map_err(|e| failed(e.into()))?
+                .into_tensor();
+        let mut totals = vec![std::time::Duration::ZERO; self.plan.model().nodes().len()];
+        for run in 0..=runs {
+            let mut state = self.plan.spawn().map_err(failed)?;
+            state
+                .run_plan_with_eval(
+                    tvec!(tensor.clone().into()),
+                    |ctx, op_state, node, inputs| {
+                        let start = std::time::Instant::now();
+                        let out = tract_onnx::tract_core::plan::eval(ctx, op_state, node, inputs);
+                        if run > 0 {
+                            totals[node.id] += start.elapsed();
+                        }
+                        out
+                    },
+                )
+                .map_err(failed)?;
+        }
+        let graph = self.plan.model();
+        let mut times: Vec<NodeTime> = graph
+            .nodes()
+            .iter()
+            .map(|node| NodeTime {
+                op: node.op().name().to_string(),
+                name: node.name.clone(),
+                shape: node
+                    .outputs
+                    .first()
+                    .map(|o| format!("{:?}", o.fact.shape))
+                    .unwrap_or_default(),
+                total: totals[node.id],
+            })
+            .collect();
+        times.sort_by_key(|t| std::cmp::Reverse(t.total));
+        Ok(times)
+    }
+
+    /// How many depthwise convolutions run on [`depthwise::DepthwiseConv`].
+    #[cfg(test)]
+    pub(crate) fn depthwise_rewritten(&self) -> usize {
+        self.depthwise_rewritten
     }
 
     /// Flattened output length.
