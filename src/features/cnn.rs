@@ -608,11 +608,7 @@ mod tests {
                 .run(preprocess::to_planar_for_tests(&old_input))
                 .unwrap();
             l2_normalize(&mut old);
-            let worst = new
-                .iter()
-                .zip(&old)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max);
+            let worst = max_abs_diff(&new, &old);
             let cos: f64 = new.iter().zip(&old).map(|(a, b)| f64::from(a * b)).sum();
             eprintln!(
                 "{}: max |diff| {worst:.2e}, cosine {cos:.7}",
@@ -660,8 +656,7 @@ mod tests {
             ("logits", CnnResize::Stretch),
         ] {
             let fast = spec(&model, layer, resize);
-            let mut options = fast.options().clone();
-            options.layer = layer.into();
+            let options = fast.options();
             let reference =
                 LoadedModel::uncached(&options.model, layer, options.input_size, Kernels::Tract)
                     .unwrap();
@@ -672,11 +667,7 @@ mod tests {
                 let new = fast.extract(img).unwrap();
                 let mut old = reference.run(fast.preprocess(img).unwrap()).unwrap();
                 l2_normalize(&mut old);
-                let worst = new
-                    .iter()
-                    .zip(&old)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0f32, f32::max);
+                let worst = max_abs_diff(&new, &old);
                 eprintln!(
                     "{layer} {resize}, {}: max |diff| {worst:.2e}",
                     file.display()
@@ -684,6 +675,14 @@ mod tests {
                 assert!(worst < 1e-4, "{layer}, {}: {worst}", file.display());
             }
         }
+    }
+
+    /// The largest element-wise difference of two descriptors.
+    fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
     }
 
     #[test]

@@ -226,12 +226,7 @@ impl LoadedModel {
     /// Runs the network on one preprocessed image (`3 * h * w` values, planar RGB) and returns
     /// the chosen output, flattened.
     pub(crate) fn run(&self, input: Vec<f32>) -> Result<Vec<f32>> {
-        let (output, shape) = self.run_raw(input).map_err(|e| {
-            Error::inconsistent(
-                "cnn_model",
-                format!("inference with {} failed: {e:#}", self.path.display()),
-            )
-        })?;
+        let (output, shape) = self.run_raw(input).map_err(|e| self.inference_failed(e))?;
         if shape != self.output_shape {
             return Err(Error::Shape(format!(
                 "{} produced an output of shape {shape:?}, expected {:?}",
@@ -243,10 +238,7 @@ impl LoadedModel {
     }
 
     fn run_raw(&self, input: Vec<f32>) -> TractResult<(Vec<f32>, Vec<usize>)> {
-        let (w, h) = self.input_size;
-        let tensor = tract_ndarray::Array4::from_shape_vec((1, 3, h as usize, w as usize), input)?
-            .into_tensor();
-        let outputs = self.plan.run(tvec!(tensor.into()))?;
+        let outputs = self.plan.run(tvec!(self.input_tensor(input)?.into()))?;
         let out = outputs
             .first()
             .ok_or_else(|| TractError::msg("the model returned no output"))?;
@@ -255,20 +247,28 @@ impl LoadedModel {
         Ok((values, out.shape().to_vec()))
     }
 
+    /// One preprocessed image (`3 * h * w` values, planar RGB) as the `[1, 3, h, w]` input.
+    fn input_tensor(&self, input: Vec<f32>) -> TractResult<Tensor> {
+        let (w, h) = self.input_size;
+        Ok(
+            tract_ndarray::Array4::from_shape_vec((1, 3, h as usize, w as usize), input)?
+                .into_tensor(),
+        )
+    }
+
+    /// The error of an inference that tract refused or failed.
+    fn inference_failed(&self, e: TractError) -> Error {
+        Error::inconsistent(
+            "cnn_model",
+            format!("inference with {} failed: {e:#}", self.path.display()),
+        )
+    }
+
     /// Wall time of every node of the plan over `runs` inferences on `input` (after one
     /// untimed run), slowest first: `(operator, node name, output shape, total time)`.
     pub(crate) fn node_times(&self, input: &[f32], runs: usize) -> Result<Vec<NodeTime>> {
-        let (w, h) = self.input_size;
-        let failed = |e: TractError| {
-            Error::inconsistent(
-                "cnn_model",
-                format!("inference with {} failed: {e:#}", self.path.display()),
-            )
-        };
-        let tensor =
-            tract_ndarray::Array4::from_shape_vec((1, 3, h as usize, w as usize), input.to_vec())
-                .map_err(|e| failed(e.into()))?
-                .into_tensor();
+        let failed = |e: TractError| self.inference_failed(e);
+        let tensor = self.input_tensor(input.to_vec()).map_err(failed)?;
         let mut totals = vec![std::time::Duration::ZERO; self.plan.model().nodes().len()];
         for run in 0..=runs {
             let mut state = self.plan.spawn().map_err(failed)?;
