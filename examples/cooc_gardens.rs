@@ -14,7 +14,9 @@
 //! (`pairs`: the single-drive and fused maps of the issue; `loo`: leave-one-out only; `fusion`:
 //! every single-drive map, then the same map, same vocabulary, plus the third walk; `fused`: the
 //! fused maps of `fusion` only; `main`: day_right -> day_left; `day`: the two day pairs; `scale`:
-//! recognition time per query on a map of 2,200 locations, see [`scale`]).
+//! recognition time per query on a map of 2,200 locations, see [`scale`]), and `gray` (`rgb`, the
+//! default: Rec. 709 luma of the RGB decode; `y`: the JPEG's Y plane, as `seasonloc eval` and the
+//! service decode; applies to every setting of the run).
 //!
 //! Several settings run one after the other (images loaded once, features re-extracted only
 //! when the keypoint settings change) when separated by `/`.
@@ -33,18 +35,30 @@ use seasonloc::cooc::{
     extract_all, CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, DriveFeatures,
 };
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
-use seasonloc::features::{list_images, load_image_file};
+use seasonloc::features::{list_images, load_image_file_as, Pixels};
 use seasonloc::similarity::Normalization;
 
 const TRAVERSALS: [&str; 3] = ["day_left", "day_right", "night_right"];
 /// Time of day of each traversal (only the order matters): both day walks, then night.
 const TIMES: [f64; 3] = [12.0, 13.0, 22.0];
 
-fn load(dir: &Path) -> Vec<GrayImage> {
+/// The gray images of one traversal: with `y_plane`, the JPEG's Y plane (BT.601 luma, what
+/// `seasonloc eval` and the service decode); otherwise the Rec. 709 luma of the RGB decode (the
+/// path before the Y-plane decode).
+fn load(dir: &Path, y_plane: bool) -> Vec<GrayImage> {
     let files = list_images(dir).expect("image folder");
+    let pixels = if y_plane {
+        Pixels::Gray
+    } else {
+        Pixels::Colour
+    };
     files
         .par_iter()
-        .map(|f| load_image_file(f).expect("readable image").to_luma8())
+        .map(|f| {
+            load_image_file_as(f, pixels)
+                .expect("readable image")
+                .to_luma8()
+        })
         .collect()
 }
 
@@ -80,6 +94,8 @@ fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization) 
                 p.grid_rows = r.parse().expect("rows");
             }
             "maps" => maps = v.to_string(),
+            // Read by `main` before any setting (the images are loaded once).
+            "gray" => assert!(v == "y" || v == "rgb", "gray: y or rgb, not {v}"),
             "vocab" => vocab = v.to_string(),
             "seqnorm" => {
                 seqnorm = match v {
@@ -106,7 +122,19 @@ fn main() {
         eprintln!("skipping: {} not found", dir.display());
         return;
     }
-    let images: Vec<Vec<GrayImage>> = TRAVERSALS.iter().map(|t| load(&dir.join(t))).collect();
+    let y_plane = rest.iter().any(|a| a == "gray=y");
+    println!(
+        "gray images: {}",
+        if y_plane {
+            "the JPEG's Y plane (BT.601), as eval and the service"
+        } else {
+            "Rec. 709 luma of the RGB decode"
+        }
+    );
+    let images: Vec<Vec<GrayImage>> = TRAVERSALS
+        .iter()
+        .map(|t| load(&dir.join(t), y_plane))
+        .collect();
     let mut cached: Option<(KeypointParams, Vec<Vec<Features>>)> = None;
     for config in rest.split(|a| a == "/") {
         let (params, maps, vocab, seqnorm) = parse_params(config);
@@ -283,6 +311,40 @@ fn run(
             let preds = margin_predictions(queries.scores(), 10, mode);
             let m = evaluate(&preds, &gt, n, 2, &Exclusions::none()).expect("metrics");
             row.push(format!("{:.3}", m.ap));
+        }
+        // Fused maps: how often each source is chosen (window = sequence length, on the
+        // normalised rows) and how often each source's own row has its top at the place.
+        if map.locations().sources() > 1 {
+            let per_source = map.score_matrices_by_source(queries.words());
+            let present = map.locations().source_present();
+            let l = n;
+            let norm: Vec<seasonloc::Matrix> = per_source
+                .iter()
+                .map(|m| {
+                    seqnorm
+                        .apply(&seasonloc::cooc::flow_similarity(m))
+                        .expect("norm")
+                })
+                .collect();
+            let len = options.sequence.length;
+            let order = seasonloc::cooc::source_order(&norm, &present, 10, len).expect("order");
+            let top = |m: &seasonloc::Matrix, q: usize| {
+                let r = m.row(q);
+                let best = (0..l).fold(0, |b, j| if r[j] > r[b] { j } else { b });
+                best.abs_diff(q) <= 2
+            };
+            let mut diag = Vec::new();
+            for d in 0..per_source.len() {
+                let chosen = order.iter().filter(|o| o[0] == d).count();
+                let right = (0..n).filter(|&q| top(&norm[d], q)).count();
+                let chosen_right = (0..n)
+                    .filter(|&q| order[q][0] == d && top(&norm[d], q))
+                    .count();
+                diag.push(format!(
+                    "source {d}: chosen {chosen}, top at place {right}, chosen+top {chosen_right}"
+                ));
+            }
+            println!("  fused diagnosis: {}", diag.join("; "));
         }
         let name: Vec<&str> = map_drives.iter().map(|&t| TRAVERSALS[t]).collect();
         println!(

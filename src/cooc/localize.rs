@@ -7,13 +7,15 @@
 //! * [`CoocMethod::Single`] (`cooc`) — single-image recognition (Sections II-C, II-D): per
 //!   query the best location found by the bounded simultaneous search, confidence = the size
 //!   of its spatially consistent group; no prediction for a query sharing no visual word with
-//!   the map; no hypotheses.
+//!   the map; no hypotheses. On a map fused from several drives: the best location of the
+//!   query's most decisive source ([`fused_scores`]: the full score rows of every source are
+//!   computed; no prediction when the best score is 0).
 //! * [`CoocMethod::Sequence`] (`cooc-seq`) — the paper's forward-only, variable-speed sequence
 //!   matching (II-F) on the score matrix; one prediction per query; no hypotheses.
 //! * [`CoocMethod::Flow`] (`cooc-flow`) — the score matrix as the similarity matrix of the
 //!   flow paper's graph ([`super::flow_similarity`], then the options' normalisation; on a map
-//!   fused from several drives each drive's scores are normalised before the best is taken,
-//!   [`fused_similarity`], as for `cooc-seq`), solved with the
+//!   fused from several drives each drive's scores are normalised on their own and each query
+//!   takes its most decisive drive's row, [`fused_similarity`], as for `cooc-seq`), solved with the
 //!   same solver and confidence as HOG/CNN maps.
 //!
 //! Why one place: the CLI and the service used to choose between the methods separately, with
@@ -27,7 +29,7 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use super::map::{fused_similarity, CoocMap};
+use super::map::{fused_scores, fused_similarity, CoocMap};
 use super::model::Word;
 use super::recognition::Schedule;
 use super::sequence::{match_sequences, SequenceParams};
@@ -185,16 +187,57 @@ impl<'m> CoocQueries<'m> {
     }
 
     /// The similarity `ĉ` of the sequence matching and the flow graph under `normalization`:
-    /// [`fused_similarity`] of the per-source scores (with one source: `normalization` of
-    /// `scores + 1`).
-    pub fn similarity(&self, normalization: Normalization) -> Result<Matrix> {
+    /// [`fused_similarity`] of the per-source scores, each query's sources ranked with
+    /// `exclusion` over `window` queries (with one source: `normalization` of `scores + 1`).
+    pub fn similarity(
+        &self,
+        normalization: Normalization,
+        exclusion: usize,
+        window: usize,
+    ) -> Result<Matrix> {
         let scored = self.scored();
         if scored.per_source.is_empty() {
             let present = vec![true; scored.max.cols()];
-            fused_similarity(std::slice::from_ref(&scored.max), &present, normalization)
+            fused_similarity(
+                std::slice::from_ref(&scored.max),
+                &present,
+                normalization,
+                exclusion,
+                window,
+            )
         } else {
             let present = self.map.locations().source_present();
-            fused_similarity(&scored.per_source, &present, normalization)
+            fused_similarity(
+                &scored.per_source,
+                &present,
+                normalization,
+                exclusion,
+                window,
+            )
+        }
+    }
+
+    /// The raw scores with each query's row from its most decisive source ([`fused_scores`],
+    /// ranked on the rows under `normalization` with `exclusion` over `window` queries); with one
+    /// source, [`CoocQueries::scores`].
+    pub fn fused_scores(
+        &self,
+        normalization: Normalization,
+        exclusion: usize,
+        window: usize,
+    ) -> Result<Matrix> {
+        let scored = self.scored();
+        if scored.per_source.is_empty() {
+            Ok(scored.max.clone())
+        } else {
+            let present = self.map.locations().source_present();
+            fused_scores(
+                &scored.per_source,
+                &present,
+                normalization,
+                exclusion,
+                window,
+            )
         }
     }
 
@@ -211,7 +254,7 @@ impl<'m> CoocQueries<'m> {
         let started = Instant::now();
         match method {
             CoocMethod::Single => {
-                let predictions = self.single();
+                let predictions = self.single(options.sequence.exclusion)?;
                 Ok(Localization {
                     solution: empty,
                     predictions,
@@ -224,12 +267,15 @@ impl<'m> CoocQueries<'m> {
             CoocMethod::Sequence => {
                 let params = options.sequence;
                 params.validate()?;
-                // Several sources: normalise each before the best is taken (fused_similarity);
-                // the sequence matching then works on that similarity as it is.
-                let fused = self.map.locations().sources() > 1
-                    && params.normalization != Normalization::None;
+                // Several sources: normalise each on its own, each query's row from its most
+                // decisive source (fused_similarity); the sequence matching then works on that
+                // similarity as it is. Unnormalised: the most decisive source's raw scores.
+                let sources = self.map.locations().sources() > 1;
+                let fused = sources && params.normalization != Normalization::None;
                 let input = if fused {
-                    self.similarity(params.normalization)?
+                    self.similarity(params.normalization, params.exclusion, params.length)?
+                } else if sources {
+                    self.fused_scores(Normalization::None, params.exclusion, params.length)?
                 } else {
                     self.scores().clone()
                 };
@@ -255,7 +301,11 @@ impl<'m> CoocQueries<'m> {
             }
             CoocMethod::Flow => {
                 options.flow.solver.validate()?;
-                let chat = self.similarity(options.flow.normalization)?;
+                let chat = self.similarity(
+                    options.flow.normalization,
+                    options.sequence.exclusion,
+                    options.sequence.length,
+                )?;
                 let similarity = started.elapsed().as_secs_f64();
                 let t = Instant::now();
                 let (solution, predictions) = solve_with_confidence(&chat, &options.flow)?;
@@ -271,9 +321,31 @@ impl<'m> CoocQueries<'m> {
         }
     }
 
-    /// Best-first single-image recognition of every query, in parallel.
-    fn single(&self) -> Vec<Prediction> {
-        self.words
+    /// Best-first single-image recognition of every query, in parallel; on a fused map, the
+    /// best location of each query's most decisive source (ranked on that query's own rows,
+    /// floored-normalised per source, with `exclusion`; ties to the lowest location, as the
+    /// search breaks them).
+    fn single(&self, exclusion: usize) -> Result<Vec<Prediction>> {
+        if self.map.locations().sources() > 1 {
+            let scores = self.fused_scores(Normalization::default(), exclusion, 1)?;
+            return Ok(scores
+                .iter_rows()
+                .enumerate()
+                .filter_map(|(i, row)| {
+                    let (best, &s) = row
+                        .iter()
+                        .enumerate()
+                        .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
+                    (s > 0.0).then_some(Prediction {
+                        query: i,
+                        reference: best,
+                        confidence: f64::from(s),
+                    })
+                })
+                .collect());
+        }
+        Ok(self
+            .words
             .par_iter()
             .enumerate()
             .filter_map(|(i, q)| {
@@ -285,7 +357,7 @@ impl<'m> CoocQueries<'m> {
                         confidence: r.score as f64,
                     })
             })
-            .collect()
+            .collect())
     }
 }
 

@@ -359,24 +359,101 @@ pub fn extract_all(
         .collect()
 }
 
-/// The similarity `ĉ` the sequence matching and the flow graph use on a map fused from
-/// several drives: each source's scores ([`CoocMap::score_matrices_by_source`]) become
-/// [`flow_similarity`] and are normalised over that source's locations (`present`, from
-/// [`LocationMap::source_present`]), then every entry takes its best source.
+/// How decisively one source recognises one query: the z-score of the row's peak over the
+/// source's own off-peak scores, `(peak - mean) / max(sd, 1)`, where the off-peak scores are
+/// those of the source's locations (`present`) more than `exclusion` locations from the peak
+/// (its neighbours show the same place). The spread is floored at one correspondence, the
+/// resolution of a group size. Without off-peak locations the mean is 0.
 ///
-/// Why per source: a location scores its best training image, and a drive the queries do not
-/// resemble (night for day queries) only adds chance groups, at a chance level of its own per
-/// location. Taking the maximum of the raw scores lets those chance groups compete with the
-/// true matches of the drive that does resemble the queries, and fusing such a drive made
-/// `cooc-seq` and `cooc-flow` worse; normalising each drive's evidence first (Eq. 2 per
-/// source) keeps a non-matching drive near its column mean, below the matching drive's peaks
-/// (`docs/cooc.md`, measured). With one source this is `normalization` applied to
-/// [`flow_similarity`] of the scores, as before.
-pub fn fused_similarity(
+/// Why a z-score: each source (drive time) has a chance level and a spread of its own at
+/// every query (a drive at another time of day gathers chance groups everywhere and no peak),
+/// so raw group sizes are not comparable across sources, but the distance of a peak from the
+/// source's own noise is.
+pub fn decisiveness(row: &[f32], present: &[bool], exclusion: usize) -> f32 {
+    let Some((peak_at, peak)) = row
+        .iter()
+        .zip(present)
+        .enumerate()
+        .filter(|(_, (_, &p))| p)
+        .map(|(j, (&v, _))| (j, v))
+        .fold(None, |best: Option<(usize, f32)>, (j, v)| match best {
+            Some((_, b)) if b >= v => best,
+            _ => Some((j, v)),
+        })
+    else {
+        return 0.0;
+    };
+    let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
+    for (j, (&v, &p)) in row.iter().zip(present).enumerate() {
+        if p && j.abs_diff(peak_at) > exclusion {
+            n += 1;
+            sum += f64::from(v);
+            sq += f64::from(v) * f64::from(v);
+        }
+    }
+    let (mean, sd) = if n == 0 {
+        (0.0, 1.0)
+    } else {
+        let mean = sum / n as f64;
+        (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
+    };
+    ((f64::from(peak) - mean) / sd) as f32
+}
+
+/// Per query, the sources of a fused map from the most to the least decisive: the mean
+/// [`decisiveness`] of each source's raw score rows over the `window` queries centred on the
+/// query (`window` 1: the query alone; clipped at the ends of the sequence); ties to the lower
+/// source index.
+///
+/// Why: a fused map must keep the evidence of the drives that already recognise a query. Taking
+/// the best source per location lets a drive the query does not resemble add its chance peaks
+/// to every wrong location; choosing the source whose peaks stand out most from its own noise
+/// leaves a query run that one drive recognises decisively with exactly that drive's scores,
+/// and lets an added drive speak only where it recognises the run more decisively. A window
+/// (the sequence matching's length) makes the choice one per stretch of the route: where no
+/// drive is decisive, one query's decisiveness is noise and choosing per query would switch
+/// sources from frame to frame (`docs/cooc.md`, measured).
+pub fn source_order(
     per_source: &[Matrix],
     present: &[bool],
-    normalization: crate::similarity::Normalization,
-) -> Result<Matrix> {
+    exclusion: usize,
+    window: usize,
+) -> Result<Vec<Vec<usize>>> {
+    let (q, l) = check_sources(per_source, present)?;
+    let d: Vec<Vec<f64>> = per_source
+        .iter()
+        .enumerate()
+        .map(|(s, m)| {
+            (0..q)
+                .map(|i| {
+                    f64::from(decisiveness(
+                        m.row(i),
+                        &present[s * l..(s + 1) * l],
+                        exclusion,
+                    ))
+                })
+                .collect()
+        })
+        .collect();
+    let w = window.max(1);
+    Ok((0..q)
+        .map(|i| {
+            let lo = i.saturating_sub((w - 1) / 2);
+            let hi = (lo + w).min(q);
+            let mean: Vec<f64> = d
+                .iter()
+                .map(|ds| ds[lo..hi].iter().sum::<f64>() / (hi - lo) as f64)
+                .collect();
+            let mut order: Vec<usize> = (0..per_source.len()).collect();
+            order.sort_by(|&a, &b| mean[b].total_cmp(&mean[a]).then(a.cmp(&b)));
+            order
+        })
+        .collect())
+}
+
+/// Checks that `per_source` are `Q x L` matrices and `present` has `sources x L` flags;
+/// returns `(Q, L)`.
+fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, usize)> {
     let Some(first) = per_source.first() else {
         return Err(Error::Empty("no score matrix to fuse".into()));
     };
@@ -390,30 +467,103 @@ pub fn fused_similarity(
             present.len()
         )));
     }
-    let mut out = Matrix::zeros(q, l);
-    let mut filled = vec![false; l];
+    Ok((q, l))
+}
+
+/// Row `i` of the fused matrix takes every location from the first source in `order[i]` that
+/// has it (`present`); a location no source has keeps source 0's value.
+fn fuse_rows(per_source: &[Matrix], present: &[bool], order: &[Vec<usize>]) -> Matrix {
+    let (q, l) = (per_source[0].rows(), per_source[0].cols());
+    let mut out = per_source[0].clone();
+    for (i, sources) in order.iter().enumerate().take(q) {
+        let dst = out.row_mut(i);
+        for (j, o) in dst.iter_mut().enumerate() {
+            if let Some(&s) = sources.iter().find(|&&s| present[s * l + j]) {
+                *o = per_source[s].get(i, j);
+            }
+        }
+    }
+    out
+}
+
+/// The raw scores of a fused map as one `Q x L` matrix: each query's row from the source
+/// that is most decisive on the rows [`fused_similarity`] gives under `normalization`
+/// ([`source_order`] with `exclusion` and `window`). Single-image recognition on a fused map
+/// takes its best location from this row (window 1); with one source it is that source's
+/// scores.
+pub fn fused_scores(
+    per_source: &[Matrix],
+    present: &[bool],
+    normalization: crate::similarity::Normalization,
+    exclusion: usize,
+    window: usize,
+) -> Result<Matrix> {
+    let normalised = normalise_sources(per_source, present, normalization)?;
+    let order = source_order(&normalised, present, exclusion, window)?;
+    Ok(fuse_rows(per_source, present, &order))
+}
+
+/// Each source's [`flow_similarity`] normalised on its own over its locations (`present`) and
+/// all queries, as a map of that drive alone would normalise it; `Q x L` each, 0 where the
+/// source has no training set.
+fn normalise_sources(
+    per_source: &[Matrix],
+    present: &[bool],
+    normalization: crate::similarity::Normalization,
+) -> Result<Vec<Matrix>> {
+    let (q, l) = check_sources(per_source, present)?;
+    let mut normalised = Vec::with_capacity(per_source.len());
     for (d, s) in per_source.iter().enumerate() {
         let cols: Vec<usize> = (0..l).filter(|&j| present[d * l + j]).collect();
-        if cols.is_empty() {
-            continue;
-        }
-        let mut c = Matrix::zeros(q, cols.len());
-        for i in 0..q {
-            let (src, dst) = (s.row(i), c.row_mut(i));
-            for (o, &j) in dst.iter_mut().zip(&cols) {
-                *o = src[j] + 1.0;
+        let mut full = Matrix::zeros(q, l);
+        if !cols.is_empty() {
+            let mut c = Matrix::zeros(q, cols.len());
+            for i in 0..q {
+                let (src, dst) = (s.row(i), c.row_mut(i));
+                for (o, &j) in dst.iter_mut().zip(&cols) {
+                    *o = src[j] + 1.0;
+                }
+            }
+            let c = normalization.apply(&c)?;
+            for i in 0..q {
+                let (src, dst) = (c.row(i), full.row_mut(i));
+                for (&v, &j) in src.iter().zip(&cols) {
+                    dst[j] = v;
+                }
             }
         }
-        let c = normalization.apply(&c)?;
-        for i in 0..q {
-            let (src, dst) = (c.row(i), out.row_mut(i));
-            for (&v, &j) in src.iter().zip(&cols) {
-                dst[j] = if filled[j] { dst[j].max(v) } else { v };
-            }
-        }
-        cols.iter().for_each(|&j| filled[j] = true);
+        normalised.push(full);
     }
-    Ok(out)
+    Ok(normalised)
+}
+
+/// The similarity `ĉ` the sequence matching and the flow graph use on a map fused from
+/// several drives: each source's scores ([`CoocMap::score_matrices_by_source`]) become
+/// [`flow_similarity`] and are normalised over that source's locations (`present`, from
+/// [`LocationMap::source_present`]) and over all queries, as a map of that drive alone would
+/// normalise them; then each query's row is its most decisive source's ([`source_order`],
+/// with `exclusion` and `window`). With one source this is `normalization` applied to [`flow_similarity`] of
+/// the scores, as before.
+///
+/// Why per source and per query: a drive the queries do not resemble (night for day queries)
+/// only adds chance groups, at a chance level of its own. Normalising each drive's evidence on
+/// its own keeps their scales comparable, and taking each query's row from one source keeps
+/// the rows of a query that a drive recognises decisively exactly what that drive alone gives:
+/// fusing a drive cannot lower them (`docs/cooc.md`, measured; the best source per location,
+/// session 5, still lost up to 0.098 AP on single vocabularies).
+pub fn fused_similarity(
+    per_source: &[Matrix],
+    present: &[bool],
+    normalization: crate::similarity::Normalization,
+    exclusion: usize,
+    window: usize,
+) -> Result<Matrix> {
+    let normalised = normalise_sources(per_source, present, normalization)?;
+    // Decisiveness is measured on the rows the methods read: a location that gathers chance
+    // groups with every query (feature-rich) is discounted by the normalisation, so its peaks
+    // do not pass for recognition.
+    let order = source_order(&normalised, present, exclusion, window)?;
+    Ok(fuse_rows(&normalised, present, &order))
 }
 
 /// The co-occurrence scores as the similarity matrix `C` of the network-flow graph: `s + 1`.
@@ -432,7 +582,7 @@ pub fn flow_similarity(scores: &Matrix) -> Matrix {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::super::keypoints::tests::squares;
-    use super::super::{localize, CoocMethod, CoocOptions, SequenceParams};
+    use super::super::{localize, CoocMethod, CoocOptions, CoocQueries, SequenceParams};
     use super::*;
     use crate::localize::Prediction;
     use crate::similarity::Normalization;
@@ -622,12 +772,55 @@ pub(crate) mod tests {
             Normalization::Columns,
             Normalization::FlooredColumns,
         ] {
-            let fused = fused_similarity(std::slice::from_ref(&s), &[true; 9], n).unwrap();
+            let fused = fused_similarity(std::slice::from_ref(&s), &[true; 9], n, 2, 3).unwrap();
             assert_eq!(fused, n.apply(&flow_similarity(&s)).unwrap(), "{n:?}");
         }
-        let err = fused_similarity(&[s], &[true; 3], Normalization::None).unwrap_err();
+        let raw = fused_scores(
+            std::slice::from_ref(&s),
+            &[true; 9],
+            Normalization::FlooredColumns,
+            2,
+            3,
+        )
+        .unwrap();
+        assert_eq!(raw, s);
+        let err = fused_similarity(&[s], &[true; 3], Normalization::None, 2, 1).unwrap_err();
         assert!(err.to_string().contains("presence"), "{err}");
-        assert!(fused_similarity(&[], &[], Normalization::None).is_err());
+        assert!(fused_similarity(&[], &[], Normalization::None, 2, 1).is_err());
+    }
+
+    #[test]
+    fn decisiveness_is_the_peak_over_the_sources_own_off_peak_noise() {
+        let all = [true; 8];
+        // A flat row has no peak; a row without any location has none either.
+        assert_eq!(decisiveness(&[3.0; 8], &all, 1), 0.0);
+        assert_eq!(decisiveness(&[3.0; 8], &[false; 8], 1), 0.0);
+        // Peak 10 at 2; its neighbours (1, 3) are not noise; off-peak 0, 2, 0, 2, 0: mean 0.8,
+        // sd 0.98 floored at 1 -> 9.2.
+        let row = [0.0, 9.0, 10.0, 9.0, 2.0, 0.0, 2.0, 0.0];
+        assert!((decisiveness(&row, &all, 1) - 9.2).abs() < 1e-5);
+        // The same peak over a noisier source stands out less.
+        let noisy = [0.0, 9.0, 10.0, 9.0, 8.0, 0.0, 8.0, 0.0];
+        assert!(decisiveness(&noisy, &all, 1) < decisiveness(&row, &all, 1));
+        // Shifting or scaling a row's scores by the source's chance level does not change it
+        // (spread above the floor).
+        let shifted: Vec<f32> = noisy.iter().map(|v| v * 2.0 + 5.0).collect();
+        let d = decisiveness(&noisy, &all, 1);
+        assert!((decisiveness(&shifted, &all, 1) - d).abs() < 1e-5);
+        // Locations the source has no training set of are neither peak nor noise.
+        let mut present = all;
+        present[2] = false;
+        // Peak 9 at 1 (the first of two); off-peak 3..8: 9, 2, 0, 2, 0.
+        let d = decisiveness(&row, &present, 1);
+        assert!((d - (9.0 - 2.6) / 11.04f32.sqrt()).abs() < 1e-4, "{d}");
+        // Ranking: per query, most decisive first, ties to the lower source.
+        let a = Matrix::from_vec(2, 8, [row, [1.0; 8]].concat()).unwrap();
+        let b = Matrix::from_vec(2, 8, [noisy, [1.0; 8]].concat()).unwrap();
+        let order = source_order(&[b.clone(), a.clone()], &[true; 16], 1, 1).unwrap();
+        assert_eq!(order, vec![vec![1, 0], vec![0, 1]]);
+        // Over a window of 3 queries, query 1 (no peak anywhere) follows its neighbour's choice.
+        let order = source_order(&[b, a], &[true; 16], 1, 3).unwrap();
+        assert_eq!(order, vec![vec![1, 0], vec![1, 0]]);
     }
 
     #[test]
@@ -665,19 +858,126 @@ pub(crate) mod tests {
             "the night chance level wins the raw maximum ({raw_hits})"
         );
         let present = vec![true; 2 * l];
-        let fused =
-            fused_similarity(&[day, night], &present, Normalization::FlooredColumns).unwrap();
-        assert_eq!(argmax(&fused), truth);
-        // A location the night drive did not see takes the day source's value alone.
-        let mut present = present;
-        present[l + 3] = false;
-        let day_only = fused_similarity(
-            &[raw_max.clone(), raw_max.clone()],
+        let fused = fused_similarity(
+            &[day.clone(), night.clone()],
             &present,
-            Normalization::None,
+            Normalization::FlooredColumns,
+            1,
+            3,
         )
         .unwrap();
-        assert_eq!(day_only.get(0, 3), raw_max.get(0, 3) + 1.0);
+        assert_eq!(argmax(&fused), truth);
+        assert_eq!(
+            argmax(
+                &fused_scores(
+                    &[day.clone(), night.clone()],
+                    &present,
+                    Normalization::FlooredColumns,
+                    1,
+                    1
+                )
+                .unwrap()
+            ),
+            truth
+        );
+        // Every row is the day source's alone, normalised as a map of the day drive would.
+        let day_alone = Normalization::FlooredColumns
+            .apply(&flow_similarity(&day))
+            .unwrap();
+        assert_eq!(fused, day_alone);
+        // A location the most decisive source did not see takes the next source's value.
+        let mut present = present;
+        present[3] = false;
+        let raw = fused_scores(&[day, night.clone()], &present, Normalization::None, 1, 1).unwrap();
+        assert_eq!(raw.get(0, 3), night.get(0, 3));
+        assert_eq!(raw.get(0, 0), 6.0);
+    }
+
+    #[test]
+    fn fusing_a_drive_keeps_the_scores_of_queries_the_map_recognises_decisively() {
+        // A day map recognises day queries decisively; fusing a night drive of the same places
+        // (same vocabulary: `add_drive`) must leave every method's input and answer unchanged.
+        let day: Vec<GrayImage> = (0..14).map(|s| scene(s, false)).collect();
+        let night: Vec<GrayImage> = (0..14).map(|s| scene(s, true)).collect();
+        let p = params();
+        let single = CoocMap::build(&p, &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        let mut fused = single.clone();
+        fused
+            .add_drive(&Drive::sequential(22.0, night.clone()).unwrap())
+            .unwrap();
+        assert_eq!(fused.locations().sources(), 2);
+        let options = CoocOptions {
+            sequence: SequenceParams {
+                length: 3,
+                max_step: 2,
+                exclusion: 2,
+                contrast_window: 0,
+                ..SequenceParams::default()
+            },
+            ..CoocOptions::default()
+        };
+        let excl = options.sequence.exclusion;
+        let before = CoocQueries::new(&single, &day).unwrap();
+        let after = CoocQueries::new(&fused, &day).unwrap();
+        // Precondition: the day source recognises every query decisively, far above its noise.
+        let per_source = fused.score_matrices_by_source(after.words());
+        assert_eq!(per_source[0], *before.scores());
+        for i in 0..day.len() {
+            assert!(
+                decisiveness(per_source[0].row(i), &[true; 14], excl) > 3.0,
+                "query {i}"
+            );
+        }
+        for n in [
+            Normalization::FlooredColumns,
+            Normalization::Columns,
+            Normalization::None,
+        ] {
+            for w in [1, options.sequence.length] {
+                assert_eq!(
+                    after.similarity(n, excl, w).unwrap(),
+                    before.similarity(n, excl, w).unwrap()
+                );
+            }
+        }
+        for n in [Normalization::FlooredColumns, Normalization::None] {
+            assert_eq!(after.fused_scores(n, excl, 1).unwrap(), *before.scores());
+        }
+        for method in CoocMethod::ALL {
+            assert_eq!(
+                after.localize(method, &options).unwrap().predictions,
+                before.localize(method, &options).unwrap().predictions,
+                "{method}"
+            );
+        }
+        // The best source per location (session 5's rule) does change these rows: the night
+        // drive's normalised chance groups outvote the day drive's at wrong locations.
+        let present = fused.locations().source_present();
+        let n = Normalization::FlooredColumns;
+        let norm: Vec<Matrix> = per_source
+            .iter()
+            .map(|s| n.apply(&flow_similarity(s)).unwrap())
+            .collect();
+        let mut per_location_max = norm[0].clone();
+        for (a, &b) in per_location_max
+            .as_mut_slice()
+            .iter_mut()
+            .zip(norm[1].as_slice())
+        {
+            *a = a.max(b);
+        }
+        assert!(present.iter().all(|&x| x));
+        assert_ne!(per_location_max, after.similarity(n, excl, 1).unwrap());
+        // And the fused drive still serves the queries it recognises: night queries.
+        let night_q = CoocQueries::new(&fused, &night).unwrap();
+        let hits = night_q
+            .localize(CoocMethod::Single, &options)
+            .unwrap()
+            .predictions
+            .iter()
+            .filter(|x| x.reference == x.query)
+            .count();
+        assert!(hits >= 12, "{hits} of 14 night queries");
     }
 
     #[test]

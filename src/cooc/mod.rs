@@ -32,7 +32,10 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
-pub use map::{extract_all, flow_similarity, fused_similarity, CoocMap, Drive, DriveFeatures};
+pub use map::{
+    decisiveness, extract_all, flow_similarity, fused_scores, fused_similarity, source_order,
+    CoocMap, Drive, DriveFeatures,
+};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;
