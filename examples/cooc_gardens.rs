@@ -7,7 +7,9 @@
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
 //! (`CxR`), `tol`, `merge` (0/1), `train` (max training descriptors), `seed`, `seqnorm`
-//! (`cooc-seq`'s score normalisation: `floored`, the default, `eq2` or `none`), `vocab` (`all`:
+//! (`cooc-seq`'s score normalisation: `floored`, the default, `eq2` or `none`), `fusewin`
+//! (`CoocOptions::fusion_window`: queries over which a fused map's source is chosen; 0, the
+//! default, = the sequence length), `vocab` (`all`:
 //! trained on every drive of the map, the default here; `first`: on the first drive, as `eval`
 //! and the service; `sep`: on the traversal that is neither mapped nor queried, the paper's
 //! separate training images), and `maps`
@@ -62,11 +64,12 @@ fn load(dir: &Path, y_plane: bool) -> Vec<GrayImage> {
         .collect()
 }
 
-fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization) {
+fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization, usize) {
     let mut p = CoocParams::default();
     let mut seqnorm = SequenceParams::default().normalization;
     let mut maps = "pairs".to_string();
     let mut vocab = "all".to_string();
+    let mut fusion_window = 0usize;
     for a in args {
         let (k, v) = a
             .split_once('=')
@@ -94,6 +97,7 @@ fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization) 
                 p.grid_rows = r.parse().expect("rows");
             }
             "maps" => maps = v.to_string(),
+            "fusewin" => fusion_window = n() as usize,
             // Read by `main` before any setting (the images are loaded once).
             "gray" => assert!(v == "y" || v == "rgb", "gray: y or rgb, not {v}"),
             "vocab" => vocab = v.to_string(),
@@ -109,7 +113,7 @@ fn parse_params(args: &[String]) -> (CoocParams, String, String, Normalization) 
         }
     }
     p.validate().expect("valid settings");
-    (p, maps, vocab, seqnorm)
+    (p, maps, vocab, seqnorm, fusion_window)
 }
 
 fn main() {
@@ -137,7 +141,7 @@ fn main() {
         .collect();
     let mut cached: Option<(KeypointParams, Vec<Vec<Features>>)> = None;
     for config in rest.split(|a| a == "/") {
-        let (params, maps, vocab, seqnorm) = parse_params(config);
+        let (params, maps, vocab, seqnorm, fusion_window) = parse_params(config);
         if cached.as_ref().is_none_or(|c| c.0 != params.keypoints) {
             cached = Some((params.keypoints.clone(), extract(&params, &images)));
         }
@@ -145,7 +149,14 @@ fn main() {
         if maps == "scale" {
             scale(&params, &images, &features[0]);
         } else {
-            run(&params, &maps, &vocab, seqnorm, &images, features);
+            run(
+                &params,
+                &maps,
+                &vocab,
+                (seqnorm, fusion_window),
+                &images,
+                features,
+            );
         }
     }
 }
@@ -171,7 +182,7 @@ fn run(
     params: &CoocParams,
     maps: &str,
     vocab: &str,
-    seqnorm: Normalization,
+    (seqnorm, fusion_window): (Normalization, usize),
     images: &[Vec<GrayImage>],
     features: &[Vec<Features>],
 ) {
@@ -265,6 +276,7 @@ fn run(
                 normalization: seqnorm,
                 ..SequenceParams::default()
             },
+            fusion_window,
             ..CoocOptions::default()
         };
         let mut row = Vec::new();
@@ -326,7 +338,11 @@ fn run(
                         .expect("norm")
                 })
                 .collect();
-            let len = options.sequence.length;
+            let len = if fusion_window == 0 {
+                options.sequence.length
+            } else {
+                fusion_window
+            };
             let order = seasonloc::cooc::source_order(&norm, &present, 10, len).expect("order");
             let top = |m: &seasonloc::Matrix, q: usize| {
                 let r = m.row(q);
@@ -334,12 +350,10 @@ fn run(
                 best.abs_diff(q) <= 2
             };
             let mut diag = Vec::new();
-            for d in 0..per_source.len() {
+            for (d, nd) in norm.iter().enumerate() {
                 let chosen = order.iter().filter(|o| o[0] == d).count();
-                let right = (0..n).filter(|&q| top(&norm[d], q)).count();
-                let chosen_right = (0..n)
-                    .filter(|&q| order[q][0] == d && top(&norm[d], q))
-                    .count();
+                let right = (0..n).filter(|&q| top(nd, q)).count();
+                let chosen_right = (0..n).filter(|&q| order[q][0] == d && top(nd, q)).count();
                 diag.push(format!(
                     "source {d}: chosen {chosen}, top at place {right}, chosen+top {chosen_right}"
                 ));

@@ -527,6 +527,7 @@ fn run_job(args: &EvalArgs, methods: &[Method], job: &Job, started: Instant) -> 
     let cooc_options = CoocOptions {
         sequence,
         flow: options.clone(),
+        ..CoocOptions::default()
     };
     let mut scored = Vec::new();
     for method in methods {

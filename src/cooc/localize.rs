@@ -101,6 +101,21 @@ pub struct CoocOptions {
     pub sequence: SequenceParams,
     /// Graph, solver, normalisation and confidence (`cooc-flow`).
     pub flow: LocalizeOptions,
+    /// On a map fused from several drives, `cooc-seq` and `cooc-flow` take each query's row
+    /// from the source most decisive over this many queries centred on it
+    /// ([`super::source_order`]); 0 (the default) = the sequence length `sequence.length`.
+    pub fusion_window: usize,
+}
+
+impl CoocOptions {
+    /// The window of [`CoocOptions::fusion_window`], resolved.
+    fn window(&self) -> usize {
+        if self.fusion_window == 0 {
+            self.sequence.length
+        } else {
+            self.fusion_window
+        }
+    }
 }
 
 /// A quantised query sequence on one map, with its score matrix computed on first use.
@@ -273,9 +288,9 @@ impl<'m> CoocQueries<'m> {
                 let sources = self.map.locations().sources() > 1;
                 let fused = sources && params.normalization != Normalization::None;
                 let input = if fused {
-                    self.similarity(params.normalization, params.exclusion, params.length)?
+                    self.similarity(params.normalization, params.exclusion, options.window())?
                 } else if sources {
-                    self.fused_scores(Normalization::None, params.exclusion, params.length)?
+                    self.fused_scores(Normalization::None, params.exclusion, options.window())?
                 } else {
                     self.scores().clone()
                 };
@@ -304,7 +319,7 @@ impl<'m> CoocQueries<'m> {
                 let chat = self.similarity(
                     options.flow.normalization,
                     options.sequence.exclusion,
-                    options.sequence.length,
+                    options.window(),
                 )?;
                 let similarity = started.elapsed().as_secs_f64();
                 let t = Instant::now();

@@ -439,7 +439,7 @@ pub fn source_order(
     Ok((0..q)
         .map(|i| {
             let lo = i.saturating_sub((w - 1) / 2);
-            let hi = (lo + w).min(q);
+            let hi = lo.saturating_add(w).min(q);
             let mean: Vec<f64> = d
                 .iter()
                 .map(|ds| ds[lo..hi].iter().sum::<f64>() / (hi - lo) as f64)
