@@ -463,17 +463,22 @@ pub fn recognize_query(
             (best, evaluated)
         }
         Schedule::Exhaustive => {
+            // Every entity's `J`, spread over the rayon pool like a full score row; the best
+            // (highest score, then lowest entity) is a total order, so the answer does not
+            // depend on the order in which the workers finish.
             let cands = Candidates::gather(map, query);
-            let (mut scratch, mut e) = (Scratch::default(), Elimination::default());
-            let mut best = None;
-            for g in 0..cands.groups.len() {
-                let l = cands.groups[g].0;
-                consistency(map, &geo, l, cands.items(g), &mut scratch, &mut e);
-                let s = e.run();
-                if better(s, l, &best) {
-                    best = Some((s, l));
-                }
-            }
+            let best = (0..cands.groups.len())
+                .into_par_iter()
+                .with_min_len(64)
+                .map_init(
+                    || (Scratch::default(), Elimination::default()),
+                    |(scratch, e), g| {
+                        let l = cands.groups[g].0;
+                        consistency(map, &geo, l, cands.items(g), scratch, e);
+                        (e.run(), l)
+                    },
+                )
+                .reduce_with(|a, b| if better(b.0, b.1, &Some(a)) { b } else { a });
             (best, cands.groups.len())
         }
         Schedule::Lockstep => {
