@@ -15,6 +15,8 @@
 //!   true carry of the chunk before, exactly as the solver's kernel does (`solver/kernel.rs`):
 //!   the `X` chain is re-walked only while the carry changes it, the `H` chain (a running
 //!   minimum) takes `min(carry, local)`.
+//! * **AVX2.** The row steps are compiled again for AVX2 and picked at run time ([`Isa`]): a
+//!   lane row is then one register instead of two SSE2 ones. Same operations, same values.
 //! * **`f32`.** Values are `f32` (node costs `1/ĉ` of the `f32` matrix), half the memory
 //!   traffic and twice the lanes of `f64`. The discount keeps sums short (a route's weight
 //!   `Σ g^|t-i|` is at most `(1+g)/(1-g)`), so rounding stays at a few `f32` ulps of the result;
