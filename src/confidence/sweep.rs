@@ -15,6 +15,8 @@
 //!   true carry of the chunk before, exactly as the solver's kernel does (`solver/kernel.rs`):
 //!   the `X` chain is re-walked only while the carry changes it, the `H` chain (a running
 //!   minimum) takes `min(carry, local)`.
+//! * **AVX2.** The row steps are compiled again for AVX2 and picked at run time ([`Isa`]): a
+//!   lane row is then one register instead of two SSE2 ones. Same operations, same values.
 //! * **`f32`.** Values are `f32` (node costs `1/ĉ` of the `f32` matrix), half the memory
 //!   traffic and twice the lanes of `f64`. The discount keeps sums short (a route's weight
 //!   `Σ g^|t-i|` is at most `(1+g)/(1-g)`), so rounding stays at a few `f32` ulps of the result;
@@ -37,7 +39,9 @@
 use super::GraphParams;
 use crate::Matrix;
 
-/// Chunks processed together (eight `f32`: one AVX register, two SSE registers).
+/// Chunks processed together (eight `f32`: one AVX register, two SSE registers). 32 lanes
+/// (four AVX registers, shorter scans) measured slower: the transpose of [`costs`] reads 32
+/// streams of the matrix row at once.
 pub(super) const LANES: usize = 8;
 
 /// One transposed row: `v[t][l]` is column `l·n + t`.
@@ -88,10 +92,11 @@ struct Graph {
 }
 
 /// Node costs of one row in the lane layout: `1/ĉ` (`+inf` when `ĉ <= 0` and in the padding).
+#[inline(always)]
 fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
     let (n, d) = (lay.n, lay.d);
-    // Transpose: row t of the layout takes column l·n + t of every chunk l (eight sequential
-    // read streams, one sequential write stream). Rows below `full` have all eight columns.
+    // Transpose: row t of the layout takes column l·n + t of every chunk l (`LANES` sequential
+    // read streams, one sequential write stream). Rows below `full` have all `LANES` columns.
     let full = d.saturating_sub((LANES - 1) * n).min(n);
     let chunks: [&[f32]; LANES] = std::array::from_fn(|l| &row[(l * n).min(d)..]);
     for (t, o) in out[..full].iter_mut().enumerate() {
@@ -114,6 +119,7 @@ fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
 }
 
 /// Sets the padding columns (`>= d`) to `+inf`: the tail of the last chunks only.
+#[inline(always)]
 fn pad(lay: &Layout, v: &mut Lanes) {
     for l in lay.d / lay.n..LANES {
         let first = lay.d.saturating_sub(l * lay.n).min(lay.n);
@@ -124,7 +130,7 @@ fn pad(lay: &Layout, v: &mut Lanes) {
 }
 
 /// The value at column `j` (`+inf` out of range).
-#[inline]
+#[inline(always)]
 fn get(lay: &Layout, v: &Lanes, j: usize) -> f32 {
     if j >= lay.d {
         return f32::INFINITY;
@@ -133,6 +139,8 @@ fn get(lay: &Layout, v: &Lanes, j: usize) -> f32 {
     v[t][l]
 }
 
+/// The smaller of two values: one `minps` (no NaN reaches the passes: costs are `1/ĉ` of
+/// positive `ĉ` or `+inf`, every value a sum of them and of `W` scaled by `g`).
 #[inline(always)]
 fn min(a: f32, b: f32) -> f32 {
     if b < a {
@@ -142,13 +150,22 @@ fn min(a: f32, b: f32) -> f32 {
     }
 }
 
+/// [`min`] for updating a value in memory, `*a = min_mem(*a, b)`. Written as [`min`], LLVM
+/// turns such an update into a conditional store and vectorises it with AVX2 as masked stores
+/// (`vmaskmovps`), several times slower than `vminps` on AMD cores (measured: the passes took
+/// twice as long). `f32::min` is not a select; without NaN it is the same value as [`min`].
+#[inline(always)]
+fn min_mem(a: f32, b: f32) -> f32 {
+    a.min(b)
+}
+
 /// `out[t] = min(out[t], v[t - o])` for `t >= o` (chunk-internal shift by `o` rows), flat.
 #[inline(always)]
 fn min_shifted_down(out: &mut Lanes, v: &Lanes, o: usize) {
     let (out, v) = (out.as_flattened_mut(), v.as_flattened());
     let s = o * LANES;
     for (a, &b) in out[s..].iter_mut().zip(&v[..v.len() - s]) {
-        *a = min(*a, b);
+        *a = min_mem(*a, b);
     }
 }
 
@@ -159,7 +176,7 @@ fn min_shifted_up(out: &mut Lanes, v: &Lanes, o: usize) {
     let s = o * LANES;
     let len = out.len() - s;
     for (a, &b) in out[..len].iter_mut().zip(&v[s..]) {
-        *a = min(*a, b);
+        *a = min_mem(*a, b);
     }
 }
 
@@ -172,6 +189,7 @@ fn scale_all(v: &mut Lanes, scale: f32) {
 }
 
 /// `out[j] = scale · min v[j-K ..= j]` (trailing window, clamped at column 0).
+#[inline(always)]
 fn trailing_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
     let (lay, k) = (g.lay, g.k);
     let n = lay.n;
@@ -220,6 +238,7 @@ fn trailing_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
 }
 
 /// `out[j] = scale · min v[j ..= j+K]` (leading window, clamped at the last column).
+#[inline(always)]
 fn leading_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
     let (lay, k) = (g.lay, g.k);
     let n = lay.n;
@@ -302,7 +321,8 @@ impl Work {
 impl Graph {
     /// Forward row `i` from `M = min(X, H)` of row `i-1` in `w.m` (`has_prev` false: the
     /// source). Expects `w.cost` to hold row `i`'s costs; leaves `M` of row `i` in `w.m`.
-    fn forward(&self, has_prev: bool, w: &mut Work, out: &mut RowValues) {
+    #[inline(always)]
+    fn forward_body(&self, has_prev: bool, w: &mut Work, out: &mut RowValues) {
         let n = self.lay.n;
         if has_prev {
             trailing_min(self, &w.m, self.g, &mut w.base);
@@ -338,7 +358,7 @@ impl Graph {
             }
             for h in out.h.iter_mut() {
                 for l in 0..LANES {
-                    h[l] = min(h[l], carry_h[l]);
+                    h[l] = min_mem(h[l], carry_h[l]);
                 }
             }
         } else {
@@ -360,7 +380,8 @@ impl Graph {
 
     /// Backward row `i` from row `i+1`'s values `next` (`None`: the sink). Expects `w.cost` to
     /// hold row `i`'s costs and `w.cost_next` row `i+1`'s.
-    fn backward(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+    #[inline(always)]
+    fn backward_body(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
         let n = self.lay.n;
         match next {
             Some(nx) => {
@@ -407,7 +428,7 @@ impl Graph {
             }
             for h in out.h.iter_mut() {
                 for l in 0..LANES {
-                    h[l] = min(h[l], carry_h[l]);
+                    h[l] = min_mem(h[l], carry_h[l]);
                 }
             }
         } else {
@@ -419,8 +440,111 @@ impl Graph {
     }
 }
 
+/// The instruction set the row steps are compiled for, picked once per sweep. The row steps
+/// are plain element-wise `f32` operations (no fused multiply-add, no reassociation), so every
+/// instruction set gives bit-identical values (test `every_instruction_set_gives_the_same_values`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Isa {
+    /// Whatever the build targets (SSE2 on a plain `x86_64` build: a lane row is two registers).
+    Portable,
+    /// AVX2: a lane row of eight `f32` is one register.
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+}
+
+impl Isa {
+    /// The widest instruction set of this CPU the row steps have a version for.
+    pub(super) fn detect() -> Self {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return Isa::Avx2;
+            }
+        }
+        Isa::Portable
+    }
+}
+
+/// The row steps of [`Graph`] compiled for AVX2 (the `_body` functions and their helpers are
+/// `#[inline(always)]`, so they are compiled again inside these functions).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{Graph, Lanes, Layout, RowValues, Work};
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
+        super::costs(row, lay, out);
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn forward(g: &Graph, has_prev: bool, w: &mut Work, out: &mut RowValues) {
+        g.forward_body(has_prev, w, out);
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn backward(g: &Graph, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+        g.backward_body(next, w, out);
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn hidden_steps(
+        lay: &Layout,
+        h: &Lanes,
+        forward: bool,
+        horizontal: bool,
+    ) -> Vec<(u32, f32)> {
+        super::hidden_steps(lay, h, forward, horizontal)
+    }
+}
+
+/// The row steps on the instruction set `isa` (see [`Isa`]).
+#[derive(Clone, Copy)]
+struct Steps {
+    g: Graph,
+    isa: Isa,
+}
+
+// SAFETY (every `unsafe` block below): `Isa::Avx2` is only built by `Isa::detect` after
+// `is_x86_feature_detected!("avx2")`, the one precondition of the `avx2` functions.
+#[allow(unsafe_code)]
+impl Steps {
+    fn costs(&self, row: &[f32], out: &mut Lanes) {
+        match self.isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { avx2::costs(row, &self.g.lay, out) },
+            Isa::Portable => costs(row, &self.g.lay, out),
+        }
+    }
+
+    fn forward(&self, has_prev: bool, w: &mut Work, out: &mut RowValues) {
+        match self.isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { avx2::forward(&self.g, has_prev, w, out) },
+            Isa::Portable => self.g.forward_body(has_prev, w, out),
+        }
+    }
+
+    fn backward(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+        match self.isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { avx2::backward(&self.g, next, w, out) },
+            Isa::Portable => self.g.backward_body(next, w, out),
+        }
+    }
+
+    fn hidden_steps(&self, h: &Lanes, forward: bool) -> Vec<(u32, f32)> {
+        let (lay, horizontal) = (&self.g.lay, self.g.horizontal);
+        match self.isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { avx2::hidden_steps(lay, h, forward, horizontal) },
+            Isa::Portable => hidden_steps(lay, h, forward, horizontal),
+        }
+    }
+}
+
 /// The hidden nodes of a stored row, reduced to the columns where the minimum over `j` of
 /// `H_stored[j] + H_other[j]` can be reached (see the module doc): `(column, value)`.
+#[inline(always)]
 fn hidden_steps(lay: &Layout, h: &Lanes, forward: bool, horizontal: bool) -> Vec<(u32, f32)> {
     let (n, d) = (lay.n, lay.d);
     // Columns fit in u32: a row of 2^32 columns would not fit in memory as f32 lanes.
@@ -531,18 +655,36 @@ pub(super) fn sweep<R: Send>(
     scored: &[bool],
     read: impl Fn(usize, &RowView<'_>) -> R + Sync,
 ) -> Vec<(usize, R)> {
+    sweep_on(Isa::detect(), chat, graph, discount, scored, read)
+}
+
+/// [`sweep`] with the row steps on `isa`.
+pub(super) fn sweep_on<R: Send>(
+    isa: Isa,
+    chat: &Matrix,
+    graph: &GraphParams,
+    discount: f64,
+    scored: &[bool],
+    read: impl Fn(usize, &RowView<'_>) -> R + Sync,
+) -> Vec<(usize, R)> {
     let (q, d) = (chat.rows(), chat.cols());
     if q == 0 || d == 0 {
         return Vec::new();
     }
     let lay = Layout::new(d);
-    let g = Graph {
-        k: graph.fan_out,
-        horizontal: graph.horizontal,
-        w: graph.hidden_cost as f32,
-        g: discount as f32,
-        lay,
+    let st = Steps {
+        g: Graph {
+            k: graph.fan_out,
+            horizontal: graph.horizontal,
+            w: graph.hidden_cost as f32,
+            g: discount as f32,
+            lay,
+        },
+        isa,
     };
+    // A fresh row for a pass to write its next `X` into, so that a row to keep is moved, not
+    // copied: zeroed memory straight from the allocator (every value is written before read).
+    let fresh = || vec![[0.0f32; LANES]; lay.n];
     let mid = q / 2;
     // Pass state carried from phase 1 to phase 2.
     let mut fw = Work::new(&lay);
@@ -556,12 +698,13 @@ pub(super) fn sweep<R: Send>(
         || {
             let mut kept: Vec<Option<Stored>> = (0..mid).map(|_| None).collect();
             for i in 0..mid {
-                costs(chat.row(i), &lay, &mut fw.cost);
-                g.forward(i > 0, &mut fw, &mut fcur);
+                st.costs(chat.row(i), &mut fw.cost);
+                st.forward(i > 0, &mut fw, &mut fcur);
                 if scored[i] {
+                    // The next row's forward step reads `M` (in `fw.m`), not `X`.
                     kept[i] = Some(Stored {
-                        x: fcur.x.clone(),
-                        hidden: hidden_steps(&lay, &fcur.h, true, g.horizontal),
+                        hidden: st.hidden_steps(&fcur.h, true),
+                        x: std::mem::replace(&mut fcur.x, fresh()),
                     });
                 }
             }
@@ -569,24 +712,28 @@ pub(super) fn sweep<R: Send>(
         },
         || {
             let mut kept: Vec<Option<Stored>> = (mid..q).map(|_| None).collect();
-            let mut first = true;
             for i in (mid..q).rev() {
-                if first {
-                    costs(chat.row(i), &lay, &mut bw.cost);
-                } else {
+                if i + 1 < q {
                     std::mem::swap(&mut bw.cost, &mut bw.cost_next);
-                    costs(chat.row(i), &lay, &mut bw.cost);
                 }
-                let next = (!first).then_some(&bnext);
-                g.backward(next, &mut bw, &mut bcur);
-                std::mem::swap(&mut bcur, &mut bnext);
-                first = false;
-                if scored[i] {
-                    kept[i - mid] = Some(Stored {
-                        x: bnext.x.clone(),
-                        hidden: hidden_steps(&lay, &bnext.h, false, g.horizontal),
+                st.costs(chat.row(i), &mut bw.cost);
+                let next = (i + 1 < q).then_some(&bnext);
+                st.backward(next, &mut bw, &mut bcur);
+                // Row i+1's values (in `bnext`) have been read for the last time: keep them.
+                if i + 1 < q && scored[i + 1] {
+                    kept[i + 1 - mid] = Some(Stored {
+                        hidden: st.hidden_steps(&bnext.h, false),
+                        x: std::mem::replace(&mut bnext.x, fresh()),
                     });
                 }
+                std::mem::swap(&mut bcur, &mut bnext);
+            }
+            // Row `mid` goes on into phase 2 (its values start the backward pass there).
+            if mid < q && scored[mid] {
+                kept[0] = Some(Stored {
+                    hidden: st.hidden_steps(&bnext.h, false),
+                    x: bnext.x.clone(),
+                });
             }
             kept
         },
@@ -605,8 +752,8 @@ pub(super) fn sweep<R: Send>(
             let mut bottom = bottom;
             let mut out = Vec::new();
             for i in mid..q {
-                costs(chat.row(i), &lay, &mut fw.cost);
-                g.forward(i > 0, &mut fw, &mut fcur);
+                st.costs(chat.row(i), &mut fw.cost);
+                st.forward(i > 0, &mut fw, &mut fcur);
                 if let Some(b) = bottom[i - mid].take() {
                     let view = RowView {
                         lay,
@@ -622,18 +769,12 @@ pub(super) fn sweep<R: Send>(
         || {
             let mut top = top;
             let mut out = Vec::new();
-            let mut first = mid == q;
             for i in (0..mid).rev() {
-                if first {
-                    costs(chat.row(i), &lay, &mut bw.cost);
-                } else {
-                    std::mem::swap(&mut bw.cost, &mut bw.cost_next);
-                    costs(chat.row(i), &lay, &mut bw.cost);
-                }
-                let next = (!first).then_some(&bnext);
-                g.backward(next, &mut bw, &mut bcur);
+                // The first row here continues from row `mid` (`mid < q` always: `q >= 1`).
+                std::mem::swap(&mut bw.cost, &mut bw.cost_next);
+                st.costs(chat.row(i), &mut bw.cost);
+                st.backward(Some(&bnext), &mut bw, &mut bcur);
                 std::mem::swap(&mut bcur, &mut bnext);
-                first = false;
                 if let Some(f) = top[i].take() {
                     let view = RowView {
                         lay,
@@ -650,4 +791,56 @@ pub(super) fn sweep<R: Send>(
     lower.reverse();
     lower.append(&mut upper);
     lower
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every value a reader can see of every row: `m(x_ij)` of every column, the best route
+    /// outside a band and the best hidden route.
+    fn everything(isa: Isa, chat: &Matrix, gp: &GraphParams, g: f64) -> Vec<(usize, Vec<u32>)> {
+        let scored = vec![true; chat.rows()];
+        sweep_on(isa, chat, gp, g, &scored, |i, view| {
+            let d = view.lay.d;
+            let mut bits: Vec<u32> = (0..d).map(|j| view.through(j).to_bits()).collect();
+            bits.push(view.best_outside(i % d, (i + 2) % d).to_bits());
+            bits.push(view.hidden.to_bits());
+            bits
+        })
+    }
+
+    #[test]
+    fn every_instruction_set_gives_the_same_values() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        for (q, d, k, horizontal) in [
+            (37, 203, 4, true),
+            (20, 1000, 9, true),
+            (9, 61, 3, false),
+            (1, 17, 2, true),
+            (12, 5, 8, true),
+        ] {
+            let data: Vec<f32> = (0..q * d)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    (state >> 40) as f32 / (1u64 << 24) as f32 * 2.8 - 0.3
+                })
+                .collect();
+            let chat = Matrix::from_vec(q, d, data).unwrap();
+            let gp = GraphParams {
+                fan_out: k,
+                horizontal,
+                hidden_cost: 1.2,
+            };
+            let portable = everything(Isa::Portable, &chat, &gp, 5.0 / 6.0);
+            let detected = everything(Isa::detect(), &chat, &gp, 5.0 / 6.0);
+            assert_eq!(portable.len(), q);
+            assert_eq!(
+                portable, detected,
+                "{q}x{d}, K = {k}, horizontal {horizontal}"
+            );
+        }
+    }
 }
