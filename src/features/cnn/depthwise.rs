@@ -27,6 +27,7 @@ use tract_onnx::prelude::*;
 use tract_onnx::tract_core::internal::{
     ensure, format_err, DimLike, EvalOp, Op, StaticName, Validation,
 };
+use tract_onnx::tract_core::ops::array::{Pad, PadMode};
 use tract_onnx::tract_core::ops::binary::TypedBinOp;
 use tract_onnx::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_onnx::tract_core::ops::einsum::EinSum;
@@ -49,12 +50,16 @@ const EXPAND_CHUNK: usize = 8;
 /// planes tract's products, with their register tiles, are faster than our per-plane sums.
 const EXPAND_MIN_PLANE: usize = 56 * 56;
 
-/// A 1x1 convolution (`channels x in_channels` weights, one bias per output channel) computed
-/// inside [`DepthwiseConv`], right before it, one output plane at a time.
+/// A full convolution computed inside [`DepthwiseConv`], right before it, one output plane
+/// at a time: the 1x1 expansion of an inverted-residual block, or the network's stem (3x3,
+/// stride 2, 3 -> 32 channels).
 #[derive(Clone, Debug)]
 struct Expand {
     in_channels: usize,
-    /// `channels * in_channels`, row-major per output channel.
+    /// Its own planes: `channels` = `in_channels` (the planes split into stride phases),
+    /// `output` = the depthwise layer's input plane.
+    geometry: Geometry,
+    /// `channels * in_channels * kh * kw`, row-major per output channel (OIHW).
     weights: Arc<Vec<f32>>,
     /// One per output channel; `None` for a convolution without bias (nothing is added).
     bias: Option<Arc<Vec<f32>>>,
@@ -125,6 +130,7 @@ impl PartialEq for DepthwiseConv {
                 (None, None) => true,
                 (Some(a), Some(b)) => {
                     a.in_channels == b.in_channels
+                        && a.geometry == b.geometry
                         && bits(&a.weights) == bits(&b.weights)
                         && a.bias.as_deref().map(|b| bits(b)) == b.bias.as_deref().map(|b| bits(b))
                 }
@@ -225,16 +231,22 @@ impl DepthwiseConv {
             .map_or(self.geometry.channels, |e| e.in_channels)
     }
 
+    /// The op's input plane: the front convolution's, or the layer's.
+    fn in_plane(&self) -> (usize, usize) {
+        self.expand
+            .as_ref()
+            .map_or(self.geometry.input, |e| e.geometry.input)
+    }
+
     /// `[.., c, oh, ow]` for an input of shape `[.., in_channels, h, w]`.
     fn output_shape(&self, input: &[usize]) -> TractResult<Vec<usize>> {
         let g = &self.geometry;
         let rank = input.len();
         let k = self.in_channels();
+        let (h, w) = self.in_plane();
         ensure!(
-            rank >= 3 && input[rank - 3..] == [k, g.input.0, g.input.1],
-            "depthwise convolution built for [.., {k}, {}, {}] got {input:?}",
-            g.input.0,
-            g.input.1
+            rank >= 3 && input[rank - 3..] == [k, h, w],
+            "depthwise convolution built for [.., {k}, {h}, {w}] got {input:?}"
         );
         let mut shape = input.to_vec();
         shape[rank - 3] = g.channels;
@@ -247,7 +259,8 @@ impl DepthwiseConv {
     #[cfg(test)]
     fn run(&self, input: &[f32]) -> Vec<f32> {
         let g = &self.geometry;
-        let images = input.len() / (self.in_channels() * g.input.0 * g.input.1);
+        let (h, w) = self.in_plane();
+        let images = input.len() / (self.in_channels() * h * w);
         let mut output = vec![f32::NAN; images * g.channels * g.output.0 * g.output.1];
         self.run_into(input, &mut output);
         output
@@ -312,16 +325,49 @@ fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
     let mut phases = vec![0.0f32; g.stride.0 * g.stride.1 * g.phase_len()];
     let mut acc = vec![0.0f32; band_rows * wq];
     let mut expanded = vec![0.0f32; if op.expand.is_some() { in_plane } else { 0 }];
-    let image_in = op.in_channels() * in_plane;
+    // A front convolution other than 1x1 reads the stride phases of its input planes, on a
+    // grid as wide as a phase row (like [`plane`]).
+    let front = op.expand.as_ref().filter(|e| !e.is_pointwise());
+    let front_phase_len = front.map_or(0, |e| e.geometry.phase_len());
+    let front_phases_per_plane = front.map_or(0, |e| e.geometry.stride.0 * e.geometry.stride.1);
+    let mut front_phases =
+        vec![0.0f32; op.in_channels() * front_phases_per_plane * front_phase_len];
+    let mut grid = vec![
+        0.0f32;
+        front.map_or(0, |e| {
+            let (_, wq) = e.geometry.phase_size();
+            (EXPAND_BAND / wq).max(1) * wq
+        })
+    ];
+    let (fh, fw) = op.in_plane();
+    let image_in = op.in_channels() * fh * fw;
     for (image, image_out) in input
         .chunks_exact(image_in)
         .zip(output.chunks_exact_mut(g.channels * out_plane))
     {
+        if let Some(e) = front {
+            let per_plane = front_phases_per_plane * front_phase_len;
+            for (src, phases) in image
+                .chunks_exact(fh * fw)
+                .zip(front_phases.chunks_exact_mut(per_plane))
+            {
+                fill_phases(&e.geometry, src, phases, |v| v);
+            }
+        }
         for (c, dst) in image_out.chunks_exact_mut(out_plane).enumerate() {
             let src = match &op.expand {
                 None => &image[c * in_plane..(c + 1) * in_plane],
+                Some(e) if e.is_pointwise() => {
+                    let n = fh * fw;
+                    expand_plane(e, c, |k, _| &image[k * n..(k + 1) * n], &mut expanded, None);
+                    &expanded[..]
+                }
                 Some(e) => {
-                    expand_plane(e, c, image, &mut expanded);
+                    let per_plane = front_phases_per_plane * front_phase_len;
+                    let phases = |k: usize, phase: usize| {
+                        &front_phases[k * per_plane + phase * front_phase_len..][..front_phase_len]
+                    };
+                    expand_plane(e, c, phases, &mut expanded, Some(&mut grid[..]));
                     &expanded[..]
                 }
             };
@@ -350,35 +396,79 @@ fn channel(
     plane(g, phases, w, op.bias[c], op.clamp, acc, dst);
 }
 
-/// Output channel `c` of the expansion `e` of one image (`in_channels` planes of
-/// `out.len()` values) into `out`: `sum_k w[c][k] * x[k]` as one fused multiply-add chain in
-/// `k` order starting from zero, then `+ bias[c]`, the order of tract's matrix-product kernels
-/// (so the values are tract's, bit for bit).
+impl Expand {
+    /// A 1x1 convolution with stride 1 and no padding: its input planes are read as they are.
+    fn is_pointwise(&self) -> bool {
+        let g = &self.geometry;
+        g.kernel == (1, 1) && g.stride == (1, 1) && g.pad_before == (0, 0) && g.input == g.output
+    }
+}
+
+/// Output channel `c` of the front convolution `e` of one image into `out` (the depthwise
+/// layer's input plane): `sum w[c][k][ky][kx] * x[k][..]` over `(k, ky, kx)` in row-major
+/// order as one fused multiply-add chain starting from zero, then `+ bias[c]`: the order of
+/// tract's matrix-product kernels over the im2col rows (so the values are tract's, bit for
+/// bit). `source(k, phase)` is stride phase `phase` of input plane `k` (the plane itself for a
+/// pointwise convolution); `grid` holds one band on the phases' row width (other than
+/// pointwise).
 #[inline(always)]
-fn expand_plane(e: &Expand, c: usize, image: &[f32], out: &mut [f32]) {
-    let n = out.len();
-    let k = e.in_channels;
-    let w = &e.weights[c * k..(c + 1) * k];
+fn expand_plane<'a>(
+    e: &Expand,
+    c: usize,
+    source: impl Fn(usize, usize) -> &'a [f32],
+    out: &mut [f32],
+    grid: Option<&mut [f32]>,
+) {
+    let g = &e.geometry;
+    let (oh, ow) = g.output;
+    let (kh, kw) = g.kernel;
+    let (sh, sw) = g.stride;
+    let taps = kh * kw;
+    let t_all = e.in_channels * taps;
+    let w = &e.weights[c * t_all..(c + 1) * t_all];
     let bias = e.bias.as_ref().map(|b| b[c]);
-    for (b, acc) in out.chunks_mut(EXPAND_BAND).enumerate() {
-        let start = b * EXPAND_BAND;
-        let m = acc.len();
-        let stream = |j: usize| &image[j * n + start..j * n + start + m];
-        acc.fill(0.0);
-        let mut j = 0;
-        while j + EXPAND_CHUNK <= k {
-            fma_chain::<EXPAND_CHUNK>(acc, &w[j..j + EXPAND_CHUNK], |t| stream(j + t));
-            j += EXPAND_CHUNK;
-        }
-        while j < k {
-            fma_chain::<1>(acc, &w[j..j + 1], |_| stream(j));
-            j += 1;
-        }
-        if let Some(bias) = bias {
-            for a in acc.iter_mut() {
-                *a += bias;
+    let (_, wq) = g.phase_size();
+    let wq = if grid.is_some() { wq } else { ow };
+    let band_rows = (EXPAND_BAND / wq).max(1).min(oh);
+    let mut grid = grid;
+    let mut y0 = 0;
+    while y0 < oh {
+        let rows = band_rows.min(oh - y0);
+        let n = rows * wq;
+        let stream = |t: usize| {
+            let (k, r) = (t / taps, t % taps);
+            let (ky, kx) = (r / kw, r % kw);
+            let start = (y0 + ky / sh) * wq + kx / sw;
+            &source(k, (ky % sh) * sw + kx % sw)[start..start + n]
+        };
+        let sum = |acc: &mut [f32]| {
+            acc.fill(0.0);
+            let mut t = 0;
+            while t + EXPAND_CHUNK <= t_all {
+                fma_chain::<EXPAND_CHUNK>(acc, &w[t..t + EXPAND_CHUNK], |j| stream(t + j));
+                t += EXPAND_CHUNK;
+            }
+            while t < t_all {
+                fma_chain::<1>(acc, &w[t..t + 1], |_| stream(t));
+                t += 1;
+            }
+            if let Some(bias) = bias {
+                for a in acc.iter_mut() {
+                    *a += bias;
+                }
+            }
+        };
+        match grid.as_deref_mut() {
+            None => sum(&mut out[y0 * ow..y0 * ow + n]),
+            Some(grid) => {
+                let acc = &mut grid[..n];
+                sum(acc);
+                for (r, row) in acc.chunks_exact(wq).enumerate() {
+                    out[(y0 + r) * ow..(y0 + r + 1) * ow].copy_from_slice(&row[..ow]);
+                }
             }
         }
+        y0 += rows;
     }
 }
 
@@ -557,20 +647,22 @@ fn all_taps<'a, const T: usize>(
 
 /// Replaces every depthwise convolution of `model` that [`DepthwiseConv`] can run (and the
 /// `Max`/`Min` with a constant that directly follow it or feed only it) by a
-/// [`DepthwiseConv`]; returns how many. `model` must be typed and decluttered (tract's `Conv`
-/// ops, constants folded).
-pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<usize> {
+/// [`DepthwiseConv`], taking in the convolution in front of it on large planes; returns how
+/// many depthwise layers and how many of those with a front convolution. `model` must be typed
+/// and decluttered (tract's `Conv` ops, 1x1 convolutions as `EinSum`, constants folded).
+pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<(usize, usize)> {
     let convs: Vec<usize> = model
         .nodes()
         .iter()
         .filter(|n| n.op_is::<Conv>())
         .map(|n| n.id)
         .collect();
-    let mut count = 0;
+    let (mut count, mut fronts) = (0, 0);
     for id in convs {
         let Some((op, source, last)) = replacement(model, id)? else {
             continue;
         };
+        fronts += usize::from(op.expand.is_some());
         let node = model.node(id);
         let mut patch = TypedModelPatch::new(format!("depthwise {}", node.name));
         let input = patch.tap_model(model, source)?;
@@ -582,7 +674,7 @@ pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<usize> {
     if count > 0 {
         model.compact()?;
     }
-    Ok(count)
+    Ok((count, fronts))
 }
 
 /// The operator replacing node `id`, the outlet it reads (the conv's input, or the input of
@@ -673,9 +765,15 @@ fn replacement(
         source = input;
     }
     if h * w >= EXPAND_MIN_PLANE {
-        if let Some((input, expand)) = expansion(model, source, channels)? {
-            op.expand = Some(expand);
-            source = input;
+        let front = match expansion(model, source, channels)? {
+            Some(found) => Some(found),
+            None => front_conv(model, source, channels)?,
+        };
+        if let Some((input, expand)) = front {
+            if expand.geometry.output == (h, w) {
+                op.expand = Some(expand);
+                source = input;
+            }
         }
     }
     let mut last = OutletId::new(id, 0);
@@ -786,12 +884,125 @@ fn expansion(
     if model.outlet_fact(node.inputs[1])?.shape.as_concrete() != Some(&[channels, k][..]) {
         return Ok(None);
     }
+    let (h, w) = (dims[r - 2], dims[r - 1]);
     let expand = Expand {
         in_channels: k,
+        geometry: Geometry {
+            channels: k,
+            input: (h, w),
+            output: (h, w),
+            kernel: (1, 1),
+            stride: (1, 1),
+            pad_before: (0, 0),
+        },
         weights: Arc::new(weights),
         bias: bias.map(Arc::new),
     };
     Ok(Some((node.inputs[0], expand)))
+}
+
+/// When `outlet` is a float convolution with `channels` outputs (group 1, dilation 1, constant
+/// weights and bias, NCHW), possibly after a zero `Pad` of its spatial axes, each node used only
+/// by the next: its input and the [`Expand`] computing it.
+fn front_conv(
+    model: &TypedModel,
+    outlet: OutletId,
+    channels: usize,
+) -> TractResult<Option<(OutletId, Expand)>> {
+    let only_use = |o: OutletId| -> TractResult<bool> {
+        Ok(o.slot == 0
+            && model.outlet_successors(o).len() == 1
+            && !model.output_outlets()?.contains(&o))
+    };
+    let node = model.node(outlet.node);
+    let Some(conv) = node.op_as::<Conv>() else {
+        return Ok(None);
+    };
+    if !only_use(outlet)? || node.inputs.len() != 3 {
+        return Ok(None);
+    }
+    let spec = &conv.pool_spec;
+    let k = spec.input_channels;
+    let plain = conv.q_params.is_none()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && matches!(spec.data_format, DataFormat::NCHW | DataFormat::CHW)
+        && spec.kernel_shape.len() == 2
+        && spec.dilations().iter().all(|&d| d == 1)
+        && spec.strides().iter().all(|&s| s > 0)
+        && conv.group == 1
+        && spec.output_channels == channels;
+    if !plain {
+        return Ok(None);
+    }
+    let mut input = node.inputs[0];
+    let fact = model.outlet_fact(input)?;
+    let Some(dims) = fact.shape.as_concrete() else {
+        return Ok(None);
+    };
+    let r = dims.len();
+    if fact.datum_type != f32::datum_type() || r < 3 || dims[r - 3] != k {
+        return Ok(None);
+    }
+    let padded = (dims[r - 2], dims[r - 1]);
+    let padding = spec.computed_padding(&[padded.0, padded.1]);
+    let mut pad_before = (padding[0].pad_before, padding[1].pad_before);
+    let mut plane = padded;
+    // A zero `Pad` of only the two spatial axes in front (TF exports pad stride-2 "SAME"
+    // convolutions explicitly): the phases pad with zeros anyway.
+    let producer = model.node(input.node);
+    if let Some(pad) = producer.op_as::<Pad>() {
+        let zero = match &pad.mode {
+            PadMode::Constant(v) => {
+                v.len() == 1
+                    && v.datum_type() == f32::datum_type()
+                    && v.try_as_plain_ram()?.as_slice::<f32>()?[0].to_bits() == 0
+            }
+            _ => false,
+        };
+        let spatial_only =
+            pad.pads.len() == r && pad.pads[..r - 2].iter().all(|&(a, b)| a == 0 && b == 0);
+        if zero && spatial_only && only_use(input)? && producer.inputs.len() == 1 {
+            let (top, bottom) = pad.pads[r - 2];
+            let (left, right) = pad.pads[r - 1];
+            let Some(src) = model.outlet_fact(producer.inputs[0])?.shape.as_concrete() else {
+                return Ok(None);
+            };
+            if src.len() != r || (src[r - 2] + top + bottom, src[r - 1] + left + right) != padded {
+                return Ok(None);
+            }
+            pad_before = (pad_before.0 + top, pad_before.1 + left);
+            plane = (src[r - 2], src[r - 1]);
+            input = producer.inputs[0];
+        }
+    }
+    let (kh, kw) = (spec.kernel_shape[0], spec.kernel_shape[1]);
+    let strides = spec.strides();
+    let geometry = Geometry {
+        channels: k,
+        input: plane,
+        output: (padding[0].convoluted, padding[1].convoluted),
+        kernel: (kh, kw),
+        stride: (strides[0], strides[1]),
+        pad_before,
+    };
+    let Some(weights) = const_f32(model, node.inputs[1], channels * k * kh * kw)? else {
+        return Ok(None);
+    };
+    let Some(mut bias) =
+        const_f32(model, node.inputs[2], channels)?.or(const_f32(model, node.inputs[2], 1)?)
+    else {
+        return Ok(None);
+    };
+    if bias.len() == 1 {
+        bias = vec![bias[0]; channels];
+    }
+    let expand = Expand {
+        in_channels: k,
+        geometry,
+        weights: Arc::new(weights),
+        bias: Some(Arc::new(bias)),
+    };
+    Ok(Some((input, expand)))
 }
 
 /// When `outlet` is the output of a `bound` (`Max` or `Min`) with a constant scalar, used only
@@ -872,30 +1083,49 @@ mod tests {
 
     /// Direct definition: `out[c][y][x] = bias[c] + sum w[c][ky][kx] * in[c][y*sh+ky-pt][x*sw+kx-pl]`
     /// (input values clamped by the input clamp, zero outside the input), then the clamp; with
-    /// an expansion, `in[c]` is first `fma(w[c][k-1], x[k-1], .. fma(w[c][0], x[0], 0)) + b[c]`.
+    /// a front convolution, `in[c][y][x]` is first the chain `v = fma(w[c][k][ky][kx],
+    /// x[k][y*sh+ky-pt][x*sw+kx-pl], v)` from `v = 0` over `(k, ky, kx)` in order, `+ b[c]`.
     fn naive(op: &DepthwiseConv, input: &[f32]) -> Vec<f32> {
         let g = &op.geometry;
         let ((h, w), (oh, ow), (kh, kw)) = (g.input, g.output, g.kernel);
         let n = h * w;
         let planes: Vec<Vec<f32>> = match &op.expand {
             None => input.chunks_exact(n).map(<[f32]>::to_vec).collect(),
-            Some(e) => input
-                .chunks_exact(e.in_channels * n)
-                .flat_map(|image| {
-                    (0..g.channels).map(move |c| {
-                        (0..n)
-                            .map(|i| {
-                                let mut v = 0.0f32;
-                                for k in 0..e.in_channels {
-                                    v = e.weights[c * e.in_channels + k]
-                                        .mul_add(image[k * n + i], v);
+            Some(e) => {
+                let f = &e.geometry;
+                let ((fh, fw), (fkh, fkw)) = (f.input, f.kernel);
+                let taps = e.in_channels * fkh * fkw;
+                input
+                    .chunks_exact(e.in_channels * fh * fw)
+                    .flat_map(|image| {
+                        (0..g.channels).map(move |c| {
+                            let mut plane = Vec::new();
+                            for y in 0..h {
+                                for x in 0..w {
+                                    let mut v = 0.0f32;
+                                    for t in 0..taps {
+                                        let (k, ky, kx) = (t / (fkh * fkw), t / fkw % fkh, t % fkw);
+                                        let iy = (y * f.stride.0 + ky) as isize
+                                            - f.pad_before.0 as isize;
+                                        let ix = (x * f.stride.1 + kx) as isize
+                                            - f.pad_before.1 as isize;
+                                        let inside = (0..fh as isize).contains(&iy)
+                                            && (0..fw as isize).contains(&ix);
+                                        let value = if inside {
+                                            image[(k * fh + iy as usize) * fw + ix as usize]
+                                        } else {
+                                            0.0
+                                        };
+                                        v = e.weights[c * taps + t].mul_add(value, v);
+                                    }
+                                    plane.push(e.bias.as_ref().map_or(v, |b| v + b[c]));
                                 }
-                                e.bias.as_ref().map_or(v, |b| v + b[c])
-                            })
-                            .collect()
+                            }
+                            plane
+                        })
                     })
-                })
-                .collect(),
+                    .collect()
+            }
         };
         let mut out = Vec::new();
         for (p, plane) in planes.iter().enumerate() {
@@ -937,8 +1167,9 @@ mod tests {
 
     /// Every kernel size, stride and padding the fast paths take (3x3, 5x5, other) on planes
     /// whose width is not a multiple of the vector width, two images per batch; with and
-    /// without an expansion (11 input channels: a chunk of 8 and single ones; a plane of more
-    /// than one expansion band; with and without bias) and an input clamp.
+    /// without a front convolution (a 1x1 expansion of 11 input channels: a chunk of 8 and
+    /// single ones, with and without bias; a 3x3 stride-2 stem; planes of more than one band)
+    /// and an input clamp.
     #[test]
     fn equals_the_direct_definition() {
         let cases = [
@@ -979,13 +1210,44 @@ mod tests {
                 // Clamps that cut values on both sides (inputs are in -1..1), on both paths of
                 // the stride-2 columns and the generic stride.
                 input_clamp: (case % 3 != 0).then_some((-0.25, 0.5)),
-                expand: (case % 2 == 0).then(|| Expand {
-                    in_channels: 11,
-                    weights: Arc::new(values(channels * 11, 3 + case as u32)),
-                    bias: (case != 4).then(|| Arc::new(values(channels, 5))),
-                }),
+                expand: match case {
+                    // The stem's shape: 3x3, stride 2, 3 input channels, padded after only
+                    // (TF "SAME") or on both sides.
+                    2 | 6 => {
+                        let pad = if case == 2 { (1, 1) } else { (0, 0) };
+                        let front_in = (2 * input.0, 2 * input.1);
+                        Some(Expand {
+                            in_channels: 3,
+                            geometry: Geometry {
+                                channels: 3,
+                                input: front_in,
+                                output: input,
+                                kernel: (3, 3),
+                                stride: (2, 2),
+                                pad_before: pad,
+                            },
+                            weights: Arc::new(values(channels * 27, 3 + case as u32)),
+                            bias: Some(Arc::new(values(channels, 5))),
+                        })
+                    }
+                    0 | 4 => Some(Expand {
+                        in_channels: 11,
+                        geometry: Geometry {
+                            channels: 11,
+                            input,
+                            output: input,
+                            kernel: (1, 1),
+                            stride: (1, 1),
+                            pad_before: (0, 0),
+                        },
+                        weights: Arc::new(values(channels * 11, 3 + case as u32)),
+                        bias: (case != 4).then(|| Arc::new(values(channels, 5))),
+                    }),
+                    _ => None,
+                },
             };
-            let x = values(2 * op.in_channels() * input.0 * input.1, 99);
+            let (fh, fw) = op.in_plane();
+            let x = values(2 * op.in_channels() * fh * fw, 99);
             let want = naive(&op, &x);
             let got = op.run(&x);
             assert_eq!(got.len(), want.len(), "case {case}");
@@ -1001,9 +1263,9 @@ mod tests {
                 );
             }
             let k = op.in_channels();
-            let shape = op.output_shape(&[2, k, input.0, input.1]).unwrap();
+            let shape = op.output_shape(&[2, k, fh, fw]).unwrap();
             assert_eq!(shape, [2, channels, geometry.output.0, geometry.output.1]);
-            assert!(op.output_shape(&[2, k + 1, input.0, input.1]).is_err());
+            assert!(op.output_shape(&[2, k + 1, fh, fw]).is_err());
         }
     }
 }
