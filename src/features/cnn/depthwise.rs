@@ -1,25 +1,35 @@
 //! Depthwise convolutions (one `kh x kw` filter per channel, EfficientNet's and MobileNet's
 //! inverted-residual blocks) as a tract operator of our own, wired into the graph at load time
-//! in place of tract's, together with a clamp that directly follows (ReLU6).
+//! in place of tract's, together with the clamps right before and after it (ReLU6) and, on
+//! large planes, the convolution in front of it (a block's 1x1 expansion, or the stem).
 //!
 //! Why: profiling tract 0.23.9 on EfficientNet-Lite0 up to `block10` showed its depthwise
 //! convolution taking over half of an inference (11.3 of 21.3 ms): its vector kernel only runs
 //! on stride-1 rows, so the two stride-2 layers (`conv_18`, `conv_41`) walk every tap scalar
 //! (6.5 ms together), and the 14x14 layers vectorise rows of only 14 points. The ReLU6 after
-//! every depthwise layer is a separate pass over the activations (1.1 ms).
+//! every depthwise layer is a separate pass over the activations (1.1 ms). On the 112x112 and
+//! 56x56 planes the layer in front writes activations larger than the L2 cache (96 x 112 x 112
+//! values = 4.8 MB after block 1's expansion) that the depthwise layer then reads back: tract's
+//! product for that expansion ran at a third of its speed on the small planes.
 //!
 //! How: per channel, the zero-padded input plane is split into its `sh x sw` stride phases
 //! (row and column remainders), so that every tap reads a contiguous run of one phase. The
 //! output is accumulated on a grid as wide as a phase row (the columns past the output width
 //! are computed and dropped), so each tap is one long, branch-free multiply-add over a band of
-//! rows that stays in L1, which the compiler vectorises (AVX-512 or AVX2 when the CPU has them,
-//! chosen at run time). The clamp is applied while the band is copied out.
+//! rows that stays in L1, which the compiler vectorises (AVX-512 or AVX2 + FMA when the CPU has
+//! them, chosen at run time). The clamp before is applied while the phases are filled, the
+//! clamp after while the band is copied out. With a front convolution, each input plane of the
+//! depthwise layer is first computed from the op's input (one plane, in L1/L2) and never
+//! stored: a 1x1 expansion from the input planes as they are, the stem from the stride phases
+//! of the image's planes, both with the same banded multiply-add over contiguous runs.
 //!
 //! Invariants: for every output value the sum is taken in tract's order (the bias, then one
 //! multiply and one add per tap, taps in row-major order, no fused multiply-add), and padding
-//! taps add `w * 0`, so results equal tract's up to the sign of zero; only float convolutions
-//! with constant weights, dilation 1 and NCHW/CHW layout are rewritten, everything else keeps
-//! tract's operator.
+//! taps add `w * 0`, so results equal tract's up to the sign of zero; a front convolution sums
+//! like tract's matrix-product kernels (one fused multiply-add chain over input channel, then
+//! kernel row and column, from zero, then the bias), so it is bit-identical too. Only float
+//! convolutions with constant weights, dilation 1 and NCHW/CHW layout are rewritten, everything
+//! else keeps tract's operators.
 
 use std::sync::Arc;
 
@@ -441,34 +451,44 @@ fn expand_plane<'a>(
             let start = (y0 + ky / sh) * wq + kx / sw;
             &source(k, (ky % sh) * sw + kx % sw)[start..start + n]
         };
-        let sum = |acc: &mut [f32]| {
-            acc.fill(0.0);
-            let mut t = 0;
-            while t + EXPAND_CHUNK <= t_all {
-                fma_chain::<EXPAND_CHUNK>(acc, &w[t..t + EXPAND_CHUNK], |j| stream(t + j));
-                t += EXPAND_CHUNK;
-            }
-            while t < t_all {
-                fma_chain::<1>(acc, &w[t..t + 1], |_| stream(t));
-                t += 1;
-            }
-            if let Some(bias) = bias {
-                for a in acc.iter_mut() {
-                    *a += bias;
-                }
-            }
-        };
+        // (A plain function, not a closure: closures do not get the caller's target features,
+        // and `mul_add` without FMA is a libm call.)
         match grid.as_deref_mut() {
-            None => sum(&mut out[y0 * ow..y0 * ow + n]),
+            None => front_band(&mut out[y0 * ow..y0 * ow + n], w, bias, stream),
             Some(grid) => {
                 let acc = &mut grid[..n];
-                sum(acc);
+                front_band(acc, w, bias, stream);
                 for (r, row) in acc.chunks_exact(wq).enumerate() {
                     out[(y0 + r) * ow..(y0 + r + 1) * ow].copy_from_slice(&row[..ow]);
                 }
             }
         }
         y0 += rows;
+    }
+}
+
+/// One band of a front convolution: `acc = fma chain of w[t] * stream(t) over t, + bias`.
+#[inline(always)]
+fn front_band<'a>(
+    acc: &mut [f32],
+    w: &[f32],
+    bias: Option<f32>,
+    stream: impl Fn(usize) -> &'a [f32] + Copy,
+) {
+    acc.fill(0.0);
+    let mut t = 0;
+    while t + EXPAND_CHUNK <= w.len() {
+        fma_chain::<EXPAND_CHUNK>(acc, &w[t..t + EXPAND_CHUNK], |j| stream(t + j));
+        t += EXPAND_CHUNK;
+    }
+    while t < w.len() {
+        fma_chain::<1>(acc, &w[t..t + 1], |_| stream(t));
+        t += 1;
+    }
+    if let Some(bias) = bias {
+        for a in acc.iter_mut() {
+            *a += bias;
+        }
     }
 }
 
