@@ -1,25 +1,35 @@
 //! Depthwise convolutions (one `kh x kw` filter per channel, EfficientNet's and MobileNet's
 //! inverted-residual blocks) as a tract operator of our own, wired into the graph at load time
-//! in place of tract's, together with a clamp that directly follows (ReLU6).
+//! in place of tract's, together with the clamps right before and after it (ReLU6) and, on
+//! large planes, the convolution in front of it (a block's 1x1 expansion, or the stem).
 //!
 //! Why: profiling tract 0.23.9 on EfficientNet-Lite0 up to `block10` showed its depthwise
 //! convolution taking over half of an inference (11.3 of 21.3 ms): its vector kernel only runs
 //! on stride-1 rows, so the two stride-2 layers (`conv_18`, `conv_41`) walk every tap scalar
 //! (6.5 ms together), and the 14x14 layers vectorise rows of only 14 points. The ReLU6 after
-//! every depthwise layer is a separate pass over the activations (1.1 ms).
+//! every depthwise layer is a separate pass over the activations (1.1 ms). On the 112x112 and
+//! 56x56 planes the layer in front writes activations larger than the L2 cache (96 x 112 x 112
+//! values = 4.8 MB after block 1's expansion) that the depthwise layer then reads back: tract's
+//! product for that expansion ran at a third of its speed on the small planes.
 //!
 //! How: per channel, the zero-padded input plane is split into its `sh x sw` stride phases
 //! (row and column remainders), so that every tap reads a contiguous run of one phase. The
 //! output is accumulated on a grid as wide as a phase row (the columns past the output width
 //! are computed and dropped), so each tap is one long, branch-free multiply-add over a band of
-//! rows that stays in L1, which the compiler vectorises (AVX-512 or AVX2 when the CPU has them,
-//! chosen at run time). The clamp is applied while the band is copied out.
+//! rows that stays in L1, which the compiler vectorises (AVX-512 or AVX2 + FMA when the CPU has
+//! them, chosen at run time). The clamp before is applied while the phases are filled, the
+//! clamp after while the band is copied out. With a front convolution, each input plane of the
+//! depthwise layer is first computed from the op's input (one plane, in L1/L2) and never
+//! stored: a 1x1 expansion from the input planes as they are, the stem from the stride phases
+//! of the image's planes, both with the same banded multiply-add over contiguous runs.
 //!
 //! Invariants: for every output value the sum is taken in tract's order (the bias, then one
 //! multiply and one add per tap, taps in row-major order, no fused multiply-add), and padding
-//! taps add `w * 0`, so results equal tract's up to the sign of zero; only float convolutions
-//! with constant weights, dilation 1 and NCHW/CHW layout are rewritten, everything else keeps
-//! tract's operator.
+//! taps add `w * 0`, so results equal tract's up to the sign of zero; a front convolution sums
+//! like tract's matrix-product kernels (one fused multiply-add chain over input channel, then
+//! kernel row and column, from zero, then the bias), so it is bit-identical too. Only float
+//! convolutions with constant weights, dilation 1 and NCHW/CHW layout are rewritten, everything
+//! else keeps tract's operators.
 
 use std::sync::Arc;
 
@@ -27,13 +37,43 @@ use tract_onnx::prelude::*;
 use tract_onnx::tract_core::internal::{
     ensure, format_err, DimLike, EvalOp, Op, StaticName, Validation,
 };
+use tract_onnx::tract_core::ops::array::{Pad, PadMode};
 use tract_onnx::tract_core::ops::binary::TypedBinOp;
 use tract_onnx::tract_core::ops::cnn::{Conv, KernelFormat};
+use tract_onnx::tract_core::ops::einsum::EinSum;
 use tract_onnx::tract_core::ops::nn::DataFormat;
 use tract_onnx::tract_core::plan::EvalContext;
 
 /// Output values accumulated per band: 4096 `f32` (16 KiB) stay in L1 with the phases' rows.
 const BAND_VALUES: usize = 4096;
+
+/// Values of an expanded plane computed per band (8 KiB, in L1 next to the input streams).
+const EXPAND_BAND: usize = 2048;
+
+/// Input channels summed per pass over an expansion band (held in registers in between).
+const EXPAND_CHUNK: usize = 8;
+
+/// Smallest input plane (`h * w`) whose 1x1 expansion is fused into the depthwise layer that
+/// follows it. On large planes the expanded activations (e.g. 96 x 112 x 112 = 4.8 MB) do not
+/// fit in the cache and tract's matrix product is bound by writing them and the depthwise
+/// layer by reading them back; computed one plane at a time they stay in L1/L2. On small
+/// planes tract's products, with their register tiles, are faster than our per-plane sums.
+const EXPAND_MIN_PLANE: usize = 56 * 56;
+
+/// A full convolution computed inside [`DepthwiseConv`], right before it, one output plane
+/// at a time: the 1x1 expansion of an inverted-residual block, or the network's stem (3x3,
+/// stride 2, 3 -> 32 channels).
+#[derive(Clone, Debug)]
+struct Expand {
+    in_channels: usize,
+    /// Its own planes: `channels` = `in_channels` (the planes split into stride phases),
+    /// `output` = the depthwise layer's input plane.
+    geometry: Geometry,
+    /// `channels * in_channels * kh * kw`, row-major per output channel (OIHW).
+    weights: Arc<Vec<f32>>,
+    /// One per output channel; `None` for a convolution without bias (nothing is added).
+    bias: Option<Arc<Vec<f32>>>,
+}
 
 /// Plane sizes, kernel, strides and padding of one depthwise layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -76,6 +116,13 @@ pub(crate) struct DepthwiseConv {
     bias: Arc<Vec<f32>>,
     /// `(lo, hi)`, infinite when there is no clamp on that side.
     clamp: (f32, f32),
+    /// A 1x1 convolution producing this layer's input planes from the op's input (the
+    /// expansion of an inverted-residual block); `None` when the op's input is the layer's.
+    expand: Option<Expand>,
+    /// `(lo, hi)` applied to the values entering the convolution (a clamp right before it,
+    /// e.g. the ReLU6 after the stem or after the expansion); `None` when there is none.
+    /// Padding stays zero: in the graph the clamp comes before the convolution pads its input.
+    input_clamp: Option<(f32, f32)>,
 }
 
 /// Bitwise equality of the parameters (tract compares operators to merge equal nodes; `Eq`
@@ -87,6 +134,18 @@ impl PartialEq for DepthwiseConv {
             && bits(&self.weights) == bits(&other.weights)
             && bits(&self.bias) == bits(&other.bias)
             && bits(&[self.clamp.0, self.clamp.1]) == bits(&[other.clamp.0, other.clamp.1])
+            && self.input_clamp.map(|(lo, hi)| bits(&[lo, hi]))
+                == other.input_clamp.map(|(lo, hi)| bits(&[lo, hi]))
+            && match (&self.expand, &other.expand) {
+                (None, None) => true,
+                (Some(a), Some(b)) => {
+                    a.in_channels == b.in_channels
+                        && a.geometry == b.geometry
+                        && bits(&a.weights) == bits(&b.weights)
+                        && a.bias.as_deref().map(|b| bits(b)) == b.bias.as_deref().map(|b| bits(b))
+                }
+                _ => false,
+            }
     }
 }
 
@@ -100,8 +159,17 @@ impl Op for DepthwiseConv {
     fn info(&self) -> TractResult<Vec<String>> {
         let g = &self.geometry;
         Ok(vec![format!(
-            "{} channels, {:?} -> {:?}, kernel {:?}, stride {:?}, pad {:?}, clamp {:?}",
-            g.channels, g.input, g.output, g.kernel, g.stride, g.pad_before, self.clamp
+            "{} channels ({} in), {:?} -> {:?}, kernel {:?}, stride {:?}, pad {:?}, \
+             input clamp {:?}, clamp {:?}",
+            g.channels,
+            self.in_channels(),
+            g.input,
+            g.output,
+            g.kernel,
+            g.stride,
+            g.pad_before,
+            self.input_clamp,
+            self.clamp
         )])
     }
 
@@ -120,8 +188,16 @@ impl EvalOp for DepthwiseConv {
             .first()
             .ok_or_else(|| format_err!("depthwise convolution without input"))?;
         let shape = self.output_shape(input.shape())?;
-        let output = self.run(input.try_as_plain_ram()?.as_slice::<f32>()?);
-        let tensor = tract_ndarray::ArrayD::from_shape_vec(shape, output)?.into_tensor();
+        // The output is written in place: going through a `Vec` and `ArrayD` would copy it
+        // once more (tract copies an array into a fresh aligned buffer).
+        // SAFETY: an f32 tensor of `shape`; `run_into` writes every one of its values (every
+        // row of every output plane) before the tensor is handed to anyone.
+        #[allow(unsafe_code)]
+        let mut tensor = unsafe { Tensor::uninitialized::<f32>(&shape)? };
+        self.run_into(
+            input.try_as_plain_ram()?.as_slice::<f32>()?,
+            tensor.try_as_plain_ram_mut()?.as_slice_mut::<f32>()?,
+        );
         Ok(tvec!(tensor.into_tvalue()))
     }
 
@@ -158,50 +234,72 @@ impl TypedOp for DepthwiseConv {
 }
 
 impl DepthwiseConv {
-    /// `[.., c, oh, ow]` for an input of shape `[.., c, h, w]`.
+    /// Channels of the op's input: the expansion's inputs, or the layer's channels.
+    fn in_channels(&self) -> usize {
+        self.expand
+            .as_ref()
+            .map_or(self.geometry.channels, |e| e.in_channels)
+    }
+
+    /// The op's input plane: the front convolution's, or the layer's.
+    fn in_plane(&self) -> (usize, usize) {
+        self.expand
+            .as_ref()
+            .map_or(self.geometry.input, |e| e.geometry.input)
+    }
+
+    /// `[.., c, oh, ow]` for an input of shape `[.., in_channels, h, w]`.
     fn output_shape(&self, input: &[usize]) -> TractResult<Vec<usize>> {
         let g = &self.geometry;
         let rank = input.len();
+        let k = self.in_channels();
+        let (h, w) = self.in_plane();
         ensure!(
-            rank >= 3 && input[rank - 3..] == [g.channels, g.input.0, g.input.1],
-            "depthwise convolution built for [.., {}, {}, {}] got {input:?}",
-            g.channels,
-            g.input.0,
-            g.input.1
+            rank >= 3 && input[rank - 3..] == [k, h, w],
+            "depthwise convolution built for [.., {k}, {h}, {w}] got {input:?}"
         );
         let mut shape = input.to_vec();
+        shape[rank - 3] = g.channels;
         shape[rank - 2] = g.output.0;
         shape[rank - 1] = g.output.1;
         Ok(shape)
     }
 
     /// The output of every plane of `input` (`[.., c, h, w]`, contiguous).
+    #[cfg(test)]
     fn run(&self, input: &[f32]) -> Vec<f32> {
         let g = &self.geometry;
-        let in_plane = g.input.0 * g.input.1;
-        let out_plane = g.output.0 * g.output.1;
-        let mut output = vec![0.0f32; input.len() / in_plane * out_plane];
+        let (h, w) = self.in_plane();
+        let images = input.len() / (self.in_channels() * h * w);
+        let mut output = vec![f32::NAN; images * g.channels * g.output.0 * g.output.1];
+        self.run_into(input, &mut output);
+        output
+    }
+
+    /// Writes every value of `output` (`[.., c, oh, ow]`) from `input` (`[.., c, h, w]`).
+    fn run_into(&self, input: &[f32], output: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
         {
             if std::arch::is_x86_feature_detected!("avx512f") {
                 // SAFETY: the CPU has AVX-512F, the one precondition of this function.
                 #[allow(unsafe_code)]
                 unsafe {
-                    simd::planes_avx512(self, input, &mut output)
+                    simd::planes_avx512(self, input, output)
                 };
-                return output;
+                return;
             }
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has AVX2, the one precondition of this function.
+            if std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
+                // SAFETY: the CPU has AVX2 and FMA, the one precondition of this function.
                 #[allow(unsafe_code)]
                 unsafe {
-                    simd::planes_avx2(self, input, &mut output)
+                    simd::planes_avx2(self, input, output)
                 };
-                return output;
+                return;
             }
         }
-        planes(self, input, &mut output);
-        output
+        planes(self, input, output);
     }
 }
 
@@ -209,20 +307,21 @@ impl DepthwiseConv {
 mod simd {
     use super::{planes, DepthwiseConv};
 
-    /// [`planes`] compiled for AVX-512F (16 lanes).
+    /// [`planes`] compiled for AVX-512F (16 lanes; implies FMA).
     #[target_feature(enable = "avx512f")]
     pub(super) fn planes_avx512(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
         planes(op, input, output);
     }
 
-    /// [`planes`] compiled for AVX2 (8 lanes).
-    #[target_feature(enable = "avx2")]
+    /// [`planes`] compiled for AVX2 and FMA (8 lanes).
+    #[target_feature(enable = "avx2,fma")]
     pub(super) fn planes_avx2(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
         planes(op, input, output);
     }
 }
 
-/// Every channel plane of `input` into `output` (plane `p` uses channel `p % channels`).
+/// Every output plane of `output` (`[.., channels, oh, ow]`) from `input`
+/// (`[.., in_channels, h, w]`).
 #[inline(always)]
 fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
     let g = &op.geometry;
@@ -232,30 +331,194 @@ fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
     let out_plane = g.output.0 * g.output.1;
     let (_, wq) = g.phase_size();
     let band_rows = (BAND_VALUES / wq).max(1).min(g.output.0);
+    // Zeroed once: every plane writes the same positions, so the padding stays zero.
     let mut phases = vec![0.0f32; g.stride.0 * g.stride.1 * g.phase_len()];
     let mut acc = vec![0.0f32; band_rows * wq];
-    for (p, (src, dst)) in input
-        .chunks_exact(in_plane)
-        .zip(output.chunks_exact_mut(out_plane))
-        .enumerate()
+    let mut expanded = vec![0.0f32; if op.expand.is_some() { in_plane } else { 0 }];
+    // A front convolution other than 1x1 reads the stride phases of its input planes, on a
+    // grid as wide as a phase row (like [`plane`]).
+    let front = op.expand.as_ref().filter(|e| !e.is_pointwise());
+    let front_phase_len = front.map_or(0, |e| e.geometry.phase_len());
+    let front_phases_per_plane = front.map_or(0, |e| e.geometry.stride.0 * e.geometry.stride.1);
+    let mut front_phases =
+        vec![0.0f32; op.in_channels() * front_phases_per_plane * front_phase_len];
+    let mut grid = vec![
+        0.0f32;
+        front.map_or(0, |e| {
+            let (_, wq) = e.geometry.phase_size();
+            (EXPAND_BAND / wq).max(1) * wq
+        })
+    ];
+    let (fh, fw) = op.in_plane();
+    let image_in = op.in_channels() * fh * fw;
+    for (image, image_out) in input
+        .chunks_exact(image_in)
+        .zip(output.chunks_exact_mut(g.channels * out_plane))
     {
-        let c = p % g.channels;
-        fill_phases(g, src, &mut phases);
-        let w = &op.weights[c * taps..(c + 1) * taps];
-        plane(g, &phases, w, op.bias[c], op.clamp, &mut acc, dst);
+        if let Some(e) = front {
+            let per_plane = front_phases_per_plane * front_phase_len;
+            for (src, phases) in image
+                .chunks_exact(fh * fw)
+                .zip(front_phases.chunks_exact_mut(per_plane))
+            {
+                fill_phases(&e.geometry, src, phases, |v| v);
+            }
+        }
+        for (c, dst) in image_out.chunks_exact_mut(out_plane).enumerate() {
+            let src = match &op.expand {
+                None => &image[c * in_plane..(c + 1) * in_plane],
+                Some(e) if e.is_pointwise() => {
+                    let n = fh * fw;
+                    expand_plane(e, c, |k, _| &image[k * n..(k + 1) * n], &mut expanded, None);
+                    &expanded[..]
+                }
+                Some(e) => {
+                    let per_plane = front_phases_per_plane * front_phase_len;
+                    let phases = |k: usize, phase: usize| {
+                        &front_phases[k * per_plane + phase * front_phase_len..][..front_phase_len]
+                    };
+                    expand_plane(e, c, phases, &mut expanded, Some(&mut grid[..]));
+                    &expanded[..]
+                }
+            };
+            let w = &op.weights[c * taps..(c + 1) * taps];
+            channel(op, c, src, &mut phases, w, &mut acc, dst);
+        }
     }
 }
 
-/// Splits the zero-padded plane `src` into its stride phases (see [`Geometry::phase_size`]).
-/// Input rows are visited once each, in order, so every input value is read from memory once.
+/// One output plane `dst` of channel `c` from its input plane `src`.
 #[inline(always)]
-fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
+fn channel(
+    op: &DepthwiseConv,
+    c: usize,
+    src: &[f32],
+    phases: &mut [f32],
+    w: &[f32],
+    acc: &mut [f32],
+    dst: &mut [f32],
+) {
+    let g = &op.geometry;
+    match op.input_clamp {
+        None => fill_phases(g, src, phases, |v| v),
+        Some((lo, hi)) => fill_phases(g, src, phases, |v| v.max(lo).min(hi)),
+    }
+    plane(g, phases, w, op.bias[c], op.clamp, acc, dst);
+}
+
+impl Expand {
+    /// A 1x1 convolution with stride 1 and no padding: its input planes are read as they are.
+    fn is_pointwise(&self) -> bool {
+        let g = &self.geometry;
+        g.kernel == (1, 1) && g.stride == (1, 1) && g.pad_before == (0, 0) && g.input == g.output
+    }
+}
+
+/// Output channel `c` of the front convolution `e` of one image into `out` (the depthwise
+/// layer's input plane): `sum w[c][k][ky][kx] * x[k][..]` over `(k, ky, kx)` in row-major
+/// order as one fused multiply-add chain starting from zero, then `+ bias[c]`: the order of
+/// tract's matrix-product kernels over the im2col rows (so the values are tract's, bit for
+/// bit). `source(k, phase)` is stride phase `phase` of input plane `k` (the plane itself for a
+/// pointwise convolution); `grid` holds one band on the phases' row width (other than
+/// pointwise).
+#[inline(always)]
+fn expand_plane<'a>(
+    e: &Expand,
+    c: usize,
+    source: impl Fn(usize, usize) -> &'a [f32],
+    out: &mut [f32],
+    grid: Option<&mut [f32]>,
+) {
+    let g = &e.geometry;
+    let (oh, ow) = g.output;
+    let (kh, kw) = g.kernel;
+    let (sh, sw) = g.stride;
+    let taps = kh * kw;
+    let t_all = e.in_channels * taps;
+    let w = &e.weights[c * t_all..(c + 1) * t_all];
+    let bias = e.bias.as_ref().map(|b| b[c]);
+    let (_, wq) = g.phase_size();
+    let wq = if grid.is_some() { wq } else { ow };
+    let band_rows = (EXPAND_BAND / wq).max(1).min(oh);
+    let mut grid = grid;
+    let mut y0 = 0;
+    while y0 < oh {
+        let rows = band_rows.min(oh - y0);
+        let n = rows * wq;
+        let stream = |t: usize| {
+            let (k, r) = (t / taps, t % taps);
+            let (ky, kx) = (r / kw, r % kw);
+            let start = (y0 + ky / sh) * wq + kx / sw;
+            &source(k, (ky % sh) * sw + kx % sw)[start..start + n]
+        };
+        // (A plain function, not a closure: closures do not get the caller's target features,
+        // and `mul_add` without FMA is a libm call.)
+        match grid.as_deref_mut() {
+            None => front_band(&mut out[y0 * ow..y0 * ow + n], w, bias, stream),
+            Some(grid) => {
+                let acc = &mut grid[..n];
+                front_band(acc, w, bias, stream);
+                for (r, row) in acc.chunks_exact(wq).enumerate() {
+                    out[(y0 + r) * ow..(y0 + r + 1) * ow].copy_from_slice(&row[..ow]);
+                }
+            }
+        }
+        y0 += rows;
+    }
+}
+
+/// One band of a front convolution: `acc = fma chain of w[t] * stream(t) over t, + bias`.
+#[inline(always)]
+fn front_band<'a>(
+    acc: &mut [f32],
+    w: &[f32],
+    bias: Option<f32>,
+    stream: impl Fn(usize) -> &'a [f32] + Copy,
+) {
+    acc.fill(0.0);
+    let mut t = 0;
+    while t + EXPAND_CHUNK <= w.len() {
+        fma_chain::<EXPAND_CHUNK>(acc, &w[t..t + EXPAND_CHUNK], |j| stream(t + j));
+        t += EXPAND_CHUNK;
+    }
+    while t < w.len() {
+        fma_chain::<1>(acc, &w[t..t + 1], |_| stream(t));
+        t += 1;
+    }
+    if let Some(bias) = bias {
+        for a in acc.iter_mut() {
+            *a += bias;
+        }
+    }
+}
+
+/// `acc[i] = fma(w[T-1], x(T-1)[i], ... fma(w[0], x(0)[i], acc[i]))`: `T` input channels in
+/// order, the running sum kept in a register between them.
+#[inline(always)]
+fn fma_chain<'a, const T: usize>(acc: &mut [f32], w: &[f32], x: impl Fn(usize) -> &'a [f32]) {
+    let n = acc.len();
+    let w: [f32; T] = std::array::from_fn(|t| w[t]);
+    let x: [&[f32]; T] = std::array::from_fn(|t| &x(t)[..n]);
+    for (i, a) in acc.iter_mut().enumerate() {
+        let mut v = *a;
+        for t in 0..T {
+            v = w[t].mul_add(x[t][i], v);
+        }
+        *a = v;
+    }
+}
+
+/// Splits the zero-padded plane `src`, each value mapped by `f` (the input clamp), into its
+/// stride phases (see [`Geometry::phase_size`]). Input rows are visited once each, in order,
+/// so every input value is read from memory once. Only the positions of input values are
+/// written: the padding positions keep the zeros `phases` starts with.
+#[inline(always)]
+fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32], f: impl Fn(f32) -> f32 + Copy) {
     let (h, w) = g.input;
     let (sh, sw) = g.stride;
     let (pt, pl) = g.pad_before;
     let (hq, wq) = g.phase_size();
     let len = g.phase_len();
-    phases.fill(0.0);
     for (y, src_row) in src.chunks_exact(w).take(h).enumerate() {
         // Input row `y` is padded row `y + pt`: row `i` of the phases with row remainder `py`.
         let (i, py) = ((y + pt) / sh, (y + pt) % sh);
@@ -264,7 +527,7 @@ fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
         }
         if sw == 2 {
             let start = py * 2 * len + i * wq;
-            deinterleave(src_row, pl, len, &mut phases[start..start + len + wq]);
+            deinterleave(src_row, pl, len, &mut phases[start..start + len + wq], f);
             continue;
         }
         for px in 0..sw {
@@ -278,11 +541,12 @@ fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
             let start = (py * sw + px) * len + i * wq;
             let dst = &mut phases[start + j0..start + wq];
             if sw == 1 {
-                let n = dst.len().min(w);
-                dst[..n].copy_from_slice(&src_row[..n]);
+                for (d, &s) in dst.iter_mut().zip(src_row) {
+                    *d = f(s);
+                }
             } else {
-                for (d, s) in dst.iter_mut().zip(src_row[x0..].iter().step_by(sw)) {
-                    *d = *s;
+                for (d, &s) in dst.iter_mut().zip(src_row[x0..].iter().step_by(sw)) {
+                    *d = f(s);
                 }
             }
         }
@@ -294,7 +558,7 @@ fn fill_phases(g: &Geometry, src: &[f32], phases: &mut [f32]) {
 /// the `wq` values of phase 1's row, `len` (a phase's length) after it. Both rows are filled in
 /// one pass over pairs of columns (vectorised) instead of two strided passes.
 #[inline(always)]
-fn deinterleave(src_row: &[f32], pl: usize, len: usize, rows: &mut [f32]) {
+fn deinterleave(src_row: &[f32], pl: usize, len: usize, rows: &mut [f32], f: impl Fn(f32) -> f32) {
     let (first, second) = rows.split_at_mut(len);
     let wq = second.len();
     let first = &mut first[..wq];
@@ -315,14 +579,14 @@ fn deinterleave(src_row: &[f32], pl: usize, len: usize, rows: &mut [f32]) {
         .zip(even.iter_mut())
         .zip(odd.iter_mut())
     {
-        *e = pair[0];
-        *o = pair[1];
+        *e = f(pair[0]);
+        *o = f(pair[1]);
     }
     // An odd last column, or the columns past the shorter phase row.
     for (x, &v) in src_row.iter().enumerate().skip(2 * pairs) {
         let dst = if x % 2 == 0 { &mut *even } else { &mut *odd };
         if let Some(d) = dst.get_mut(x / 2) {
-            *d = v;
+            *d = f(v);
         }
     }
 }
@@ -402,23 +666,26 @@ fn all_taps<'a, const T: usize>(
 }
 
 /// Replaces every depthwise convolution of `model` that [`DepthwiseConv`] can run (and the
-/// `Max`/`Min` with a constant that directly follow it) by a [`DepthwiseConv`]; returns how
-/// many. `model` must be typed and decluttered (tract's `Conv` ops, constants folded).
-pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<usize> {
+/// `Max`/`Min` with a constant that directly follow it or feed only it) by a
+/// [`DepthwiseConv`], taking in the convolution in front of it on large planes; returns how
+/// many depthwise layers and how many of those with a front convolution. `model` must be typed
+/// and decluttered (tract's `Conv` ops, 1x1 convolutions as `EinSum`, constants folded).
+pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<(usize, usize)> {
     let convs: Vec<usize> = model
         .nodes()
         .iter()
         .filter(|n| n.op_is::<Conv>())
         .map(|n| n.id)
         .collect();
-    let mut count = 0;
+    let (mut count, mut fronts) = (0, 0);
     for id in convs {
-        let Some((op, last)) = replacement(model, id)? else {
+        let Some((op, source, last)) = replacement(model, id)? else {
             continue;
         };
+        fronts += usize::from(op.expand.is_some());
         let node = model.node(id);
         let mut patch = TypedModelPatch::new(format!("depthwise {}", node.name));
-        let input = patch.tap_model(model, node.inputs[0])?;
+        let input = patch.tap_model(model, source)?;
         let wired = patch.wire_node(format!("{}.depthwise", node.name), op, &[input])?;
         patch.shunt_outside(model, last, wired[0])?;
         patch.apply(model)?;
@@ -427,12 +694,16 @@ pub(crate) fn rewrite(model: &mut TypedModel) -> TractResult<usize> {
     if count > 0 {
         model.compact()?;
     }
-    Ok(count)
+    Ok((count, fronts))
 }
 
-/// The operator replacing node `id` and the outlet it stands for (the conv's, or the last
-/// fused clamp's), or `None` when `id` is not a depthwise convolution [`DepthwiseConv`] runs.
-fn replacement(model: &TypedModel, id: usize) -> TractResult<Option<(DepthwiseConv, OutletId)>> {
+/// The operator replacing node `id`, the outlet it reads (the conv's input, or the input of
+/// the clamps fused before it) and the outlet it stands for (the conv's, or the last fused
+/// clamp's), or `None` when `id` is not a depthwise convolution [`DepthwiseConv`] runs.
+fn replacement(
+    model: &TypedModel,
+    id: usize,
+) -> TractResult<Option<(DepthwiseConv, OutletId, OutletId)>> {
     let node = model.node(id);
     let Some(conv) = node.op_as::<Conv>() else {
         return Ok(None);
@@ -493,7 +764,38 @@ fn replacement(model: &TypedModel, id: usize) -> TractResult<Option<(DepthwiseCo
         weights: Arc::new(weights),
         bias: Arc::new(bias),
         clamp: (f32::NEG_INFINITY, f32::INFINITY),
+        expand: None,
+        input_clamp: None,
     };
+    // A `Max(x, lo)` then `Min(x, hi)` (ReLU6) feeding only this convolution, or either alone
+    // (walked backwards from the input: the `Min` first).
+    let mut source = node.inputs[0];
+    for (bound, is_lower) in [("Min", false), ("Max", true)] {
+        let Some((input, value)) = clamp_before(model, source, bound)? else {
+            continue;
+        };
+        let (lo, hi) = op
+            .input_clamp
+            .get_or_insert((f32::NEG_INFINITY, f32::INFINITY));
+        if is_lower {
+            *lo = value;
+        } else {
+            *hi = value;
+        }
+        source = input;
+    }
+    if h * w >= EXPAND_MIN_PLANE {
+        let front = match expansion(model, source, channels)? {
+            Some(found) => Some(found),
+            None => front_conv(model, source, channels)?,
+        };
+        if let Some((input, expand)) = front {
+            if expand.geometry.output == (h, w) {
+                op.expand = Some(expand);
+                source = input;
+            }
+        }
+    }
     let mut last = OutletId::new(id, 0);
     // A following `Max(x, lo)` then `Min(x, hi)` (ReLU6), or either alone.
     for (bound, is_lower) in [("Max", true), ("Min", false)] {
@@ -507,7 +809,251 @@ fn replacement(model: &TypedModel, id: usize) -> TractResult<Option<(DepthwiseCo
         }
         last = OutletId::new(next, 0);
     }
-    Ok(Some((op, last)))
+    Ok(Some((op, source, last)))
+}
+
+/// When `outlet` is a 1x1 convolution with `channels` outputs as tract's decluttering leaves
+/// it (an `EinSum` `..k..,ck->..c..` of the NCHW input with constant `[channels, k]` weights,
+/// then, unless the bias is zero, an `Add` of a constant per-channel bias), each node used
+/// only by the next: the convolution's input and the [`Expand`] computing it.
+fn expansion(
+    model: &TypedModel,
+    outlet: OutletId,
+    channels: usize,
+) -> TractResult<Option<(OutletId, Expand)>> {
+    let only_use = |o: OutletId| -> TractResult<bool> {
+        Ok(o.slot == 0
+            && model.outlet_successors(o).len() == 1
+            && !model.output_outlets()?.contains(&o))
+    };
+    if !only_use(outlet)? {
+        return Ok(None);
+    }
+    let mut node = model.node(outlet.node);
+    let mut bias = None;
+    if node.op_is::<TypedBinOp>() && node.op().name() == "Add" && node.inputs.len() == 2 {
+        let shape = model.outlet_fact(outlet)?.shape.clone();
+        let rank = shape.rank();
+        let per_channel = |o: OutletId| -> TractResult<Option<Vec<f32>>> {
+            let fact = model.outlet_fact(o)?;
+            let Some(dims) = fact.shape.as_concrete() else {
+                return Ok(None);
+            };
+            let broadcast = dims.len() >= 3
+                && dims.len() <= rank
+                && dims
+                    .iter()
+                    .rev()
+                    .enumerate()
+                    .all(|(i, &d)| d == if i == 2 { channels } else { 1 });
+            if !broadcast {
+                return Ok(None);
+            }
+            const_f32(model, o, channels)
+        };
+        for slot in 0..2 {
+            let (data, konst) = (node.inputs[slot], node.inputs[1 - slot]);
+            if let Some(values) = per_channel(konst)? {
+                if model.outlet_fact(data)?.shape == shape && only_use(data)? {
+                    bias = Some(values);
+                    node = model.node(data.node);
+                    break;
+                }
+            }
+        }
+        if bias.is_none() {
+            return Ok(None);
+        }
+    }
+    let Some(einsum) = node.op_as::<EinSum>() else {
+        return Ok(None);
+    };
+    if einsum.q_params.is_some()
+        || einsum.operating_dt != f32::datum_type()
+        || node.inputs.len() != 2
+    {
+        return Ok(None);
+    }
+    let (ins, outs) = einsum.axes.to_strs();
+    let chars = |s: &String| s.chars().collect::<Vec<char>>();
+    let ([x, w], [y]) = (&ins[..], &outs[..]) else {
+        return Ok(None);
+    };
+    let (x, w, y) = (chars(x), chars(w), chars(y));
+    let r = x.len();
+    // `x` = `..k..` (channel axis third from last), `w` = `ck`, `y` = `x` with `k` -> `c`.
+    let matmul = r >= 3
+        && w.len() == 2
+        && y.len() == r
+        && w[1] == x[r - 3]
+        && y[r - 3] == w[0]
+        && !x.contains(&w[0])
+        && (0..r).all(|i| i == r - 3 || y[i] == x[i])
+        && (0..r).all(|i| x[i + 1..].iter().all(|c| *c != x[i]));
+    let fact = model.outlet_fact(node.inputs[0])?;
+    let Some(dims) = fact.shape.as_concrete() else {
+        return Ok(None);
+    };
+    if !matmul || fact.datum_type != f32::datum_type() || dims.len() != r {
+        return Ok(None);
+    }
+    let k = dims[r - 3];
+    let Some(weights) = const_f32(model, node.inputs[1], channels * k)? else {
+        return Ok(None);
+    };
+    if model.outlet_fact(node.inputs[1])?.shape.as_concrete() != Some(&[channels, k][..]) {
+        return Ok(None);
+    }
+    let (h, w) = (dims[r - 2], dims[r - 1]);
+    let expand = Expand {
+        in_channels: k,
+        geometry: Geometry {
+            channels: k,
+            input: (h, w),
+            output: (h, w),
+            kernel: (1, 1),
+            stride: (1, 1),
+            pad_before: (0, 0),
+        },
+        weights: Arc::new(weights),
+        bias: bias.map(Arc::new),
+    };
+    Ok(Some((node.inputs[0], expand)))
+}
+
+/// When `outlet` is a float convolution with `channels` outputs (group 1, dilation 1, constant
+/// weights and bias, NCHW), possibly after a zero `Pad` of its spatial axes, each node used only
+/// by the next: its input and the [`Expand`] computing it.
+fn front_conv(
+    model: &TypedModel,
+    outlet: OutletId,
+    channels: usize,
+) -> TractResult<Option<(OutletId, Expand)>> {
+    let only_use = |o: OutletId| -> TractResult<bool> {
+        Ok(o.slot == 0
+            && model.outlet_successors(o).len() == 1
+            && !model.output_outlets()?.contains(&o))
+    };
+    let node = model.node(outlet.node);
+    let Some(conv) = node.op_as::<Conv>() else {
+        return Ok(None);
+    };
+    if !only_use(outlet)? || node.inputs.len() != 3 {
+        return Ok(None);
+    }
+    let spec = &conv.pool_spec;
+    let k = spec.input_channels;
+    let plain = conv.q_params.is_none()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && matches!(spec.data_format, DataFormat::NCHW | DataFormat::CHW)
+        && spec.kernel_shape.len() == 2
+        && spec.dilations().iter().all(|&d| d == 1)
+        && spec.strides().iter().all(|&s| s > 0)
+        && conv.group == 1
+        && spec.output_channels == channels;
+    if !plain {
+        return Ok(None);
+    }
+    let mut input = node.inputs[0];
+    let fact = model.outlet_fact(input)?;
+    let Some(dims) = fact.shape.as_concrete() else {
+        return Ok(None);
+    };
+    let r = dims.len();
+    if fact.datum_type != f32::datum_type() || r < 3 || dims[r - 3] != k {
+        return Ok(None);
+    }
+    let padded = (dims[r - 2], dims[r - 1]);
+    let padding = spec.computed_padding(&[padded.0, padded.1]);
+    let mut pad_before = (padding[0].pad_before, padding[1].pad_before);
+    let mut plane = padded;
+    // A zero `Pad` of only the two spatial axes in front (TF exports pad stride-2 "SAME"
+    // convolutions explicitly): the phases pad with zeros anyway.
+    let producer = model.node(input.node);
+    if let Some(pad) = producer.op_as::<Pad>() {
+        let zero = match &pad.mode {
+            PadMode::Constant(v) => {
+                v.len() == 1
+                    && v.datum_type() == f32::datum_type()
+                    && v.try_as_plain_ram()?.as_slice::<f32>()?[0].to_bits() == 0
+            }
+            _ => false,
+        };
+        let spatial_only =
+            pad.pads.len() == r && pad.pads[..r - 2].iter().all(|&(a, b)| a == 0 && b == 0);
+        if zero && spatial_only && only_use(input)? && producer.inputs.len() == 1 {
+            let (top, bottom) = pad.pads[r - 2];
+            let (left, right) = pad.pads[r - 1];
+            let Some(src) = model.outlet_fact(producer.inputs[0])?.shape.as_concrete() else {
+                return Ok(None);
+            };
+            if src.len() != r || (src[r - 2] + top + bottom, src[r - 1] + left + right) != padded {
+                return Ok(None);
+            }
+            pad_before = (pad_before.0 + top, pad_before.1 + left);
+            plane = (src[r - 2], src[r - 1]);
+            input = producer.inputs[0];
+        }
+    }
+    let (kh, kw) = (spec.kernel_shape[0], spec.kernel_shape[1]);
+    let strides = spec.strides();
+    let geometry = Geometry {
+        channels: k,
+        input: plane,
+        output: (padding[0].convoluted, padding[1].convoluted),
+        kernel: (kh, kw),
+        stride: (strides[0], strides[1]),
+        pad_before,
+    };
+    let Some(weights) = const_f32(model, node.inputs[1], channels * k * kh * kw)? else {
+        return Ok(None);
+    };
+    let Some(mut bias) =
+        const_f32(model, node.inputs[2], channels)?.or(const_f32(model, node.inputs[2], 1)?)
+    else {
+        return Ok(None);
+    };
+    if bias.len() == 1 {
+        bias = vec![bias[0]; channels];
+    }
+    let expand = Expand {
+        in_channels: k,
+        geometry,
+        weights: Arc::new(weights),
+        bias: Some(Arc::new(bias)),
+    };
+    Ok(Some((input, expand)))
+}
+
+/// When `outlet` is the output of a `bound` (`Max` or `Min`) with a constant scalar, used only
+/// by the one node that follows and of the shape of its other input: that input and the
+/// constant.
+fn clamp_before(
+    model: &TypedModel,
+    outlet: OutletId,
+    bound: &str,
+) -> TractResult<Option<(OutletId, f32)>> {
+    let node = model.node(outlet.node);
+    if outlet.slot != 0
+        || !node.op_is::<TypedBinOp>()
+        || node.op().name() != bound
+        || node.inputs.len() != 2
+        || model.outlet_successors(outlet).len() != 1
+        || model.output_outlets()?.contains(&outlet)
+    {
+        return Ok(None);
+    }
+    for slot in 0..2 {
+        let Some(value) = const_f32(model, node.inputs[slot], 1)? else {
+            continue;
+        };
+        let input = node.inputs[1 - slot];
+        let same_shape = model.outlet_fact(input)?.shape == model.outlet_fact(outlet)?.shape;
+        if same_shape && !value[0].is_nan() {
+            return Ok(Some((input, value[0])));
+        }
+    }
+    Ok(None)
 }
 
 /// The node applying `bound` (`Max` or `Min`) with a constant scalar to `outlet`, when it is
@@ -556,12 +1102,53 @@ mod tests {
     use super::*;
 
     /// Direct definition: `out[c][y][x] = bias[c] + sum w[c][ky][kx] * in[c][y*sh+ky-pt][x*sw+kx-pl]`
-    /// (zero outside the input), then the clamp.
+    /// (input values clamped by the input clamp, zero outside the input), then the clamp; with
+    /// a front convolution, `in[c][y][x]` is first the chain `v = fma(w[c][k][ky][kx],
+    /// x[k][y*sh+ky-pt][x*sw+kx-pl], v)` from `v = 0` over `(k, ky, kx)` in order, `+ b[c]`.
     fn naive(op: &DepthwiseConv, input: &[f32]) -> Vec<f32> {
         let g = &op.geometry;
         let ((h, w), (oh, ow), (kh, kw)) = (g.input, g.output, g.kernel);
+        let n = h * w;
+        let planes: Vec<Vec<f32>> = match &op.expand {
+            None => input.chunks_exact(n).map(<[f32]>::to_vec).collect(),
+            Some(e) => {
+                let f = &e.geometry;
+                let ((fh, fw), (fkh, fkw)) = (f.input, f.kernel);
+                let taps = e.in_channels * fkh * fkw;
+                input
+                    .chunks_exact(e.in_channels * fh * fw)
+                    .flat_map(|image| {
+                        (0..g.channels).map(move |c| {
+                            let mut plane = Vec::new();
+                            for y in 0..h {
+                                for x in 0..w {
+                                    let mut v = 0.0f32;
+                                    for t in 0..taps {
+                                        let (k, ky, kx) = (t / (fkh * fkw), t / fkw % fkh, t % fkw);
+                                        let iy = (y * f.stride.0 + ky) as isize
+                                            - f.pad_before.0 as isize;
+                                        let ix = (x * f.stride.1 + kx) as isize
+                                            - f.pad_before.1 as isize;
+                                        let inside = (0..fh as isize).contains(&iy)
+                                            && (0..fw as isize).contains(&ix);
+                                        let value = if inside {
+                                            image[(k * fh + iy as usize) * fw + ix as usize]
+                                        } else {
+                                            0.0
+                                        };
+                                        v = e.weights[c * taps + t].mul_add(value, v);
+                                    }
+                                    plane.push(e.bias.as_ref().map_or(v, |b| v + b[c]));
+                                }
+                            }
+                            plane
+                        })
+                    })
+                    .collect()
+            }
+        };
         let mut out = Vec::new();
-        for (p, plane) in input.chunks_exact(h * w).enumerate() {
+        for (p, plane) in planes.iter().enumerate() {
             let c = p % g.channels;
             for y in 0..oh {
                 for x in 0..ow {
@@ -573,7 +1160,8 @@ mod tests {
                             let inside =
                                 (0..h as isize).contains(&iy) && (0..w as isize).contains(&ix);
                             let value = if inside {
-                                plane[iy as usize * w + ix as usize]
+                                let v = plane[iy as usize * w + ix as usize];
+                                op.input_clamp.map_or(v, |(lo, hi)| v.max(lo).min(hi))
                             } else {
                                 0.0
                             };
@@ -598,7 +1186,10 @@ mod tests {
     }
 
     /// Every kernel size, stride and padding the fast paths take (3x3, 5x5, other) on planes
-    /// whose width is not a multiple of the vector width, two images per batch.
+    /// whose width is not a multiple of the vector width, two images per batch; with and
+    /// without a front convolution (a 1x1 expansion of 11 input channels: a chunk of 8 and
+    /// single ones, with and without bias; a 3x3 stride-2 stem; planes of more than one band)
+    /// and an input clamp.
     #[test]
     fn equals_the_direct_definition() {
         let cases = [
@@ -636,12 +1227,52 @@ mod tests {
                 } else {
                     (f32::NEG_INFINITY, f32::INFINITY)
                 },
+                // Clamps that cut values on both sides (inputs are in -1..1), on both paths of
+                // the stride-2 columns and the generic stride.
+                input_clamp: (case % 3 != 0).then_some((-0.25, 0.5)),
+                expand: match case {
+                    // The stem's shape: 3x3, stride 2, 3 input channels, padded after only
+                    // (TF "SAME") or on both sides.
+                    2 | 6 => {
+                        let pad = if case == 2 { (1, 1) } else { (0, 0) };
+                        let front_in = (2 * input.0, 2 * input.1);
+                        Some(Expand {
+                            in_channels: 3,
+                            geometry: Geometry {
+                                channels: 3,
+                                input: front_in,
+                                output: input,
+                                kernel: (3, 3),
+                                stride: (2, 2),
+                                pad_before: pad,
+                            },
+                            weights: Arc::new(values(channels * 27, 3 + case as u32)),
+                            bias: Some(Arc::new(values(channels, 5))),
+                        })
+                    }
+                    0 | 4 => Some(Expand {
+                        in_channels: 11,
+                        geometry: Geometry {
+                            channels: 11,
+                            input,
+                            output: input,
+                            kernel: (1, 1),
+                            stride: (1, 1),
+                            pad_before: (0, 0),
+                        },
+                        weights: Arc::new(values(channels * 11, 3 + case as u32)),
+                        bias: (case != 4).then(|| Arc::new(values(channels, 5))),
+                    }),
+                    _ => None,
+                },
             };
-            let x = values(2 * channels * input.0 * input.1, 99);
+            let (fh, fw) = op.in_plane();
+            let x = values(2 * op.in_channels() * fh * fw, 99);
             let want = naive(&op, &x);
             let got = op.run(&x);
             assert_eq!(got.len(), want.len(), "case {case}");
-            let mut portable = vec![0.0; want.len()];
+            // NaN until written: a value the kernels miss fails the comparison.
+            let mut portable = vec![f32::NAN; want.len()];
             planes(&op, &x, &mut portable);
             for (i, ((g, p), w)) in got.iter().zip(&portable).zip(&want).enumerate() {
                 assert!((g - w).abs() <= 1e-6, "case {case}, value {i}: {g} != {w}");
@@ -651,11 +1282,10 @@ mod tests {
                     "case {case}: SIMD and portable differ"
                 );
             }
-            let shape = op.output_shape(&[2, channels, input.0, input.1]).unwrap();
+            let k = op.in_channels();
+            let shape = op.output_shape(&[2, k, fh, fw]).unwrap();
             assert_eq!(shape, [2, channels, geometry.output.0, geometry.output.1]);
-            assert!(op
-                .output_shape(&[2, channels + 1, input.0, input.1])
-                .is_err());
+            assert!(op.output_shape(&[2, k + 1, fh, fw]).is_err());
         }
     }
 }

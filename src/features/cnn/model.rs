@@ -39,6 +39,8 @@ pub(crate) struct LoadedModel {
     outputs: Vec<String>,
     /// Depthwise convolutions run by [`depthwise::DepthwiseConv`] instead of tract.
     depthwise_rewritten: usize,
+    /// Of those, how many compute the convolution in front of them too.
+    fronts_fused: usize,
 }
 
 /// Time spent in one node of the plan ([`LoadedModel::node_times`]).
@@ -70,6 +72,7 @@ impl std::fmt::Debug for LoadedModel {
             .field("input_size", &self.input_size)
             .field("output_shape", &self.output_shape)
             .field("depthwise_rewritten", &self.depthwise_rewritten)
+            .field("fronts_fused", &self.fronts_fused)
             .finish_non_exhaustive()
     }
 }
@@ -187,10 +190,10 @@ impl LoadedModel {
             .and_then(|m| m.into_typed())
             .and_then(|m| m.into_decluttered())
             .map_err(wrong_size)?;
-        let depthwise_rewritten = match kernels {
+        let (depthwise_rewritten, fronts_fused) = match kernels {
             Kernels::Seasonloc => depthwise::rewrite(&mut typed)
                 .map_err(|e| bad_model("depthwise convolutions cannot be rewritten", e))?,
-            Kernels::Tract => 0,
+            Kernels::Tract => (0, 0),
         };
         let plan = typed
             .into_optimized()
@@ -205,6 +208,7 @@ impl LoadedModel {
             output_shape: Vec::new(),
             outputs,
             depthwise_rewritten,
+            fronts_fused,
         };
         // Running one zero image proves that the input size is accepted end to end and gives
         // the true output shape (symbolic shapes are only resolved by running).
@@ -309,6 +313,12 @@ impl LoadedModel {
     #[cfg(test)]
     pub(crate) fn depthwise_rewritten(&self) -> usize {
         self.depthwise_rewritten
+    }
+
+    /// How many of those also compute the convolution in front of them.
+    #[cfg(test)]
+    pub(crate) fn fronts_fused(&self) -> usize {
+        self.fronts_fused
     }
 
     /// Flattened output length.
