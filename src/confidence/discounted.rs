@@ -236,15 +236,7 @@ mod tests {
             w in 0.3f64..2.5, g in 0.3f64..0.95, r in 0usize..3, seed: u64,
         ) {
             let mut state = seed | 1;
-            let data: Vec<f32> = (0..q * d)
-                .map(|_| {
-                    state ^= state << 13;
-                    state ^= state >> 7;
-                    state ^= state << 17;
-                    (state >> 40) as f32 / (1u64 << 24) as f32 * 2.8 - 0.3
-                })
-                .collect();
-            let chat = Matrix::from_vec(q, d, data).unwrap();
+            let chat = plain::noise_matrix(q, d, &mut state);
             let gp = GraphParams { fan_out: k, horizontal, hidden_cost: w };
             let targets: Vec<(usize, usize)> =
                 (0..q).flat_map(|i| [(i, (i * 7) % d), (i, (i * 13 + 5) % d)]).collect();

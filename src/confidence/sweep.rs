@@ -820,15 +820,7 @@ mod tests {
             (1, 17, 2, true),
             (12, 5, 8, true),
         ] {
-            let data: Vec<f32> = (0..q * d)
-                .map(|_| {
-                    state ^= state << 13;
-                    state ^= state >> 7;
-                    state ^= state << 17;
-                    (state >> 40) as f32 / (1u64 << 24) as f32 * 2.8 - 0.3
-                })
-                .collect();
-            let chat = Matrix::from_vec(q, d, data).unwrap();
+            let chat = super::super::discounted::plain::noise_matrix(q, d, &mut state);
             let gp = GraphParams {
                 fan_out: k,
                 horizontal,

@@ -211,25 +211,18 @@ impl<'m> CoocQueries<'m> {
         window: usize,
     ) -> Result<Matrix> {
         let scored = self.scored();
-        if scored.per_source.is_empty() {
-            let present = vec![true; scored.max.cols()];
-            fused_similarity(
+        let (sources, present) = if scored.per_source.is_empty() {
+            (
                 std::slice::from_ref(&scored.max),
-                &present,
-                normalization,
-                exclusion,
-                window,
+                vec![true; scored.max.cols()],
             )
         } else {
-            let present = self.map.locations().source_present();
-            fused_similarity(
-                &scored.per_source,
-                &present,
-                normalization,
-                exclusion,
-                window,
+            (
+                &scored.per_source[..],
+                self.map.locations().source_present(),
             )
-        }
+        };
+        fused_similarity(sources, &present, normalization, exclusion, window)
     }
 
     /// The raw scores with each query's row from its most decisive source ([`fused_scores`],
@@ -389,7 +382,7 @@ pub fn localize(
 
 #[cfg(test)]
 mod tests {
-    use super::super::map::tests::{params, scene};
+    use super::super::map::tests::{options, params, scene};
     use super::super::Drive;
     use super::*;
 
@@ -408,16 +401,7 @@ mod tests {
         let map =
             CoocMap::build(&params(), &[Drive::sequential(0.0, refs.clone()).unwrap()]).unwrap();
         let queries = CoocQueries::new(&map, &refs).unwrap();
-        let options = CoocOptions {
-            sequence: SequenceParams {
-                length: 3,
-                max_step: 2,
-                exclusion: 2,
-                contrast_window: 0,
-                ..SequenceParams::default()
-            },
-            ..CoocOptions::default()
-        };
+        let options = options();
         for method in CoocMethod::ALL {
             let out = queries.localize(method, &options).unwrap();
             let correct = out

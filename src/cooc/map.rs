@@ -646,6 +646,20 @@ pub(crate) mod tests {
         }
     }
 
+    /// Method options for the generated scenes: sequences of 3, no contrast window.
+    pub(crate) fn options() -> CoocOptions {
+        CoocOptions {
+            sequence: SequenceParams {
+                length: 3,
+                max_step: 2,
+                exclusion: 2,
+                contrast_window: 0,
+                ..SequenceParams::default()
+            },
+            ..CoocOptions::default()
+        }
+    }
+
     #[test]
     fn recognizes_generated_scenes_end_to_end() {
         let refs: Vec<GrayImage> = (0..12).map(|s| scene(s, false)).collect();
@@ -906,16 +920,7 @@ pub(crate) mod tests {
             .add_drive(&Drive::sequential(22.0, night.clone()).unwrap())
             .unwrap();
         assert_eq!(fused.locations().sources(), 2);
-        let options = CoocOptions {
-            sequence: SequenceParams {
-                length: 3,
-                max_step: 2,
-                exclusion: 2,
-                contrast_window: 0,
-                ..SequenceParams::default()
-            },
-            ..CoocOptions::default()
-        };
+        let options = options();
         let excl = options.sequence.exclusion;
         let before = CoocQueries::new(&single, &day).unwrap();
         let after = CoocQueries::new(&fused, &day).unwrap();

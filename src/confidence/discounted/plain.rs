@@ -264,3 +264,17 @@ pub(crate) fn discounted_ratios(
     }
     result
 }
+
+/// A `q x d` test matrix of values in [-0.3, 2.5) (some non-positive, so `+inf` costs occur),
+/// from a xorshift generator whose `state` (non-zero) carries over between calls.
+pub(crate) fn noise_matrix(q: usize, d: usize, state: &mut u64) -> Matrix {
+    let data: Vec<f32> = (0..q * d)
+        .map(|_| {
+            *state ^= *state << 13;
+            *state ^= *state >> 7;
+            *state ^= *state << 17;
+            (*state >> 40) as f32 / (1u64 << 24) as f32 * 2.8 - 0.3
+        })
+        .collect();
+    Matrix::from_vec(q, d, data).expect("q x d values")
+}
