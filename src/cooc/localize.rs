@@ -29,7 +29,8 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use super::map::{fused_scores, fused_similarity, CoocMap};
+use super::fusion::{fused_scores, fused_similarity};
+use super::map::CoocMap;
 use super::model::Word;
 use super::recognition::Schedule;
 use super::sequence::{match_sequences, SequenceParams};

@@ -22,6 +22,7 @@
 //! `rayon` (no serde, no I/O).
 
 mod codec;
+mod fusion;
 pub mod keypoints;
 mod localize;
 mod map;
@@ -31,11 +32,9 @@ pub mod sequence;
 pub mod spatial;
 pub mod vocabulary;
 
+pub use fusion::{decisiveness, fused_scores, fused_similarity, source_order};
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
-pub use map::{
-    decisiveness, extract_all, flow_similarity, fused_scores, fused_similarity, source_order,
-    CoocMap, Drive, DriveFeatures,
-};
+pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
 pub use sequence::SequenceParams;
