@@ -2,7 +2,8 @@
 //! three traversals of one route: day_left, day_right, night_right; image `k` of every traversal
 //! is location `k`), printed for `docs/cooc.md`: extraction speed, single-drive maps and fused
 //! maps for every query traversal, for `cooc`, `cooc-seq` and `cooc-flow`, scored as spec §4
-//! with tolerance 2.
+//! with tolerance 2; and a trip on each map fed the query drive's frames in batches of 10
+//! (`CoocMap::trip_rows`, default trip parameters), scored at arrival and after the lag window.
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
@@ -36,9 +37,10 @@ use seasonloc::cooc::sequence::{match_sequences, SequenceParams};
 use seasonloc::cooc::{
     extract_all, CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, DriveFeatures,
 };
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
+use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
 use seasonloc::features::{list_images, load_image_file_as, Pixels};
 use seasonloc::similarity::Normalization;
+use seasonloc::trip::{Trip, TripParams};
 
 const TRAVERSALS: [&str; 3] = ["day_left", "day_right", "night_right"];
 /// Time of day of each traversal (only the order matters): both day walks, then night.
@@ -242,9 +244,11 @@ fn run(
         other => panic!("unknown maps={other}"),
     };
     println!(
-        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | seq contrast 10 AP | top/true/wrong | size AP | margin AP | ratio AP | build s | score s |"
+        "| map | query | cooc AP | top-1 | cooc-seq AP | cooc-flow AP | seq contrast 10 AP | top/true/wrong | size AP | margin AP | ratio AP | trip AP arrival / lag | build s | score s |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!(
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+    );
     for (map_drives, query) in sets {
         let started = Instant::now();
         let drives: Vec<DriveFeatures> = map_drives.iter().map(|&t| drive(t)).collect();
@@ -324,6 +328,24 @@ fn run(
             let m = evaluate(&preds, &gt, n, 2, &Exclusions::none()).expect("metrics");
             row.push(format!("{:.3}", m.ap));
         }
+        // A trip on the map, frames in batches of 10, as the service runs it.
+        let (arrival, last) = trip(&map, queries.words(), 10);
+        let a = evaluate(&arrival, &gt, n, 2, &Exclusions::none()).expect("metrics");
+        let b = evaluate(&last, &gt, n, 2, &Exclusions::none()).expect("metrics");
+        row.push(format!("{:.3} / {:.3}", a.ap, b.ap));
+        if map.locations().sources() > 1 {
+            // The alternative measured against it (not used): each frame's row from its most
+            // decisive source, `s + 1` over the row's mean on that source's locations.
+            for window in [1, 10] {
+                let (arrival, last) = trip_decisive(&map, queries.words(), 10, window);
+                let a = evaluate(&arrival, &gt, n, 2, &Exclusions::none()).expect("metrics");
+                let b = evaluate(&last, &gt, n, 2, &Exclusions::none()).expect("metrics");
+                println!(
+                    "  trip fed each frame's most decisive source (window {window}): AP {:.3} / {:.3}",
+                    a.ap, b.ap
+                );
+            }
+        }
         // Fused maps: how often each source is chosen (window = sequence length, on the
         // normalised rows) and how often each source's own row has its top at the place.
         if map.locations().sources() > 1 {
@@ -369,6 +391,112 @@ fn run(
             queries.score_seconds()
         );
     }
+}
+
+/// Streams the quantised frames through a trip on `map` (its prior from 256 of the map's own
+/// images, as the service), `batch` at a time; the predictions at arrival and after the lag
+/// window.
+fn trip(
+    map: &CoocMap,
+    frames: &[Vec<seasonloc::cooc::Word>],
+    batch: usize,
+) -> (Vec<Prediction>, Vec<Prediction>) {
+    let rows = map.trip_rows(frames);
+    let prior = map.trip_prior(256).expect("trip prior");
+    stream(rows, prior, batch)
+}
+
+/// [`trip`] fed the alternative fusion of the per-source scores, for comparison: each frame's
+/// row from the source with the best mean `decisiveness` over `window` frames centred on it
+/// (window 1: causal, what a trip could run), as `flow_similarity` divided by its mean over that
+/// source's locations (one scale for all sources); its prior the same rows of 256 of the map's
+/// own images.
+fn trip_decisive(
+    map: &CoocMap,
+    frames: &[Vec<seasonloc::cooc::Word>],
+    batch: usize,
+    window: usize,
+) -> (Vec<Prediction>, Vec<Prediction>) {
+    let rows_of = |words: &[Vec<seasonloc::cooc::Word>], window: usize| {
+        let per_source = map.score_matrices_by_source(words);
+        let present = map.locations().source_present();
+        let l = map.location_count();
+        let order =
+            seasonloc::cooc::source_order(&per_source, &present, 10, window).expect("order");
+        let mut out = seasonloc::Matrix::zeros(words.len(), l);
+        for (i, o) in order.iter().enumerate() {
+            let scaled: Vec<Vec<f32>> = per_source
+                .iter()
+                .enumerate()
+                .map(|(s, m)| {
+                    let has = &present[s * l..(s + 1) * l];
+                    let row: Vec<f32> = m.row(i).iter().map(|v| v + 1.0).collect();
+                    let (sum, k) = row
+                        .iter()
+                        .zip(has)
+                        .filter(|(_, &p)| p)
+                        .fold((0f64, 0usize), |(a, k), (&v, _)| (a + f64::from(v), k + 1));
+                    let mean = if k == 0 { 1.0 } else { (sum / k as f64) as f32 };
+                    row.iter().map(|v| v / mean).collect()
+                })
+                .collect();
+            for (j, v) in out.row_mut(i).iter_mut().enumerate() {
+                let s = o.iter().copied().find(|&s| present[s * l + j]).unwrap_or(0);
+                *v = scaled[s][j];
+            }
+        }
+        out
+    };
+    let rows = rows_of(frames, window);
+    let own: Vec<Vec<seasonloc::cooc::Word>> = map
+        .locations()
+        .drives()
+        .iter()
+        .flat_map(|d| d.images.iter().map(|(_, w)| w.clone()))
+        .collect();
+    let take = own.len().min(256);
+    let picked: Vec<_> = (0..take)
+        .map(|s| own[s * own.len() / take].clone())
+        .collect();
+    let r = rows_of(&picked, 1);
+    let prior: Vec<f32> = (0..r.cols())
+        .map(|j| (0..r.rows()).map(|i| f64::from(r.get(i, j))).sum::<f64>() / take as f64)
+        .map(|v| v as f32)
+        .collect();
+    stream(rows, prior, batch)
+}
+
+fn stream(
+    rows: seasonloc::Matrix,
+    prior: Vec<f32>,
+    batch: usize,
+) -> (Vec<Prediction>, Vec<Prediction>) {
+    let mut trip = Trip::new(prior, TripParams::default()).expect("trip");
+    let (mut arrival, mut last) = (Vec::new(), Vec::new());
+    for start in (0..rows.rows()).step_by(batch) {
+        let end = (start + batch).min(rows.rows());
+        let part: Vec<&[f32]> = (start..end).map(|i| rows.row(i)).collect();
+        let u = trip
+            .push_batch(&seasonloc::Matrix::from_rows(&part).expect("rows"))
+            .expect("batch");
+        arrival.extend(u.estimates.iter().copied());
+        last.extend(u.estimates.iter().copied());
+        for w in &u.window {
+            last[w.frame] = *w;
+        }
+    }
+    let predictions = |e: &[seasonloc::trip::FrameEstimate]| -> Vec<Prediction> {
+        e.iter()
+            .filter_map(|e| {
+                e.reference.map(|j| Prediction {
+                    query: e.frame,
+                    reference: j,
+                    confidence: e.confidence,
+                })
+            })
+            .collect()
+    };
+    (predictions(&arrival), predictions(&last))
 }
 
 fn margin_predictions(
