@@ -21,7 +21,8 @@
 //! clamp after while the band is copied out. With a front convolution, each input plane of the
 //! depthwise layer is first computed from the op's input (one plane, in L1/L2) and never
 //! stored: a 1x1 expansion from the input planes as they are, the stem from the stride phases
-//! of the image's planes, both with the same banded multiply-add over contiguous runs.
+//! of the image's planes, both with the same banded multiply-add over contiguous runs, four
+//! output planes per pass so that each input value loaded feeds four multiply-adds.
 //!
 //! Invariants: for every output value the sum is taken in tract's order (the bias, then one
 //! multiply and one add per tap, taps in row-major order, no fused multiply-add), and padding
