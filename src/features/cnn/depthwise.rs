@@ -21,7 +21,8 @@
 //! clamp after while the band is copied out. With a front convolution, each input plane of the
 //! depthwise layer is first computed from the op's input (one plane, in L1/L2) and never
 //! stored: a 1x1 expansion from the input planes as they are, the stem from the stride phases
-//! of the image's planes, both with the same banded multiply-add over contiguous runs.
+//! of the image's planes, both with the same banded multiply-add over contiguous runs, four
+//! output planes per pass so that each input value loaded feeds four multiply-adds.
 //!
 //! Invariants: for every output value the sum is taken in tract's order (the bias, then one
 //! multiply and one add per tap, taps in row-major order, no fused multiply-add), and padding
@@ -45,8 +46,13 @@ pub(crate) use rewrite::rewrite;
 /// Output values accumulated per band: 4096 `f32` (16 KiB) stay in L1 with the phases' rows.
 const BAND_VALUES: usize = 4096;
 
-/// Values of an expanded plane computed per band (8 KiB, in L1 next to the input streams).
-const EXPAND_BAND: usize = 2048;
+/// Values of an expanded plane computed per band: the bands of a group of
+/// [`EXPAND_GROUP`] planes (16 KiB) stay in L1 next to the input streams.
+const EXPAND_BAND: usize = 1024;
+
+/// Output channels of a front convolution computed together: each input value loaded once
+/// feeds this many multiply-adds (one per output plane) instead of one.
+const EXPAND_GROUP: usize = 4;
 
 /// Input channels summed per pass over an expansion band (held in registers in between).
 const EXPAND_CHUNK: usize = 8;
@@ -332,7 +338,16 @@ fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
     // Zeroed once: every plane writes the same positions, so the padding stays zero.
     let mut phases = vec![0.0f32; g.stride.0 * g.stride.1 * g.phase_len()];
     let mut acc = vec![0.0f32; band_rows * wq];
-    let mut expanded = vec![0.0f32; if op.expand.is_some() { in_plane } else { 0 }];
+    // A group of expanded planes, computed together (see [`EXPAND_GROUP`]).
+    let group = if op.expand.is_some() { EXPAND_GROUP } else { 1 };
+    let mut expanded = vec![
+        0.0f32;
+        if op.expand.is_some() {
+            group * in_plane
+        } else {
+            0
+        }
+    ];
     // A front convolution other than 1x1 reads the stride phases of its input planes, on a
     // grid as wide as a phase row (like [`plane`]).
     let front = op.expand.as_ref().filter(|e| !e.is_pointwise());
@@ -344,7 +359,7 @@ fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
         0.0f32;
         front.map_or(0, |e| {
             let (_, wq) = e.geometry.phase_size();
-            (EXPAND_BAND / wq).max(1) * wq
+            group * (EXPAND_BAND / wq).max(1) * wq
         })
     ];
     let (fh, fw) = op.in_plane();
@@ -362,25 +377,36 @@ fn planes(op: &DepthwiseConv, input: &[f32], output: &mut [f32]) {
                 fill_phases(&e.geometry, src, phases, |v| v);
             }
         }
-        for (c, dst) in image_out.chunks_exact_mut(out_plane).enumerate() {
-            let src = match &op.expand {
-                None => &image[c * in_plane..(c + 1) * in_plane],
+        for (first, dsts) in image_out.chunks_mut(group * out_plane).enumerate() {
+            let c0 = first * group;
+            let count = dsts.len() / out_plane;
+            let sources = match &op.expand {
+                None => &image[c0 * in_plane..(c0 + count) * in_plane],
                 Some(e) if e.is_pointwise() => {
                     let n = fh * fw;
-                    expand_plane(e, c, |k, _| &image[k * n..(k + 1) * n], &mut expanded, None);
-                    &expanded[..]
+                    let out = &mut expanded[..count * in_plane];
+                    expand_planes(e, c0, |k, _| &image[k * n..(k + 1) * n], out, None);
+                    &expanded[..count * in_plane]
                 }
                 Some(e) => {
                     let per_plane = front_phases_per_plane * front_phase_len;
                     let phases = |k: usize, phase: usize| {
                         &front_phases[k * per_plane + phase * front_phase_len..][..front_phase_len]
                     };
-                    expand_plane(e, c, phases, &mut expanded, Some(&mut grid[..]));
-                    &expanded[..]
+                    let out = &mut expanded[..count * in_plane];
+                    expand_planes(e, c0, phases, out, Some(&mut grid[..]));
+                    &expanded[..count * in_plane]
                 }
             };
-            let w = &op.weights[c * taps..(c + 1) * taps];
-            channel(op, c, src, &mut phases, w, &mut acc, dst);
+            for (j, (src, dst)) in sources
+                .chunks_exact(in_plane)
+                .zip(dsts.chunks_exact_mut(out_plane))
+                .enumerate()
+            {
+                let c = c0 + j;
+                let w = &op.weights[c * taps..(c + 1) * taps];
+                channel(op, c, src, &mut phases, w, &mut acc, dst);
+            }
         }
     }
 }
@@ -412,18 +438,19 @@ impl Expand {
     }
 }
 
-/// Output channel `c` of the front convolution `e` of one image into `out` (the depthwise
-/// layer's input plane): `sum w[c][k][ky][kx] * x[k][..]` over `(k, ky, kx)` in row-major
-/// order as one fused multiply-add chain starting from zero, then `+ bias[c]`: the order of
-/// tract's matrix-product kernels over the im2col rows (so the values are tract's, bit for
-/// bit). `source(k, phase)` is stride phase `phase` of input plane `k` (the plane itself for a
-/// pointwise convolution); `grid` holds one band on the phases' row width (other than
-/// pointwise).
+/// Output channels `c0..` of the front convolution `e` of one image into `out` (as many
+/// planes as it holds, each the depthwise layer's input plane): `sum w[c][k][ky][kx] * x[k][..]`
+/// over `(k, ky, kx)` in row-major order as one fused multiply-add chain starting from zero,
+/// then `+ bias[c]`: the order of tract's matrix-product kernels over the im2col rows (so the
+/// values are tract's, bit for bit). A full group of [`EXPAND_GROUP`] planes is computed in
+/// one pass over the inputs. `source(k, phase)` is stride phase `phase` of input plane `k`
+/// (the plane itself for a pointwise convolution); `grid` holds one band per plane of the
+/// group on the phases' row width (other than pointwise).
 #[inline(always)]
-fn expand_plane<'a>(
+fn expand_planes<'a>(
     e: &Expand,
-    c: usize,
-    source: impl Fn(usize, usize) -> &'a [f32],
+    c0: usize,
+    source: impl Fn(usize, usize) -> &'a [f32] + Copy,
     out: &mut [f32],
     grid: Option<&mut [f32]>,
 ) {
@@ -433,11 +460,14 @@ fn expand_plane<'a>(
     let (sh, sw) = g.stride;
     let taps = kh * kw;
     let t_all = e.in_channels * taps;
-    let w = &e.weights[c * t_all..(c + 1) * t_all];
-    let bias = e.bias.as_ref().map(|b| b[c]);
+    let plane = oh * ow;
+    let count = out.len() / plane;
+    let weights = |c: usize| &e.weights[c * t_all..(c + 1) * t_all];
+    let bias = |c: usize| e.bias.as_ref().map(|b| b[c]);
     let (_, wq) = g.phase_size();
     let wq = if grid.is_some() { wq } else { ow };
     let band_rows = (EXPAND_BAND / wq).max(1).min(oh);
+    let band = (EXPAND_BAND / wq).max(1) * wq;
     let mut grid = grid;
     let mut y0 = 0;
     while y0 < oh {
@@ -449,15 +479,50 @@ fn expand_plane<'a>(
             let start = (y0 + ky / sh) * wq + kx / sw;
             &source(k, (ky % sh) * sw + kx % sw)[start..start + n]
         };
-        // (A plain function, not a closure: closures do not get the caller's target features,
+        // The band of each plane: in `out` itself when pointwise, else in `grid`.
+        let (bands, stride) = match grid.as_deref_mut() {
+            None => (&mut out[y0 * ow..], plane),
+            Some(grid) => (&mut grid[..], band),
+        };
+        // (Plain functions, not closures: closures do not get the caller's target features,
         // and `mul_add` without FMA is a libm call.)
-        match grid.as_deref_mut() {
-            None => front_band(&mut out[y0 * ow..y0 * ow + n], w, bias, stream),
-            Some(grid) => {
-                let acc = &mut grid[..n];
-                front_band(acc, w, bias, stream);
-                for (r, row) in acc.chunks_exact(wq).enumerate() {
-                    out[(y0 + r) * ow..(y0 + r + 1) * ow].copy_from_slice(&row[..ow]);
+        if count == EXPAND_GROUP {
+            let (a0, rest) = bands.split_at_mut(stride);
+            let (a1, rest) = rest.split_at_mut(stride);
+            let (a2, a3) = rest.split_at_mut(stride);
+            let w = [
+                weights(c0),
+                weights(c0 + 1),
+                weights(c0 + 2),
+                weights(c0 + 3),
+            ];
+            front_band4(
+                [&mut a0[..n], &mut a1[..n], &mut a2[..n], &mut a3[..n]],
+                w,
+                stream,
+            );
+        } else {
+            for j in 0..count {
+                front_band(
+                    &mut bands[j * stride..j * stride + n],
+                    weights(c0 + j),
+                    stream,
+                );
+            }
+        }
+        for j in 0..count {
+            let Some(b) = bias(c0 + j) else { continue };
+            match grid.as_deref_mut() {
+                None => out[j * plane + y0 * ow..][..n]
+                    .iter_mut()
+                    .for_each(|a| *a += b),
+                Some(grid) => grid[j * band..][..n].iter_mut().for_each(|a| *a += b),
+            }
+        }
+        if let Some(grid) = grid.as_deref() {
+            for j in 0..count {
+                for (r, row) in grid[j * band..][..n].chunks_exact(wq).enumerate() {
+                    out[j * plane + (y0 + r) * ow..][..ow].copy_from_slice(&row[..ow]);
                 }
             }
         }
@@ -465,14 +530,10 @@ fn expand_plane<'a>(
     }
 }
 
-/// One band of a front convolution: `acc = fma chain of w[t] * stream(t) over t, + bias`.
+/// One band of one plane of a front convolution: `acc = fma chain of w[t] * stream(t)` over `t`
+/// (the bias is added by the caller).
 #[inline(always)]
-fn front_band<'a>(
-    acc: &mut [f32],
-    w: &[f32],
-    bias: Option<f32>,
-    stream: impl Fn(usize) -> &'a [f32] + Copy,
-) {
+fn front_band<'a>(acc: &mut [f32], w: &[f32], stream: impl Fn(usize) -> &'a [f32] + Copy) {
     acc.fill(0.0);
     let mut t = 0;
     while t + EXPAND_CHUNK <= w.len() {
@@ -483,10 +544,65 @@ fn front_band<'a>(
         fma_chain::<1>(acc, &w[t..t + 1], |_| stream(t));
         t += 1;
     }
-    if let Some(bias) = bias {
-        for a in acc.iter_mut() {
-            *a += bias;
+}
+
+/// [`front_band`] for [`EXPAND_GROUP`] planes at once: every input run is read once for all
+/// four output channels.
+#[inline(always)]
+fn front_band4<'a>(
+    [a0, a1, a2, a3]: [&mut [f32]; EXPAND_GROUP],
+    w: [&[f32]; EXPAND_GROUP],
+    stream: impl Fn(usize) -> &'a [f32] + Copy,
+) {
+    for a in [&mut *a0, &mut *a1, &mut *a2, &mut *a3] {
+        a.fill(0.0);
+    }
+    let taps = w[0].len();
+    let mut t = 0;
+    // A 3x3 front convolution (the stem) in whole input channels of 9 taps.
+    if taps % 9 == 0 {
+        while t < taps {
+            let wt = w.map(|w| &w[t..t + 9]);
+            fma_chain4::<9>(a0, a1, a2, a3, wt, |j| stream(t + j));
+            t += 9;
         }
+    }
+    while t + EXPAND_CHUNK <= taps {
+        let wt = w.map(|w| &w[t..t + EXPAND_CHUNK]);
+        fma_chain4::<EXPAND_CHUNK>(a0, a1, a2, a3, wt, |j| stream(t + j));
+        t += EXPAND_CHUNK;
+    }
+    while t < taps {
+        let wt = w.map(|w| &w[t..t + 1]);
+        fma_chain4::<1>(a0, a1, a2, a3, wt, |_| stream(t));
+        t += 1;
+    }
+}
+
+/// [`fma_chain`] into four planes (`a0..a3`, with weights `w[0..4]`) from the same `T` inputs:
+/// four running sums per position kept in registers.
+#[inline(always)]
+fn fma_chain4<'a, const T: usize>(
+    a0: &mut [f32],
+    a1: &mut [f32],
+    a2: &mut [f32],
+    a3: &mut [f32],
+    w: [&[f32]; EXPAND_GROUP],
+    x: impl Fn(usize) -> &'a [f32],
+) {
+    let n = a0.len();
+    let (a1, a2, a3) = (&mut a1[..n], &mut a2[..n], &mut a3[..n]);
+    let w: [[f32; T]; EXPAND_GROUP] = w.map(|w| std::array::from_fn(|t| w[t]));
+    let x: [&[f32]; T] = std::array::from_fn(|t| &x(t)[..n]);
+    for i in 0..n {
+        let mut v = [a0[i], a1[i], a2[i], a3[i]];
+        for t in 0..T {
+            let xv = x[t][i];
+            for (v, w) in v.iter_mut().zip(&w) {
+                *v = w[t].mul_add(xv, *v);
+            }
+        }
+        [a0[i], a1[i], a2[i], a3[i]] = v;
     }
 }
 
@@ -769,7 +885,8 @@ mod tests {
             ((70, 90), (3, 3), (1, 1), (1, 1), (1, 1)),
         ];
         for (case, &(input, kernel, stride, pad_before, pad_after)) in cases.iter().enumerate() {
-            let channels = 3;
+            // A group of four planes computed together and one left over.
+            let channels = 5;
             let out = |i: usize, k: usize, s: usize, before: usize, after: usize| {
                 (i + before + after - k) / s + 1
             };
