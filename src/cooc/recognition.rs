@@ -21,13 +21,17 @@
 //!   below it is dropped;
 //! * `BestFirst` — the same bound used as a priority: the location with the highest bound is
 //!   advanced next (its `J` is built only then), so the first location to finish is the answer
-//!   and locations whose initial bound is below the winner's score are never built.
+//!   and locations whose initial bound is below the winner's score are never built. On the
+//!   rayon pool it runs as one best-first search per worker over a round-robin share of the
+//!   locations, sharing the best finished score as a bound (same answer; the work done varies
+//!   with the workers' timing).
 //!
 //! Invariant: a location is only ever dropped when its bound (which never increases and is never
 //! below its final score) proves it cannot beat or tie-win against the current best.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
@@ -360,29 +364,42 @@ fn best_per_slot(
 /// correspondences, then the size of its `J`) is the highest of all. Returns
 /// `((score, entity), runner-up, evaluated)`.
 ///
+/// The search covers the candidate groups `g` with `g % shard.1 == shard.0` (one shard:
+/// all). With `finished`, the best score any shard has finished is shared: a shard stops when
+/// its highest bound falls below it (strictly: an equal bound may still tie-win with a lower
+/// entity), and publishes its own answer's score there.
+///
 /// With `exclusion = Some(x)` the search goes on after the answer until the best entity whose
 /// location is more than `x` locations from the answer's finishes: the runner-up score (0 when
 /// there is none). Entities near the answer are dropped unbuilt; the bound still prunes the
 /// rest, since the first entity to finish outside the window has the highest score there.
 fn best_first(
     map: &LocationMap,
-    query: &[Word],
+    cands: &Candidates,
     geo: &QueryGeometry,
     exclusion: Option<usize>,
+    shard: (usize, usize),
+    finished: Option<&AtomicUsize>,
 ) -> (Option<(usize, u32)>, usize, usize) {
-    let cands = Candidates::gather(map, query);
     // Groups are in entity order, so `Reverse(group)` breaks ties to the lowest entity.
     let mut heap: BinaryHeap<(usize, Reverse<usize>)> = cands
         .groups
         .iter()
         .enumerate()
+        .skip(shard.0)
+        .step_by(shard.1.max(1))
         .map(|(g, &(_, s, e))| (e - s, Reverse(g)))
         .collect();
+    let beaten = |bound: usize| finished.is_some_and(|f| bound < f.load(Ordering::Relaxed));
     let mut states: Vec<Option<Elimination>> = vec![None; cands.groups.len()];
     let mut scratch = Scratch::default();
     let mut evaluated = 0;
     let mut winner: Option<(usize, u32)> = None;
-    while let Some((_, Reverse(g))) = heap.pop() {
+    while let Some((bound, Reverse(g))) = heap.pop() {
+        if beaten(bound) {
+            // The highest bound left here cannot reach a score finished elsewhere.
+            return (None, 0, evaluated);
+        }
         let entity = cands.groups[g].0;
         if let (Some((_, w)), Some(x)) = (winner, exclusion) {
             if map.entity_location(w).abs_diff(map.entity_location(entity)) <= x {
@@ -404,13 +421,16 @@ fn best_first(
                     return (winner, e.bound(), evaluated);
                 }
                 winner = Some((e.bound(), entity));
+                if let Some(f) = finished {
+                    f.fetch_max(e.bound(), Ordering::Relaxed);
+                }
                 if exclusion.is_none() {
                     return (winner, 0, evaluated);
                 }
                 break;
             }
             let key = (e.bound(), Reverse(g));
-            if heap.peek().is_some_and(|&top| top > key) {
+            if heap.peek().is_some_and(|&top| top > key) || beaten(e.bound()) {
                 heap.push(key);
                 break;
             }
@@ -418,6 +438,49 @@ fn best_first(
     }
     (winner, 0, evaluated)
 }
+
+/// [`best_first`] on the rayon pool: the candidate groups are dealt round-robin into one shard
+/// per worker (neighbouring locations, which share a query's strong candidates, land in
+/// different shards), each searched best-first with the best finished score shared as a
+/// bound. Every shard's answer is its own best, or it stopped because its bound fell below a
+/// score finished elsewhere, so the best of the answers (highest score, ties to the lowest
+/// entity) is the sequential search's. Returns `(best, evaluated)`.
+fn best_first_parallel(
+    map: &LocationMap,
+    cands: &Candidates,
+    geo: &QueryGeometry,
+) -> (Option<(usize, u32)>, usize) {
+    let shards = rayon::current_num_threads()
+        .min(cands.groups.len() / MIN_GROUPS_PER_SHARD)
+        .max(1);
+    if shards == 1 {
+        let (best, _, evaluated) = best_first(map, cands, geo, None, (0, 1), None);
+        return (best, evaluated);
+    }
+    let finished = AtomicUsize::new(0);
+    (0..shards)
+        .into_par_iter()
+        .map(|k| {
+            let (best, _, evaluated) =
+                best_first(map, cands, geo, None, (k, shards), Some(&finished));
+            (best, evaluated)
+        })
+        .reduce(
+            || (None, 0),
+            |(a, ea), (b, eb)| {
+                let best = match (a, b) {
+                    (Some(x), Some(y)) => Some(if better(y.0, y.1, &Some(x)) { y } else { x }),
+                    (x, None) => x,
+                    (None, y) => y,
+                };
+                (best, ea + eb)
+            },
+        )
+}
+
+/// Fewest candidate groups per shard of [`best_first_parallel`]: below this, one sequential
+/// search is cheaper than waking the pool.
+const MIN_GROUPS_PER_SHARD: usize = 64;
 
 /// The best location for `query` (best-first) and the score of the best location more than
 /// `exclusion` locations away from it (0 when none shares a word with the query): the
@@ -428,7 +491,8 @@ pub fn recognize_with_runner_up(
     exclusion: usize,
 ) -> Option<(Recognition, usize)> {
     let geo = QueryGeometry::new(map, query);
-    let (best, runner_up, evaluated) = best_first(map, query, &geo, Some(exclusion));
+    let cands = Candidates::gather(map, query);
+    let (best, runner_up, evaluated) = best_first(map, &cands, &geo, Some(exclusion), (0, 1), None);
     best.map(|(score, entity)| {
         (
             Recognition {
@@ -458,10 +522,7 @@ pub fn recognize_query(
 ) -> Option<Recognition> {
     let geo = QueryGeometry::new(map, query);
     let (best, evaluated) = match schedule {
-        Schedule::BestFirst => {
-            let (best, _, evaluated) = best_first(map, query, &geo, None);
-            (best, evaluated)
-        }
+        Schedule::BestFirst => best_first_parallel(map, &Candidates::gather(map, query), &geo),
         Schedule::Exhaustive => {
             // Every entity's `J`, spread over the rayon pool like a full score row; the best
             // (highest score, then lowest entity) is a total order, so the answer does not
@@ -781,6 +842,28 @@ mod tests {
             if let (Some(e), Some(b)) = (ex, bf) {
                 prop_assert!(b.evaluated <= e.evaluated);
             }
+        }
+
+        #[test]
+        fn sharded_best_first_gives_the_sequential_answer(seed in 0u64..1000, loc in 0usize..400, vocab in 10u32..120, threads in 2usize..5) {
+            // Enough locations for several shards of `MIN_GROUPS_PER_SHARD`; small
+            // vocabularies make near-ties between shards likely. A query from the map, or a
+            // scene from nowhere (chance scores: ties everywhere).
+            let (map, scenes) = random_map(400, 12, vocab, seed);
+            let q = if loc % 2 == 0 {
+                noisy_query(&scenes[loc], vocab, seed + 3)
+            } else {
+                random_map(1, 12, vocab, seed + 11).1.remove(0)
+            };
+            let geo = QueryGeometry::new(&map, &q);
+            let cands = Candidates::gather(&map, &q);
+            let (sequential, _, _) = best_first(&map, &cands, &geo, None, (0, 1), None);
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let (sharded, _) = pool.install(|| best_first_parallel(&map, &cands, &geo));
+            prop_assert!(cands.groups.len() >= 2 * MIN_GROUPS_PER_SHARD);
+            prop_assert_eq!(sharded, sequential);
+            let ex = recognize_query(&map, &q, Schedule::Exhaustive);
+            prop_assert_eq!(sequential.map(|(s, _)| s), ex.map(|r| r.score));
         }
 
         #[test]
