@@ -21,7 +21,7 @@
 //!   window, optional relocalization). A batch longer than the lag window is fed in chunks of
 //!   at most `lag` frames, so every frame is traced while it is in the window.
 //! * **Confidence** of a frame is the offline default, the discounted min-marginal ratio, on
-//!   the frames so far ([`confidence`]): causal at arrival (the forward pass alone, the scored
+//!   the frames so far (`trip/confidence.rs`): causal at arrival (the forward pass alone, the scored
 //!   frame last), re-scored with the later frames while it stays in the lag window. Its cost
 //!   per batch is `2 · lag` row steps, whatever the trip's length.
 //! * **Status** of the latest frame: `lost` when it is hidden or its confidence is at most

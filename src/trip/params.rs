@@ -111,7 +111,7 @@ pub struct FrameEstimate {
     /// Estimated reference index, `None` when not on the map (hidden).
     pub reference: Option<usize>,
     /// The discounted min-marginal ratio on the frames so far (0 when hidden): causal for the
-    /// newest frame, re-scored with the later frames for the others (see [`super::confidence`]).
+    /// newest frame, re-scored with the later frames for the others (see `trip/confidence.rs`).
     pub confidence: f64,
 }
 

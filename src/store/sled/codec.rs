@@ -6,19 +6,19 @@
 //! | key | value |
 //! | --- | --- |
 //! | `meta/schema_version` | layout version, `u32` big-endian |
-//! | `M` + map id (`u64` BE) | [`MapRecord`] |
-//! | `I` + map id (`u64` BE) + index (`u32` BE) | [`ImageRecord`] (descriptor as raw LE `f32`) |
-//! | `L` + localization id (`u64` BE) | [`LocalizationRecord`] |
+//! | `M` + map id (`u64` BE) | [`MapRecord`](crate::store::MapRecord) |
+//! | `I` + map id (`u64` BE) + index (`u32` BE) | an image record ([`encode_image`]: [`ImageMeta`](crate::store::ImageMeta), then the descriptor as raw LE `f32`) |
+//! | `L` + localization id (`u64` BE) | [`LocalizationRecord`](crate::store::LocalizationRecord) |
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
 //! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
-//! | `T` + trip id (`u64` BE) | [`TripRecord`] (layout >= 4) |
+//! | `T` + trip id (`u64` BE) | [`TripRecord`](crate::store::TripRecord) (layout >= 4) |
 //! | `S` + trip id (`u64` BE) | a trip's solver state in one blob (format 1, layouts 4-5), opaque bytes from `crate::trip`; replaced by `b`/`s`/`r` at the trip's next batch |
 //! | `b` + trip id (`u64` BE) | the trip state's base (layout >= 6; `crate::trip::persist`) |
 //! | `s` + trip id (`u64` BE) | the trip state's latest snapshot (layout >= 6) |
 //! | `r` + trip id (`u64` BE) + frame (`u32` BE) | one log row of the trip state: the frame's raw cosine row (layout >= 6) |
-//! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`]: the frame's latest estimate |
+//! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`](crate::store::FrameRecord): the frame's latest estimate |
 //! | `t` + map id (`u64` BE) + trip id (`u64` BE) | empty (index of a map's trips) |
-//! | `K` + scope + `0x00` + key | [`IdempotencyRecord`] of a request sent with an `Idempotency-Key` (additive: older stores have none) |
+//! | `K` + scope + `0x00` + key | [`IdempotencyRecord`](crate::store::IdempotencyRecord) of a request sent with an `Idempotency-Key` (additive: older stores have none) |
 //!
 //! Big-endian integers make sled's lexicographic order the numeric order, so a map's images
 //! iterate in route order, localizations in creation order and a trip's frames in driving
