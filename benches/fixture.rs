@@ -1,11 +1,13 @@
 //! Shared bench inputs: locating `../shared` beside the repository and loading the sample
-//! images and Nordland frames. Cases whose data is absent print why and are skipped.
+//! images and Nordland frames (cases whose data is absent print why and are skipped), and
+//! deterministic synthetic matrices.
 #![allow(dead_code)] // each bench uses only some helpers
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use image::{DynamicImage, GrayImage};
+use seasonloc::Matrix;
 
 /// `../shared/<rel>` relative to the crate root (or `$SEASONLOC_SHARED_DIR/<rel>` when that
 /// variable is set), or `None` with a printed skip message.
@@ -70,4 +72,19 @@ pub fn cpu_time_of<R>(iters: u64, mut f: impl FnMut() -> R) -> Duration {
         std::hint::black_box(f());
     }
     thread_cpu_time().expect("checked with thread_cpu_time() before") - start
+}
+
+/// A deterministic `rows x cols` matrix of pseudo-random values in `[0, 1)` (xorshift64 from
+/// `seed`): non-negative like HOG / ReLU descriptors, and in a cosine matrix's range.
+pub fn uniform_matrix(rows: usize, cols: usize, seed: u64) -> Matrix {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let data = (0..rows * cols)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        })
+        .collect();
+    Matrix::from_vec(rows, cols, data).expect("length is rows * cols")
 }

@@ -9,28 +9,16 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use image::{DynamicImage, Rgb, RgbImage};
 use seasonloc::picture::{thumbnail_jpeg, MatrixPicture};
-use seasonloc::Matrix;
 
-/// Deterministic pseudo-random similarities in [0, 1).
-fn similarities(rows: usize, cols: usize, seed: u64) -> Matrix {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let data = (0..rows * cols)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 40) as f32 / (1u64 << 24) as f32
-        })
-        .collect();
-    Matrix::from_vec(rows, cols, data).expect("length is rows * cols")
-}
+mod fixture;
+use fixture::uniform_matrix;
 
 fn bench_matrix_picture(c: &mut Criterion) {
     let mut group = c.benchmark_group("matrix_picture");
     group.sample_size(10);
     // Nordland dev split (no downsampling of rows); a long batch against a 30,000-image map.
     for (q, d) in [(2400, 2400), (1000, 30_000)] {
-        let m = similarities(q, d, 7);
+        let m = uniform_matrix(q, d, 7);
         group.throughput(Throughput::Elements((q * d) as u64));
         group.bench_with_input(BenchmarkId::new("pool", format!("{q}x{d}")), &m, |b, m| {
             b.iter(|| MatrixPicture::bounded(m).expect("valid input"))

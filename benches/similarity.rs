@@ -7,21 +7,9 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use seasonloc::similarity::{cosine_matrix, normalize_columns_in_place};
-use seasonloc::Matrix;
 
-/// Deterministic pseudo-random non-negative descriptors (like HOG / ReLU features).
-fn descriptors(rows: usize, cols: usize, seed: u64) -> Matrix {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let data = (0..rows * cols)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 40) as f32 / (1u64 << 24) as f32
-        })
-        .collect();
-    Matrix::from_vec(rows, cols, data).expect("length is rows * cols")
-}
+mod fixture;
+use fixture::uniform_matrix;
 
 fn bench_cosine(c: &mut Criterion) {
     let mut group = c.benchmark_group("cosine_matrix");
@@ -29,7 +17,7 @@ fn bench_cosine(c: &mut Criterion) {
     // (Q, D, N): Nordland with 8 px HOG; a CNN map; a square compute-bound case equal in
     // flops to the 4096³ NumPy reference.
     for (q, d, n) in [(2400, 2400, 756), (2000, 8000, 4096), (4096, 4096, 4096)] {
-        let (qm, dm) = (descriptors(q, n, 1), descriptors(d, n, 2));
+        let (qm, dm) = (uniform_matrix(q, n, 1), uniform_matrix(d, n, 2));
         group.throughput(Throughput::Elements(2 * (q * d * n) as u64));
         group.bench_with_input(
             BenchmarkId::from_parameter(format!("{q}x{d}x{n}")),
@@ -44,7 +32,7 @@ fn bench_normalize(c: &mut Criterion) {
     let mut group = c.benchmark_group("normalize_columns");
     group.sample_size(10);
     let (q, d) = (2400, 2400);
-    let sim = descriptors(q, d, 3);
+    let sim = uniform_matrix(q, d, 3);
     group.throughput(Throughput::Elements((q * d) as u64));
     group.bench_function(format!("{q}x{d}"), |b| {
         b.iter_batched_ref(

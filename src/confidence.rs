@@ -330,8 +330,6 @@ mod tests {
         let d = chat.cols();
         // States are (col, hidden). Within a row a path is a run of horizontal moves of one kind.
         // Enumerate, per row, the segment [entry..=exit] and the kind.
-        let mut best_in = f64::INFINITY;
-        let mut best_out = f64::INFINITY;
         #[allow(clippy::too_many_arguments, clippy::type_complexity)]
         fn rec(
             chat: &Matrix,
@@ -390,10 +388,25 @@ mod tests {
             &mut Vec::new(),
             &mut all,
         );
-        let lo = js.saturating_sub(p.radius);
-        let hi = js + p.radius;
-        for (cost, trace) in all {
-            let (a, b, hidden) = trace[i - first];
+        ratio_of_routes(
+            all.iter().map(|(cost, trace)| (*cost, trace[i - first])),
+            js,
+            p.radius,
+        )
+    }
+
+    /// The min-marginal ratio from brute-forced routes, given as each route's cost and its run
+    /// `(first column, last column, hidden)` in the scored row: the cheapest route that leaves
+    /// the window `js ± r` (or is hidden there) over the cheapest that enters it; 0 when none
+    /// enters it. The brute forces of both confidences (box and discounted) share it.
+    pub(super) fn ratio_of_routes(
+        routes: impl IntoIterator<Item = (f64, (usize, usize, bool))>,
+        js: usize,
+        r: usize,
+    ) -> f64 {
+        let (lo, hi) = (js.saturating_sub(r), js + r);
+        let (mut best_in, mut best_out) = (f64::INFINITY, f64::INFINITY);
+        for (cost, (a, b, hidden)) in routes {
             if hidden {
                 best_out = best_out.min(cost);
                 continue;

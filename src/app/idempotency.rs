@@ -29,7 +29,7 @@ pub struct Idempotency {
 }
 
 impl Idempotency {
-    /// A key (1 to [`MAX_KEY_LEN`] visible ASCII characters) with the request's fingerprint
+    /// A key (1 to `MAX_KEY_LEN` visible ASCII characters) with the request's fingerprint
     /// (a hash of everything that defines the request).
     pub fn new(key: &str, fingerprint: Vec<u8>) -> AppResult<Idempotency> {
         if key.is_empty() || key.len() > MAX_KEY_LEN || !key.bytes().all(|b| b.is_ascii_graphic()) {

@@ -1,7 +1,7 @@
 //! The one dispatch on a map's kind. A map either holds one global descriptor per image (HOG,
 //! a CNN layer, or client-computed) and is localized by the flow graph
-//! ([`super::descriptors`], [`super::localize`]), or it is a feature co-occurrence map built
-//! from its images ([`super::cooc`]). Use cases branch on [`kind`] and nowhere else.
+//! (`app/descriptors.rs`, `app/localize.rs`), or it is a feature co-occurrence map built
+//! from its images (`app/cooc.rs`). Use cases branch on [`kind`] and nowhere else.
 //!
 //! Adding a kind: a variant of `store::DescriptorSettings` (with its stored encoding), an arm
 //! here, and one module beside `cooc.rs` implementing its appends and localization.

@@ -205,7 +205,7 @@ impl App {
 
     /// [`App::append_images`] with an optional idempotency key: a batch whose key was applied
     /// already (by any process) is not appended again but answered with the indices it got
-    /// ([`super::idempotency`]).
+    /// (`app/idempotency.rs`).
     pub async fn append_images_once(
         &self,
         map: MapRecord,

@@ -10,7 +10,7 @@
 //!   the [`CpuPool`]; store I/O is awaited outside pool jobs, never inside one.
 //! * Nothing is written until everything that can fail on the input has been checked, and
 //!   every write is one atomic store call, so a failed request changes nothing.
-//! * What a process caches ([`cache`]) is checked against the store's versions first, so
+//! * What a process caches (`app/cache.rs`) is checked against the store's versions first, so
 //!   several processes may serve one shared store.
 
 // Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a

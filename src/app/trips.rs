@@ -136,7 +136,7 @@ impl App {
 
     /// [`App::post_frames`] with an optional idempotency key: a batch whose key was applied
     /// already (by any process) is not applied again but answered as the first time
-    /// ([`super::idempotency`]).
+    /// (`app/idempotency.rs`).
     pub async fn post_frames_once(
         &self,
         id: u64,

@@ -149,8 +149,7 @@ mod tests {
             }
             routes = next;
         }
-        let (mut best_in, mut best_out) = (f64::INFINITY, f64::INFINITY);
-        for trace in routes {
+        let costs = routes.into_iter().map(|trace| {
             let cost: f64 = trace
                 .iter()
                 .enumerate()
@@ -163,24 +162,9 @@ mod tests {
                     c * g.powi((t as i32 - i as i32).abs())
                 })
                 .sum();
-            let (a, b, hidden) = trace[i];
-            let (lo, hi) = (js.saturating_sub(r), js + r);
-            if hidden {
-                best_out = best_out.min(cost);
-                continue;
-            }
-            if (a..=b).any(|j| (lo..=hi).contains(&j)) {
-                best_in = best_in.min(cost);
-            }
-            if (a..=b).any(|j| !(lo..=hi).contains(&j)) {
-                best_out = best_out.min(cost);
-            }
-        }
-        if best_in.is_finite() {
-            best_out / best_in
-        } else {
-            0.0
-        }
+            (cost, trace[i])
+        });
+        crate::confidence::tests::ratio_of_routes(costs, js, r)
     }
 
     proptest! {

@@ -170,7 +170,7 @@ pub fn check_hidden_cost(w: f64) -> Result<()> {
     Ok(())
 }
 
-/// All checks of the public low-level entry points ([`super::shortest_path`],
+/// All checks of the public low-level entry points ([`super::shortest_path()`],
 /// [`super::row_alternatives`]).
 pub(crate) fn check_inputs(
     chat: &Matrix,

@@ -1,7 +1,7 @@
 //! `F > 1`, greedy (the flow paper's method): repeat the shortest path `F` times, each time
 //! making the matching nodes already used unusable, and rank the paths in the order found.
 //!
-//! Each round is one `O(Q·D)` dynamic programme ([`super::shortest_path`]); hidden nodes stay
+//! Each round is one `O(Q·D)` dynamic programme ([`super::shortest_path()`]); hidden nodes stay
 //! available to every round, so every round finds a path. The total cost can only be higher
 //! than or equal to the exact min-cost flow's. Inputs must have been checked by the caller.
 

@@ -1,7 +1,7 @@
 //! Min-marginals along a hypothesis, the raw material of a confidence: for every query row, the
 //! cheapest complete path that matches *near* the hypothesis, *elsewhere*, or goes *hidden*.
 //!
-//! With `F_i` the forward DP of [`super::shortest_path`] (cheapest source path ending at a node,
+//! With `F_i` the forward DP of [`super::shortest_path()`] (cheapest source path ending at a node,
 //! node included) and `B_i` a backward DP (cheapest continuation from a node to the sink, node
 //! excluded), the cheapest complete path through a node costs `F + B`. The backward rows are
 //! `G[k] = min(c_{i+1,k} + BX_{i+1}[k], W + BH_{i+1}[k])`, `base_j = min_{k in [j, j+K]} G[k]`
@@ -41,7 +41,7 @@ pub struct RowAlternatives {
 
 /// Min-marginals of every query row around `path` (see [`RowAlternatives`]).
 ///
-/// Uses the same graph as [`super::shortest_path`] with the same arguments; `path` must have one
+/// Uses the same graph as [`super::shortest_path()`] with the same arguments; `path` must have one
 /// row per query row and columns inside the matrix. Time `O(Q·D)`, memory `O(sqrt(Q)·D)`.
 pub fn row_alternatives(
     chat: &Matrix,

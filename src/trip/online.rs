@@ -644,6 +644,41 @@ mod tests {
             .map(|m| m.reference)
     }
 
+    /// Feeds every row of `chat` to a solver whose lag window holds them all (no row leaves
+    /// it) and checks that the traced path is the offline `F = 1` path.
+    fn full_window_trace_is_offline_path(
+        chat: &Matrix,
+        k: usize,
+        horizontal: bool,
+        w: f64,
+    ) -> std::result::Result<(), TestCaseError> {
+        let (q, d) = (chat.rows(), chat.cols());
+        let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
+        for i in 0..q {
+            prop_assert_eq!(online.push_row(chat.row(i)).unwrap(), None);
+        }
+        let sp = SolverParams {
+            fan_out: k,
+            hidden_cost: HiddenCost::Fixed(w),
+            horizontal,
+            ..SolverParams::default()
+        };
+        let offline = solve(chat, &sp).unwrap();
+        let offline_refs: Vec<Option<usize>> = offline.hypotheses[0]
+            .rows
+            .iter()
+            .map(|r| {
+                r.matches
+                    .iter()
+                    .max_by(|a, b| a.similarity.total_cmp(&b.similarity))
+                    .map(|m| m.reference)
+            })
+            .collect();
+        let online_refs: Vec<Option<usize>> = online.trace().iter().map(|e| e.reference).collect();
+        prop_assert_eq!(online_refs, offline_refs);
+        Ok(())
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(128))]
         /// For F = 1 without relocalization, the estimate for the latest row equals the offline
@@ -672,17 +707,7 @@ mod tests {
             k in 0usize..4, horizontal: bool, w in 0.3f64..2.5,
         ) {
             let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
-            let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
-            for i in 0..q {
-                prop_assert_eq!(online.push_row(chat.row(i)).unwrap(), None);
-            }
-            let sp = SolverParams { fan_out: k, hidden_cost: HiddenCost::Fixed(w), horizontal, ..SolverParams::default() };
-            let offline = solve(&chat, &sp).unwrap();
-            let offline_refs: Vec<Option<usize>> = offline.hypotheses[0].rows.iter()
-                .map(|r| r.matches.iter().max_by(|a, b| a.similarity.total_cmp(&b.similarity)).map(|m| m.reference))
-                .collect();
-            let online_refs: Vec<Option<usize>> = online.trace().iter().map(|e| e.reference).collect();
-            prop_assert_eq!(online_refs, offline_refs);
+            full_window_trace_is_offline_path(&chat, k, horizontal, w)?;
         }
 
         /// The same on matrices of a few exactly representable values, where costs tie all
@@ -697,17 +722,7 @@ mod tests {
             w in prop::sample::select(vec![0.5f64, 1.0, 2.0, 4.0]),
         ) {
             let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
-            let mut online = OnlineSolver::new(d, params(k, horizontal, w, q, None)).unwrap();
-            for i in 0..q {
-                prop_assert_eq!(online.push_row(chat.row(i)).unwrap(), None);
-            }
-            let sp = SolverParams { fan_out: k, hidden_cost: HiddenCost::Fixed(w), horizontal, ..SolverParams::default() };
-            let offline = solve(&chat, &sp).unwrap();
-            let offline_refs: Vec<Option<usize>> = offline.hypotheses[0].rows.iter()
-                .map(|r| r.matches.iter().max_by(|a, b| a.similarity.total_cmp(&b.similarity)).map(|m| m.reference))
-                .collect();
-            let online_refs: Vec<Option<usize>> = online.trace().iter().map(|e| e.reference).collect();
-            prop_assert_eq!(online_refs, offline_refs);
+            full_window_trace_is_offline_path(&chat, k, horizontal, w)?;
         }
     }
 

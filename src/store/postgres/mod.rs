@@ -20,7 +20,7 @@
 //!   comes back.
 //!
 //! Descriptors are stored compactly: one row per appended batch with the rows as raw
-//! little-endian `f32` ([`maps`]); a replica reads them once per map version into its cache
+//! little-endian `f32` (`postgres/maps.rs`); a replica reads them once per map version into its cache
 //! (`crate::app`), which checks the map's `image_count` first and reads only the new rows.
 //!
 //! [`testing`] starts throw-away PostgreSQL servers for the test suites.

@@ -7,7 +7,7 @@
 //! the state and the frames' estimates always describe the same point of the trip — every
 //! batch writes its record, state delta (new log rows, sometimes a snapshot and the removal of
 //! the log rows before it) and estimates in one atomic `sled::Batch`, flushed before the call
-//! returns. Deleting the map deletes its trips (in [`Store::delete_map`]).
+//! returns. Deleting the map deletes its trips (in [`Store::delete_map`](crate::store::Store::delete_map)).
 
 use super::{codec, SledStore};
 use crate::store::{

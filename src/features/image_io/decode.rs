@@ -1,0 +1,415 @@
+//! Decoding JPEG/PNG bytes into pixels: format sniffing by content, the pixel limit checked
+//! from the header before any pixel is decoded, and JPEG through `zune-jpeg` in strict mode,
+//! giving only the pixels the caller reads ([`super::Pixels`]: the Y plane alone for gray
+//! descriptors). Apart from conversion and resizing because it is the only part that reads
+//! untrusted bytes: every error here names the image.
+
+use std::io::Cursor;
+
+use image::{DynamicImage, GrayImage, ImageFormat, ImageReader, RgbImage};
+
+use super::{to_gray, Pixels};
+use crate::{Error, Result};
+
+/// Decodes one JPEG/PNG image given as bytes; `name` (file or multipart part name) appears in
+/// errors. Images with more than `max_pixels` pixels are rejected before being decoded.
+/// The colour decode ([`Pixels::Colour`]); see [`decode_image_as`].
+pub fn decode_image(name: &str, bytes: &[u8], max_pixels: u64) -> Result<DynamicImage> {
+    decode_image_as(name, bytes, max_pixels, Pixels::Colour)
+}
+
+/// [`decode_image`] of only the pixels the caller reads ([`Pixels`]); with [`Pixels::Gray`]
+/// the result is always an `ImageLuma8`.
+pub fn decode_image_as(
+    name: &str,
+    bytes: &[u8],
+    max_pixels: u64,
+    pixels: Pixels,
+) -> Result<DynamicImage> {
+    let fail = |reason: String| Error::Image {
+        name: name.to_string(),
+        reason,
+    };
+    if bytes.is_empty() {
+        return Err(fail("is empty (0 bytes)".into()));
+    }
+    let format = match image::guess_format(bytes) {
+        Ok(f @ (ImageFormat::Png | ImageFormat::Jpeg)) => f,
+        Ok(other) => {
+            return Err(fail(format!(
+                "unsupported format {other:?}: only PNG and JPEG are accepted"
+            )))
+        }
+        Err(_) => {
+            return Err(fail(format!(
+                "not a PNG or JPEG image ({} bytes of unrecognised content)",
+                bytes.len()
+            )))
+        }
+    };
+    let image = if format == ImageFormat::Jpeg {
+        decode_jpeg(bytes, max_pixels, pixels).map_err(fail)?
+    } else {
+        let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
+            .into_dimensions()
+            .map_err(|e| fail(format!("cannot read the {format:?} header: {e}")))?;
+        check_pixel_limit(w, h, max_pixels).map_err(fail)?;
+        ImageReader::with_format(Cursor::new(bytes), format)
+            .decode()
+            .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))?
+    };
+    Ok(match pixels {
+        Pixels::Colour => image,
+        Pixels::Gray => gray_image(image),
+    })
+}
+
+/// The decoded gray image of JPEG/PNG bytes ([`Pixels::Gray`]): the input of co-occurrence
+/// extraction.
+pub fn decode_gray(name: &str, bytes: &[u8], max_pixels: u64) -> Result<GrayImage> {
+    match decode_image_as(name, bytes, max_pixels, Pixels::Gray)? {
+        DynamicImage::ImageLuma8(gray) => Ok(gray),
+        // Not reached: `Pixels::Gray` always gives `ImageLuma8`.
+        other => Ok(to_gray(&other).into_owned()),
+    }
+}
+
+/// `image` as an `ImageLuma8` ([`to_gray`]), without a copy when it already is one.
+fn gray_image(image: DynamicImage) -> DynamicImage {
+    match image {
+        gray @ DynamicImage::ImageLuma8(_) => gray,
+        other => DynamicImage::ImageLuma8(to_gray(&other).into_owned()),
+    }
+}
+
+fn check_pixel_limit(w: u32, h: u32, max_pixels: u64) -> std::result::Result<(), String> {
+    let pixels = u64::from(w) * u64::from(h);
+    if pixels > max_pixels {
+        return Err(format!(
+            "{w}x{h} px = {pixels} pixels exceeds the limit of {max_pixels} pixels"
+        ));
+    }
+    Ok(())
+}
+
+/// JPEG with `zune-jpeg` directly (the decoder `image` wraps), in *strict* mode: `image` runs
+/// it lenient, which decodes a truncated or corrupt entropy stream into an image padded with
+/// grey and no error; a localization service must reject such a frame instead. Going direct
+/// also decodes without `image`'s copy of the input. Gray JPEGs give `Luma8`; YCbCr JPEGs give
+/// their Y plane alone when only gray is wanted ([`Pixels::Gray`]); every other case `Rgb8`
+/// (as `image` does, alpha aside).
+fn decode_jpeg(
+    bytes: &[u8],
+    max_pixels: u64,
+    pixels: Pixels,
+) -> std::result::Result<DynamicImage, String> {
+    use zune_jpeg::zune_core::bytestream::ZCursor;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+
+    let options = DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(usize::from(u16::MAX))
+        .set_max_height(usize::from(u16::MAX));
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    decoder
+        .decode_headers()
+        .map_err(|e| format!("cannot read the Jpeg header: {e}"))?;
+    let (w, h) = decoder
+        .dimensions()
+        .ok_or_else(|| "cannot read the Jpeg header: no frame size".to_string())?;
+    // JPEG sizes are 16-bit, so these conversions cannot fail.
+    let (w, h) = (
+        u32::try_from(w).unwrap_or(u32::MAX),
+        u32::try_from(h).unwrap_or(u32::MAX),
+    );
+    check_pixel_limit(w, h, max_pixels)?;
+    // zune-jpeg turns YCbCr into Luma by keeping Y and skipping the chroma components' IDCT
+    // and upsampling; it has no other "to Luma" conversion, so RGB, CMYK and YCCK JPEGs are
+    // decoded to RGB and made gray by the caller.
+    let out = match decoder.input_colorspace() {
+        Some(ColorSpace::Luma | ColorSpace::LumaA) => JpegOut::Luma,
+        Some(ColorSpace::YCbCr) if pixels == Pixels::Gray => {
+            // zune-jpeg 0.5.15's Luma output decodes twice the MCU rows (the second half past
+            // the end of the data) when chroma is subsampled vertically only (4:4:0): 1.5x the
+            // time of a colour decode on such a camera JPEG (BENCHMARKS.md). There the Y plane
+            // comes from the YCbCr output instead (no colour conversion; the same Y, a test
+            // checks both against each other and against libjpeg-turbo).
+            match decoder.info().map(|i| i.sample_ratio) {
+                Some(zune_jpeg::SampleRatios::V) => JpegOut::YOfYCbCr,
+                _ => JpegOut::Luma,
+            }
+        }
+        _ => JpegOut::Rgb,
+    };
+    let colorspace = match out {
+        JpegOut::Luma => ColorSpace::Luma,
+        JpegOut::YOfYCbCr => ColorSpace::YCbCr,
+        JpegOut::Rgb => ColorSpace::RGB,
+    };
+    // A fresh decoder with the output colour space set before its headers are read (as
+    // `image` does); the headers are a few hundred bytes.
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
+        ZCursor::new(bytes),
+        options.jpeg_set_out_colorspace(colorspace),
+    );
+    let failed = |e: &dyn std::fmt::Display| format!("cannot decode the {w}x{h} Jpeg image: {e}");
+    let decoded = decoder.decode().map_err(|e| failed(&e))?;
+    let image = match out {
+        JpegOut::Luma => GrayImage::from_raw(w, h, decoded).map(DynamicImage::ImageLuma8),
+        JpegOut::YOfYCbCr => {
+            let y = decoded.chunks_exact(3).map(|p| p[0]).collect();
+            GrayImage::from_raw(w, h, y).map(DynamicImage::ImageLuma8)
+        }
+        JpegOut::Rgb => RgbImage::from_raw(w, h, decoded).map(DynamicImage::ImageRgb8),
+    };
+    image.ok_or_else(|| failed(&"the decoder returned a buffer of the wrong size"))
+}
+
+/// What [`decode_jpeg`] asks zune-jpeg for.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum JpegOut {
+    /// The Y plane alone (gray JPEGs; YCbCr JPEGs when only gray is wanted).
+    Luma,
+    /// Y taken from the YCbCr output (4:4:0 JPEGs when only gray is wanted).
+    YOfYCbCr,
+    /// Colour.
+    Rgb,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::tests::{encode, noisy_rgb, reason, sample_rgb};
+    use super::super::{load_image_file, load_image_file_as};
+    use super::*;
+
+    #[test]
+    fn png_round_trips_exactly() {
+        let img = sample_rgb(20, 10);
+        let decoded = decode_image("a.png", &encode(&img, ImageFormat::Png), 1000).unwrap();
+        assert_eq!(decoded.to_rgb8(), img);
+    }
+
+    #[test]
+    fn jpeg_round_trips_with_its_size() {
+        let img = sample_rgb(24, 16);
+        let decoded = decode_image("b", &encode(&img, ImageFormat::Jpeg), 1000).unwrap();
+        assert_eq!((decoded.width(), decoded.height()), (24, 16));
+        // Lossy, but close to the smooth original.
+        let diff: u64 = decoded
+            .to_rgb8()
+            .as_raw()
+            .iter()
+            .zip(img.as_raw())
+            .map(|(&a, &b)| u64::from(a.abs_diff(b)))
+            .sum();
+        assert!(diff / (24 * 16 * 3) < 12, "mean abs diff too large: {diff}");
+    }
+
+    #[test]
+    fn garbage_and_empty_bytes_name_the_part() {
+        let (name, why) =
+            reason(decode_image("part-3", b"definitely not an image", 1000).unwrap_err());
+        assert_eq!(name, "part-3");
+        assert!(why.contains("not a PNG or JPEG"), "{why}");
+        let (_, why) = reason(decode_image("e", b"", 1000).unwrap_err());
+        assert!(why.contains("empty"), "{why}");
+    }
+
+    #[test]
+    fn unsupported_format_is_rejected_by_content() {
+        let (_, why) = reason(decode_image("x.png", b"GIF89a\x01\x00\x01\x00", 1000).unwrap_err());
+        assert!(why.contains("unsupported format Gif"), "{why}");
+    }
+
+    #[test]
+    fn truncated_png_is_an_image_error() {
+        let bytes = encode(&sample_rgb(40, 40), ImageFormat::Png);
+        let (name, why) =
+            reason(decode_image("cut.png", &bytes[..bytes.len() / 2], 10_000).unwrap_err());
+        assert_eq!(name, "cut.png");
+        assert!(why.contains("cannot decode the 40x40 Png"), "{why}");
+    }
+
+    #[test]
+    fn truncated_or_corrupt_jpeg_is_an_image_error() {
+        let bytes = encode(&noisy_rgb(64, 48, 5), ImageFormat::Jpeg);
+        // Cut in the entropy-coded data: `image`'s lenient decoding would pad it with grey.
+        let (name, why) =
+            reason(decode_image("cut.jpg", &bytes[..bytes.len() * 2 / 3], 10_000).unwrap_err());
+        assert_eq!(name, "cut.jpg");
+        assert!(why.contains("cannot decode the 64x48 Jpeg"), "{why}");
+        // A marker in the middle of the entropy-coded data.
+        let mut corrupt = bytes.clone();
+        let at = corrupt.len() / 2;
+        corrupt[at..at + 2].copy_from_slice(&[0xff, 0xc0]);
+        let (_, why) = reason(decode_image("bad.jpg", &corrupt, 10_000).unwrap_err());
+        assert!(why.contains("cannot decode the 64x48 Jpeg"), "{why}");
+        // Only the start of the headers.
+        let (_, why) = reason(decode_image("hdr.jpg", &bytes[..20], 10_000).unwrap_err());
+        assert!(why.contains("cannot read the Jpeg header"), "{why}");
+        // The pixel limit comes from the header, before decoding.
+        let (_, why) = reason(decode_image("big.jpg", &bytes, 3071).unwrap_err());
+        assert!(why.contains("64x48 px = 3072 pixels exceeds"), "{why}");
+    }
+
+    #[test]
+    fn jpeg_decoding_matches_image_and_keeps_gray_jpegs_gray() {
+        let rgb = noisy_rgb(61, 37, 9);
+        let bytes = encode(&rgb, ImageFormat::Jpeg);
+        let ours = decode_image("c.jpg", &bytes, 10_000).unwrap();
+        let theirs = image::load_from_memory_with_format(&bytes, ImageFormat::Jpeg).unwrap();
+        assert_eq!(ours.as_rgb8().unwrap(), theirs.as_rgb8().unwrap());
+        let gray = DynamicImage::ImageRgb8(rgb).to_luma8();
+        let mut out = Cursor::new(Vec::new());
+        gray.write_to(&mut out, ImageFormat::Jpeg).unwrap();
+        let ours = decode_image("g.jpg", out.get_ref(), 10_000).unwrap();
+        let theirs = image::load_from_memory_with_format(out.get_ref(), ImageFormat::Jpeg).unwrap();
+        assert_eq!(ours.as_luma8().unwrap(), theirs.as_luma8().unwrap());
+    }
+
+    /// Camera JPEGs of every common chroma sampling, odd sizes (partial MCUs), made by
+    /// `testdata/make_jpegs.py` with OpenCV, beside the Y plane libjpeg-turbo decodes.
+    fn sampled_jpegs() -> [(&'static str, &'static [u8], &'static [u8]); 4] {
+        [
+            (
+                "4:2:0",
+                include_bytes!("../testdata/sampling_420.jpg"),
+                include_bytes!("../testdata/sampling_420_y.pgm"),
+            ),
+            (
+                "4:2:2",
+                include_bytes!("../testdata/sampling_422.jpg"),
+                include_bytes!("../testdata/sampling_422_y.pgm"),
+            ),
+            (
+                "4:4:0",
+                include_bytes!("../testdata/sampling_440.jpg"),
+                include_bytes!("../testdata/sampling_440_y.pgm"),
+            ),
+            (
+                "4:4:4",
+                include_bytes!("../testdata/sampling_444.jpg"),
+                include_bytes!("../testdata/sampling_444_y.pgm"),
+            ),
+        ]
+    }
+
+    /// Pixels of a binary PGM with a `P5\nW H\n255\n` header.
+    fn pgm_pixels(pgm: &[u8]) -> &[u8] {
+        let mut newlines = 0;
+        let start = pgm
+            .iter()
+            .position(|&b| {
+                newlines += usize::from(b == b'\n');
+                newlines == 3
+            })
+            .unwrap();
+        &pgm[start + 1..]
+    }
+
+    /// The Y plane of a YCbCr JPEG's full decode (chroma included), from zune-jpeg.
+    fn y_of_full_decode(bytes: &[u8]) -> Vec<u8> {
+        use zune_jpeg::zune_core::{
+            bytestream::ZCursor, colorspace::ColorSpace, options::DecoderOptions,
+        };
+        let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::YCbCr);
+        let ycbcr = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options)
+            .decode()
+            .unwrap();
+        ycbcr.chunks_exact(3).map(|p| p[0]).collect()
+    }
+
+    #[test]
+    fn gray_decoding_of_ycbcr_jpegs_is_their_y_plane() {
+        for (sampling, jpeg, pgm) in sampled_jpegs() {
+            let gray = decode_image_as("y.jpg", jpeg, 10_000, Pixels::Gray).unwrap();
+            let DynamicImage::ImageLuma8(gray) = gray else {
+                panic!("{sampling}: Pixels::Gray must give Luma8");
+            };
+            assert_eq!(gray.dimensions(), (45, 29), "{sampling}");
+            // The Y plane the decoder computes when it decodes the chroma too, exactly.
+            assert_eq!(gray.as_raw(), &y_of_full_decode(jpeg), "{sampling}");
+            // libjpeg-turbo's Y (another IDCT): within one level everywhere.
+            let anchor = pgm_pixels(pgm);
+            assert_eq!(anchor.len(), gray.as_raw().len(), "{sampling}");
+            let worst = gray
+                .as_raw()
+                .iter()
+                .zip(anchor)
+                .map(|(a, b)| a.abs_diff(*b))
+                .max()
+                .unwrap();
+            assert!(worst <= 1, "{sampling}: {worst} levels from libjpeg-turbo");
+            // It is not the Rec. 709 luma of the colour decode (a different, cheaper path),
+            // and colour decoding is unchanged.
+            let colour = decode_image("c.jpg", jpeg, 10_000).unwrap();
+            assert!(colour.as_rgb8().is_some(), "{sampling}");
+            assert_ne!(*to_gray(&colour), gray, "{sampling}");
+            assert_eq!(decode_gray("g.jpg", jpeg, 10_000).unwrap(), gray);
+        }
+    }
+
+    #[test]
+    fn gray_decoding_stays_strict_and_limited() {
+        for (sampling, jpeg, _) in sampled_jpegs() {
+            // Cut in the entropy-coded data: the skipped chroma blocks still have to parse.
+            let cut = &jpeg[..jpeg.len() * 3 / 4];
+            let (name, why) = reason(decode_gray("cut.jpg", cut, 10_000).unwrap_err());
+            assert_eq!(name, "cut.jpg", "{sampling}");
+            assert!(
+                why.contains("cannot decode the 45x29 Jpeg"),
+                "{sampling}: {why}"
+            );
+            let (_, why) = reason(decode_gray("big.jpg", jpeg, 45 * 29 - 1).unwrap_err());
+            assert!(why.contains("exceeds the limit"), "{sampling}: {why}");
+        }
+    }
+
+    #[test]
+    fn gray_decoding_of_other_images_is_to_gray_of_their_colour() {
+        let rgb = noisy_rgb(61, 37, 4);
+        let png = encode(&rgb, ImageFormat::Png);
+        let gray = decode_gray("a.png", &png, 10_000).unwrap();
+        assert_eq!(gray, DynamicImage::ImageRgb8(rgb.clone()).to_luma8());
+        let luma = DynamicImage::ImageRgb8(rgb).to_luma8();
+        let mut gray_jpeg = Cursor::new(Vec::new());
+        luma.write_to(&mut gray_jpeg, ImageFormat::Jpeg).unwrap();
+        let colour = decode_image("g.jpg", gray_jpeg.get_ref(), 10_000).unwrap();
+        assert_eq!(
+            decode_gray("g.jpg", gray_jpeg.get_ref(), 10_000).unwrap(),
+            *colour.as_luma8().unwrap()
+        );
+        // Colour is the default everywhere it is not asked for.
+        assert_eq!(Pixels::default(), Pixels::Colour);
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), &png).unwrap();
+        assert!(load_image_file(file.path()).unwrap().as_rgb8().is_some());
+        assert_eq!(
+            *load_image_file_as(file.path(), Pixels::Gray)
+                .unwrap()
+                .as_luma8()
+                .unwrap(),
+            gray
+        );
+    }
+
+    #[test]
+    fn pixel_limit_is_checked_from_the_header_before_decoding() {
+        let bytes = encode(&sample_rgb(100, 50), ImageFormat::Png);
+        let (_, why) = reason(decode_image("big.png", &bytes, 4999).unwrap_err());
+        assert!(
+            why.contains("100x50 px = 5000 pixels exceeds the limit of 4999"),
+            "{why}"
+        );
+        assert!(decode_image("ok.png", &bytes, 5000).is_ok());
+        // Cut a few bytes into the pixel data (IDAT): it could never be decoded, yet the limit
+        // error comes first.
+        let idat = bytes.windows(4).position(|w| w == b"IDAT").unwrap();
+        let head = &bytes[..idat + 10];
+        let (_, why) = reason(decode_image("hdr.png", head, 4999).unwrap_err());
+        assert!(why.contains("exceeds the limit"), "{why}");
+        let (_, why) = reason(decode_image("hdr.png", head, 5000).unwrap_err());
+        assert!(why.contains("cannot decode"), "{why}");
+    }
+}
