@@ -43,7 +43,7 @@ pub(crate) struct LoadedModel {
     fronts_fused: usize,
 }
 
-/// Time spent in one node of the plan ([`LoadedModel::node_times`]).
+/// Time spent in one node of the plan (`LoadedModel::node_times` in this file).
 #[derive(Clone, Debug)]
 pub struct NodeTime {
     /// Operator kind, e.g. `OptMatMul` or `SeasonlocDepthwiseConv`.
