@@ -247,6 +247,7 @@ fn sweep_on<R: Send>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     /// Every value a reader can see of every row: `m(x_ij)` of every column, the best route
     /// outside a band and the best hidden route.
@@ -284,6 +285,102 @@ mod tests {
                 portable, detected,
                 "{q}x{d}, K = {k}, horizontal {horizontal}"
             );
+        }
+    }
+
+    /// `FX`, `FH`, `BX`, `BH` of every row in plain `f32`, column by column in natural order:
+    /// every value from the same operations as the lanes (the window minimum, then the factor
+    /// `g`; the horizontal scans), so chunking, fix-ups and padding must not change a bit.
+    fn plain_f32(chat: &Matrix, gp: &GraphParams, g: f64) -> Vec<[Vec<f32>; 4]> {
+        let (q, d) = (chat.rows(), chat.cols());
+        let (k, w, g) = (gp.fan_out, gp.hidden_cost as f32, g as f32);
+        let cost = |i: usize| -> Vec<f32> {
+            let c = |v: f32| if v > 0.0 { 1.0 / v } else { f32::INFINITY };
+            chat.row(i).iter().map(|&v| c(v)).collect()
+        };
+        let lowest = |v: &[f32]| v.iter().copied().fold(f32::INFINITY, f32::min);
+        let mut fwd: Vec<(Vec<f32>, Vec<f32>)> = Vec::new();
+        for i in 0..q {
+            let c = cost(i);
+            let base: Vec<f32> = match fwd.last() {
+                None => vec![0.0; d],
+                Some((x, h)) => {
+                    let m: Vec<f32> = x.iter().zip(h).map(|(&a, &b)| a.min(b)).collect();
+                    (0..d)
+                        .map(|j| g * lowest(&m[j.saturating_sub(k)..=j]))
+                        .collect()
+                }
+            };
+            let (mut x, mut h) = (vec![0.0; d], vec![0.0; d]);
+            for j in 0..d {
+                x[j] = c[j] + base[j];
+                h[j] = base[j] + w;
+                if gp.horizontal && j > 0 {
+                    x[j] = c[j] + base[j].min(x[j - 1]);
+                    h[j] = h[j].min(h[j - 1]);
+                }
+            }
+            fwd.push((x, h));
+        }
+        let mut bwd: Vec<(Vec<f32>, Vec<f32>)> = vec![(Vec::new(), Vec::new()); q];
+        for i in (0..q).rev() {
+            let succ: Vec<f32> = if i + 1 == q {
+                vec![0.0; d]
+            } else {
+                let (cn, (nx, nh)) = (cost(i + 1), &bwd[i + 1]);
+                let a: Vec<f32> = (0..d).map(|j| (cn[j] + nx[j]).min(w + nh[j])).collect();
+                (0..d)
+                    .map(|j| g * lowest(&a[j..=(j + k).min(d - 1)]))
+                    .collect()
+            };
+            let c = cost(i);
+            let (mut x, mut h) = (succ.clone(), succ.clone());
+            if gp.horizontal {
+                for j in (0..d.saturating_sub(1)).rev() {
+                    x[j] = succ[j].min(c[j + 1] + x[j + 1]);
+                    h[j] = succ[j].min(h[j + 1]);
+                }
+            }
+            bwd[i] = (x, h);
+        }
+        fwd.into_iter()
+            .zip(bwd)
+            .map(|((fx, fh), (bx, bh))| [fx, fh, bx, bh])
+            .collect()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// The lane steps (window minima across chunk borders, chunk fix-ups, padding,
+        /// windows longer than a chunk) against the plain `f32` passes, bit for bit.
+        #[test]
+        fn the_lanes_match_a_plain_f32_pass_bit_for_bit(
+            q in 1usize..16, d in 1usize..120, k in 0usize..20, horizontal: bool,
+            w in 0.3f64..2.5, g in 0.3f64..0.95, seed: u64,
+        ) {
+            let mut state = seed | 1;
+            let chat = super::super::discounted::plain::noise_matrix(q, d, &mut state);
+            let gp = GraphParams { fan_out: k, horizontal, hidden_cost: w };
+            let plain: Vec<(usize, Vec<u32>)> = plain_f32(&chat, &gp, g)
+                .into_iter()
+                .enumerate()
+                .map(|(i, [fx, fh, bx, bh])| {
+                    let through: Vec<f32> = fx.iter().zip(&bx).map(|(&a, &b)| a + b).collect();
+                    let (lo, hi) = (i % d, (i + 2) % d);
+                    let outside = (0..d)
+                        .filter(|j| !(lo..=hi).contains(j))
+                        .map(|j| through[j])
+                        .fold(f32::INFINITY, f32::min);
+                    let hidden = fh.iter().zip(&bh).map(|(&a, &b)| a + b).fold(f32::INFINITY, f32::min);
+                    let mut bits: Vec<u32> = through.iter().map(|v| v.to_bits()).collect();
+                    bits.push(outside.to_bits());
+                    bits.push(hidden.to_bits());
+                    (i, bits)
+                })
+                .collect();
+            for isa in [Isa::Portable, Isa::detect()] {
+                prop_assert_eq!(&everything(isa, &chat, &gp, g), &plain, "{:?}", isa);
+            }
         }
     }
 }
