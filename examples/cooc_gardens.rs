@@ -40,7 +40,11 @@ use seasonloc::cooc::{
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
 use seasonloc::features::{list_images, load_image_file_as, Pixels};
 use seasonloc::similarity::Normalization;
-use seasonloc::trip::{Trip, TripParams};
+use seasonloc::trip::TripParams;
+
+#[path = "support/trip_stream.rs"]
+mod trip_stream;
+use trip_stream::{predictions, stream};
 
 const TRAVERSALS: [&str; 3] = ["day_left", "day_right", "night_right"];
 /// Time of day of each traversal (only the order matters): both day walks, then night.
@@ -403,7 +407,7 @@ fn trip(
 ) -> (Vec<Prediction>, Vec<Prediction>) {
     let rows = map.trip_rows(frames);
     let prior = map.trip_prior(256).expect("trip prior");
-    stream(rows, prior, batch)
+    streamed(&rows, &prior, batch)
 }
 
 /// [`trip`] fed the alternative fusion of the per-source scores, for comparison: each frame's
@@ -448,54 +452,21 @@ fn trip_decisive(
         out
     };
     let rows = rows_of(frames, window);
-    let own: Vec<Vec<seasonloc::cooc::Word>> = map
-        .locations()
-        .drives()
-        .iter()
-        .flat_map(|d| d.images.iter().map(|(_, w)| w.clone()))
-        .collect();
-    let take = own.len().min(256);
-    let picked: Vec<_> = (0..take)
-        .map(|s| own[s * own.len() / take].clone())
-        .collect();
-    let r = rows_of(&picked, 1);
+    let r = rows_of(&map.trip_prior_images(256).expect("map images"), 1);
     let prior: Vec<f32> = (0..r.cols())
-        .map(|j| (0..r.rows()).map(|i| f64::from(r.get(i, j))).sum::<f64>() / take as f64)
+        .map(|j| (0..r.rows()).map(|i| f64::from(r.get(i, j))).sum::<f64>() / r.rows() as f64)
         .map(|v| v as f32)
         .collect();
-    stream(rows, prior, batch)
+    streamed(&rows, &prior, batch)
 }
 
-fn stream(
-    rows: seasonloc::Matrix,
-    prior: Vec<f32>,
+/// [`stream`] with the default trip parameters, as predictions.
+fn streamed(
+    rows: &seasonloc::Matrix,
+    prior: &[f32],
     batch: usize,
 ) -> (Vec<Prediction>, Vec<Prediction>) {
-    let mut trip = Trip::new(prior, TripParams::default()).expect("trip");
-    let (mut arrival, mut last) = (Vec::new(), Vec::new());
-    for start in (0..rows.rows()).step_by(batch) {
-        let end = (start + batch).min(rows.rows());
-        let part: Vec<&[f32]> = (start..end).map(|i| rows.row(i)).collect();
-        let u = trip
-            .push_batch(&seasonloc::Matrix::from_rows(&part).expect("rows"))
-            .expect("batch");
-        arrival.extend(u.estimates.iter().copied());
-        last.extend(u.estimates.iter().copied());
-        for w in &u.window {
-            last[w.frame] = *w;
-        }
-    }
-    let predictions = |e: &[seasonloc::trip::FrameEstimate]| -> Vec<Prediction> {
-        e.iter()
-            .filter_map(|e| {
-                e.reference.map(|j| Prediction {
-                    query: e.frame,
-                    reference: j,
-                    confidence: e.confidence,
-                })
-            })
-            .collect()
-    };
+    let (arrival, last) = stream(rows, prior, TripParams::default(), batch);
     (predictions(&arrival), predictions(&last))
 }
 

@@ -12,12 +12,15 @@ use seasonloc::features::extract_files;
 use seasonloc::features::hog::{HogOptions, HogSpec};
 use seasonloc::localize::{localize, LocalizeOptions};
 use seasonloc::similarity::{cosine_matrix, Normalization};
-use seasonloc::trip::{FrameEstimate, Trip, TripParams};
+use seasonloc::trip::{Trip, TripParams};
 use seasonloc::Matrix;
 
 #[path = "../tests/trip_jump/route.rs"]
 mod route;
+#[path = "support/trip_stream.rs"]
+mod trip_stream;
 use route::{jump_route, relocalization_delays};
+use trip_stream::{predictions, stream};
 
 fn files(dir: &Path) -> Vec<PathBuf> {
     let mut f: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -27,44 +30,6 @@ fn files(dir: &Path) -> Vec<PathBuf> {
         .collect();
     f.sort();
     f
-}
-
-/// Streams `c` (raw cosine rows) through a trip in batches of `batch`; returns the estimates
-/// as reported at arrival and as finally kept (after the lag window).
-fn stream(
-    c: &Matrix,
-    prior: &[f32],
-    params: TripParams,
-    batch: usize,
-) -> (Vec<FrameEstimate>, Vec<FrameEstimate>) {
-    let mut trip = Trip::new(prior.to_vec(), params).expect("valid parameters");
-    let mut arrival = Vec::new();
-    let mut last = Vec::new();
-    for start in (0..c.rows()).step_by(batch) {
-        let end = (start + batch).min(c.rows());
-        let rows: Vec<&[f32]> = (start..end).map(|i| c.row(i)).collect();
-        let u = trip
-            .push_batch(&Matrix::from_rows(&rows).expect("rows"))
-            .expect("batch");
-        arrival.extend(&u.estimates);
-        last.extend(&u.estimates);
-        for w in &u.window {
-            last[w.frame] = *w;
-        }
-    }
-    (arrival, last)
-}
-
-fn predictions(e: &[FrameEstimate]) -> Vec<Prediction> {
-    e.iter()
-        .filter_map(|e| {
-            e.reference.map(|j| Prediction {
-                query: e.frame,
-                reference: j,
-                confidence: e.confidence,
-            })
-        })
-        .collect()
 }
 
 fn row(name: &str, m: &Metrics) {

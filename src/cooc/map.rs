@@ -276,6 +276,21 @@ impl CoocMap {
     /// descriptor maps): per location, the mean of [`CoocMap::trip_rows`] over at most
     /// `sample` of the map's own images, spread evenly over its drives in time order.
     pub fn trip_prior(&self, sample: usize) -> Result<Vec<f32>> {
+        let picked = self.trip_prior_images(sample)?;
+        let take = picked.len();
+        let rows = self.trip_rows(&picked);
+        let mut prior = vec![0.0f64; rows.cols()];
+        for row in rows.iter_rows() {
+            for (p, v) in prior.iter_mut().zip(row) {
+                *p += f64::from(*v);
+            }
+        }
+        Ok(prior.iter().map(|p| (p / take as f64) as f32).collect())
+    }
+
+    /// The quantised images [`CoocMap::trip_prior`] scores: at most `sample` of the map's own
+    /// images, spread evenly over its drives in time order.
+    pub fn trip_prior_images(&self, sample: usize) -> Result<Vec<Vec<Word>>> {
         let images: Vec<&Vec<Word>> = self
             .locations
             .drives()
@@ -287,15 +302,7 @@ impl CoocMap {
             return Err(Error::Empty("the map has no reference images".into()));
         }
         let take = n.min(sample.max(1));
-        let picked: Vec<Vec<Word>> = (0..take).map(|s| images[s * n / take].clone()).collect();
-        let rows = self.trip_rows(&picked);
-        let mut prior = vec![0.0f64; rows.cols()];
-        for row in rows.iter_rows() {
-            for (p, v) in prior.iter_mut().zip(row) {
-                *p += f64::from(*v);
-            }
-        }
-        Ok(prior.iter().map(|p| (p / take as f64) as f32).collect())
+        Ok((0..take).map(|s| images[s * n / take].clone()).collect())
     }
 
     /// The best location of one quantised query.
