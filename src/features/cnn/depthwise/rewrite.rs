@@ -120,14 +120,9 @@ fn replacement(
     let Some(weights) = const_f32(model, node.inputs[1], channels * kh * kw)? else {
         return Ok(None);
     };
-    let Some(mut bias) =
-        const_f32(model, node.inputs[2], channels)?.or(const_f32(model, node.inputs[2], 1)?)
-    else {
+    let Some(bias) = const_bias(model, node.inputs[2], channels)? else {
         return Ok(None);
     };
-    if bias.len() == 1 {
-        bias = vec![bias[0]; channels];
-    }
     let mut op = DepthwiseConv {
         geometry,
         weights: Arc::new(weights),
@@ -369,14 +364,9 @@ fn front_conv(
     let Some(weights) = const_f32(model, node.inputs[1], channels * k * kh * kw)? else {
         return Ok(None);
     };
-    let Some(mut bias) =
-        const_f32(model, node.inputs[2], channels)?.or(const_f32(model, node.inputs[2], 1)?)
-    else {
+    let Some(bias) = const_bias(model, node.inputs[2], channels)? else {
         return Ok(None);
     };
-    if bias.len() == 1 {
-        bias = vec![bias[0]; channels];
-    }
     let expand = Expand {
         in_channels: k,
         geometry,
@@ -444,6 +434,19 @@ fn clamp_after(
         return Ok(None);
     }
     Ok(Some((next.id, value[0])))
+}
+
+/// A convolution's constant `f32` bias at `outlet` for `channels` outputs: one value per
+/// channel, or one value for all of them (broadcast here).
+fn const_bias(
+    model: &TypedModel,
+    outlet: OutletId,
+    channels: usize,
+) -> TractResult<Option<Vec<f32>>> {
+    Ok(match const_f32(model, outlet, channels)? {
+        Some(bias) => Some(bias),
+        None => const_f32(model, outlet, 1)?.map(|one| vec![one[0]; channels]),
+    })
 }
 
 /// The constant `f32` values at `outlet` when there are exactly `len` of them.
