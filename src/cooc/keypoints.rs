@@ -49,9 +49,6 @@ use planes::{halve, resample};
 /// Length of one descriptor.
 pub const DESCRIPTOR_DIM: usize = 128;
 
-/// Pre-smoothing of the working image before gradients, in working pixels.
-const SMOOTH_SIGMA: f32 = 1.0;
-
 /// Detector and descriptor settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct KeypointParams {

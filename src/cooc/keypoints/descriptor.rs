@@ -7,28 +7,22 @@
 //! ([`super::DESCRIPTOR_DIM`] finite values, unit L2 norm or all zero); the detector only
 //! chooses where it is computed.
 
-use super::planes::{blur, gradients};
-use super::{sized, Scratch, SMOOTH_SIGMA};
+use super::planes::smoothed_gradients;
+use super::{sized, Scratch};
 
 /// Gradient magnitude and orientation (in eighths of a turn, `[0, 8)`) of the current level's
 /// smoothed image (recomputed from `s.level`).
 pub(super) fn orientation_planes(s: &mut Scratch, w: usize, h: usize) {
     let n = w * h;
+    smoothed_gradients(s, w, h);
     let Scratch {
-        level,
-        tmp,
-        smooth,
         gx,
         gy,
         magnitude,
         orientation,
-        padded,
         ..
     } = s;
-    let smooth = sized(smooth, n);
-    blur(&level[..n], smooth, tmp, padded, w, h, SMOOTH_SIGMA);
-    let (gx, gy) = (sized(gx, n), sized(gy, n));
-    gradients(smooth, gx, gy, w, h);
+    let (gx, gy) = (&gx[..n], &gy[..n]);
     let (mag, ori) = (sized(magnitude, n), sized(orientation, n));
     for i in 0..n {
         let (a, b) = (gx[i], gy[i]);

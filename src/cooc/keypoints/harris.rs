@@ -7,8 +7,8 @@
 //! each is tuned and read on its own (its parameters: [`KeypointParams`]'s `harris_k`,
 //! `relative_threshold`, `min_response`, `nms_radius`).
 
-use super::planes::{blur, gradients};
-use super::{sized, KeypointParams, Scratch, SMOOTH_SIGMA};
+use super::planes::{blur, smoothed_gradients};
+use super::{sized, KeypointParams, Scratch};
 
 /// Integration scale of the Harris structure tensor, in working pixels.
 const INTEGRATION_SIGMA: f32 = 2.0;
@@ -17,10 +17,9 @@ const INTEGRATION_SIGMA: f32 = 2.0;
 /// maximum above the thresholds to `s.candidates`, and leaves the gradients in `s.gx`, `s.gy`.
 pub(super) fn detect(s: &mut Scratch, w: usize, h: usize, octave: u8, params: &KeypointParams) {
     let n = w * h;
+    smoothed_gradients(s, w, h);
     let Scratch {
-        level,
         tmp,
-        smooth,
         gx,
         gy,
         sxx,
@@ -32,10 +31,7 @@ pub(super) fn detect(s: &mut Scratch, w: usize, h: usize, octave: u8, params: &K
         candidates,
         ..
     } = s;
-    let smooth = sized(smooth, n);
-    blur(&level[..n], smooth, tmp, padded, w, h, SMOOTH_SIGMA);
-    let (gx, gy) = (sized(gx, n), sized(gy, n));
-    gradients(smooth, gx, gy, w, h);
+    let (gx, gy) = (&gx[..n], &gy[..n]);
     // Products of gradients, then their Gaussian-weighted sums (the structure tensor).
     {
         let (pxx, pyy, pxy) = (sized(sxx, n), sized(syy, n), sized(sxy, n));

@@ -11,6 +11,9 @@ use image::GrayImage;
 
 use super::{sized, Scratch};
 
+/// Pre-smoothing of the working image before gradients, in working pixels.
+const SMOOTH_SIGMA: f32 = 1.0;
+
 /// Resamples `image` to `w x h` into `s.level`, intensities in `[0, 1]`: bilinear (pixel
 /// centres aligned) when enlarging an axis, area averaging when reducing it. Separable.
 pub(super) fn resample(image: &GrayImage, w: usize, h: usize, s: &mut Scratch) {
@@ -144,8 +147,27 @@ pub(super) fn blur(
     }
 }
 
+/// Smooths `s.level` (`w x h`) by [`SMOOTH_SIGMA`] into `s.smooth` and writes its gradients to
+/// `s.gx`, `s.gy`: where both the detector and the descriptor's orientation planes start.
+pub(super) fn smoothed_gradients(s: &mut Scratch, w: usize, h: usize) {
+    let n = w * h;
+    let Scratch {
+        level,
+        tmp,
+        smooth,
+        gx,
+        gy,
+        padded,
+        ..
+    } = s;
+    let smooth = sized(smooth, n);
+    blur(&level[..n], smooth, tmp, padded, w, h, SMOOTH_SIGMA);
+    let (gx, gy) = (sized(gx, n), sized(gy, n));
+    gradients(smooth, gx, gy, w, h);
+}
+
 /// Central-difference gradients (one-sided at the borders), per working pixel.
-pub(super) fn gradients(p: &[f32], gx: &mut [f32], gy: &mut [f32], w: usize, h: usize) {
+fn gradients(p: &[f32], gx: &mut [f32], gy: &mut [f32], w: usize, h: usize) {
     for y in 0..h {
         let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
         let dy = (yd - yu).max(1) as f32;
