@@ -7,7 +7,9 @@
 //! unboundedly on corrupt input. [`ByteWriter`] appends fixed-width little-endian integers and
 //! IEEE floats; [`ByteReader`] reads them back with every read bounds-checked, returning a
 //! [`DecodeError`] that each format wraps into its own error (naming the key, the blob or the
-//! trip state). Lengths, magics, versions and tags stay the formats' business.
+//! trip state). Lengths and counts are written as `u32` by [`ByteWriter::count`] (the sled
+//! values' byte strings, the map blob's sections); magics, versions, tags and how a reader
+//! bounds a count stay the formats' business.
 
 use std::fmt;
 
@@ -75,6 +77,13 @@ impl ByteWriter {
     /// A `u64`.
     pub fn u64(&mut self, v: u64) {
         self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    /// A length or an item count as a `u32`, the width every format here gives them.
+    ///
+    /// Panics at `2^32` or more: callers count in-memory collections (a map's sections, a
+    /// stored value's bytes) that are far below that.
+    pub fn count(&mut self, n: usize) {
+        self.u32(u32::try_from(n).expect("lengths and counts are below 2^32"));
     }
     /// An `f32`, bit-exact.
     pub fn f32(&mut self, v: f32) {
@@ -231,6 +240,7 @@ mod tests {
         w.u16(0x0102);
         w.u32(0x0304_0506);
         w.u64(0x0708_090a_0b0c_0d0e);
+        w.count(0x0a0b);
         w.f32(-0.0);
         w.f64(f64::from_bits(0x7ff8_0000_0000_0001));
         w.opt_f64(None);
@@ -252,6 +262,7 @@ mod tests {
         assert_eq!(r.u16().unwrap(), 0x0102);
         assert_eq!(r.u32().unwrap(), 0x0304_0506);
         assert_eq!(r.u64().unwrap(), 0x0708_090a_0b0c_0d0e);
+        assert_eq!(r.take(4).unwrap(), [0x0b, 0x0a, 0, 0]);
         assert_eq!(r.f32().unwrap().to_bits(), (-0.0f32).to_bits());
         assert_eq!(r.f64().unwrap().to_bits(), 0x7ff8_0000_0000_0001);
         assert_eq!(r.opt_f64().unwrap(), None);

@@ -34,28 +34,6 @@ fn corrupt(reason: impl Into<String>) -> Error {
     }
 }
 
-/// The crate's byte codec plus this format's `u32` counts.
-struct Writer(ByteWriter);
-
-impl std::ops::Deref for Writer {
-    type Target = ByteWriter;
-    fn deref(&self) -> &ByteWriter {
-        &self.0
-    }
-}
-
-impl std::ops::DerefMut for Writer {
-    fn deref_mut(&mut self) -> &mut ByteWriter {
-        &mut self.0
-    }
-}
-
-impl Writer {
-    fn len(&mut self, n: usize) {
-        self.u32(u32::try_from(n).expect("map sections hold fewer than 2^32 items"));
-    }
-}
-
 /// The crate's byte codec; every error says what was being read and where.
 struct Reader<'a>(ByteReader<'a>);
 
@@ -110,7 +88,7 @@ impl Reader<'_> {
 impl CoocMap {
     /// Encodes the map (see the module docs of `cooc::codec` for the layout).
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut w = Writer(ByteWriter::new());
+        let mut w = ByteWriter::new();
         w.raw(MAGIC);
         let p = &self.params;
         let k = &p.keypoints;
@@ -123,7 +101,7 @@ impl CoocMap {
         };
         w.u16(version);
         w.u32(k.upsample);
-        w.len(k.max_keypoints);
+        w.count(k.max_keypoints);
         w.f32(k.harris_k);
         w.f32(k.relative_threshold);
         w.f32(k.min_response);
@@ -133,18 +111,18 @@ impl CoocMap {
             w.u32(k.max_width);
             w.u32(k.octaves);
         }
-        w.len(p.vocabulary_branching);
-        w.len(p.vocabulary_depth);
-        w.len(p.kmeans_iterations);
-        w.len(p.max_training_descriptors);
+        w.count(p.vocabulary_branching);
+        w.count(p.vocabulary_depth);
+        w.count(p.kmeans_iterations);
+        w.count(p.max_training_descriptors);
         w.u16(p.grid_cols);
         w.u16(p.grid_rows);
         w.u16(p.spatial_tolerance);
         w.u8(u8::from(p.merge_adjacent_drives));
         w.u64(p.seed);
         let v = &self.vocabulary;
-        w.len(v.dim);
-        w.len(v.children.len());
+        w.count(v.dim);
+        w.count(v.children.len());
         w.u32(v.words);
         for (i, &(first, count)) in v.children.iter().enumerate() {
             w.u32(first);
@@ -155,13 +133,13 @@ impl CoocMap {
             w.f32(c);
         }
         let drives = self.locations.drives();
-        w.len(drives.len());
+        w.count(drives.len());
         for d in drives {
             w.f64(d.time);
-            w.len(d.images.len());
+            w.count(d.images.len());
             for (loc, feats) in &d.images {
                 w.u32(*loc);
-                w.len(feats.len());
+                w.count(feats.len());
                 for f in feats {
                     w.u32(f.word);
                     w.u16(f.x);
@@ -169,7 +147,7 @@ impl CoocMap {
                 }
             }
         }
-        w.0.into_bytes()
+        w.into_bytes()
     }
 
     /// Decodes bytes written by [`CoocMap::to_bytes`], rebuilding the models and the index.

@@ -35,7 +35,7 @@ impl Writer {
         self.0.into_bytes()
     }
     pub(super) fn bytes(&mut self, v: &[u8]) {
-        self.u32(u32::try_from(v.len()).expect("store values are far below 4 GiB"));
+        self.count(v.len());
         self.raw(v);
     }
     pub(super) fn str(&mut self, v: &str) {
