@@ -3,13 +3,17 @@
 
 use std::io::Cursor;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seasonloc::config::ServeArgs;
 
 use crate::http::Client;
+
+#[path = "../support/nordland.rs"]
+mod nordland;
+pub use nordland::{nordland, nordland_files};
 
 /// The service running in this process (its own runtime thread) on `127.0.0.1:0`.
 pub struct Server {
@@ -285,34 +289,6 @@ pub fn png(img: &image::GrayImage) -> Vec<u8> {
     img.write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png)
         .unwrap();
     out
-}
-
-/// `../shared/data/nordland_64x32` beside the repository (as in CI), or `../../shared/...`
-/// (a git worktree one level further down), if present.
-pub fn nordland() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    for shared in ["../shared", "../../shared"] {
-        let dir = root.join(shared).join("data/nordland_64x32");
-        if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
-            return Some(dir);
-        }
-    }
-    eprintln!(
-        "SKIPPED: Nordland data not found at {} (CI clones shared/ beside the repo)",
-        root.join("../shared/data/nordland_64x32").display()
-    );
-    None
-}
-
-/// File names of a Nordland season folder, sorted (= route order).
-pub fn nordland_files(dir: &Path) -> Vec<PathBuf> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "png"))
-        .collect();
-    files.sort();
-    files
 }
 
 /// Creates a HOG map and returns its id.
