@@ -122,6 +122,13 @@ pub struct Process {
 }
 
 impl Process {
+    /// Starts `seasonloc serve` on an ephemeral port with its store in `data`, stderr to `log`
+    /// (the restart and SIGKILL tests start it again on the same folder).
+    pub fn serve(data: &Path, log: &Path) -> Process {
+        let data = data.to_string_lossy();
+        Process::start(&["--addr", "127.0.0.1:0", "--data-dir", &data], &[], log)
+    }
+
     /// Starts `seasonloc serve` with `args` and environment `env`, stderr to `log`, and waits
     /// for its "listening on" line.
     pub fn start(args: &[&str], env: &[(&str, &str)], log: &Path) -> Process {

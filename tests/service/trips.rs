@@ -339,11 +339,6 @@ fn concurrent_trips_do_not_interfere_and_one_trip_stays_ordered() {
     );
 }
 
-fn serve(dir: &std::path::Path, log: &std::path::Path) -> Process {
-    let d = dir.to_string_lossy().into_owned();
-    Process::start(&["--addr", "127.0.0.1:0", "--data-dir", &d], &[], log)
-}
-
 #[test]
 fn a_trip_continues_identically_after_sigkill_and_restart() {
     let tmp = tempfile::tempdir().unwrap();
@@ -352,7 +347,7 @@ fn a_trip_continues_identically_after_sigkill_and_restart() {
     let batches: Vec<Vec<Part>> = (0..5u32)
         .map(|b| query_parts(&route, b * 8..b * 8 + 8))
         .collect();
-    let p = serve(&data, &log);
+    let p = Process::serve(&data, &log);
     let map = route_map(&p.client, &route, 50);
     let trip = open(&p.client, &map, Some(json!({"lag": 12})));
     let mut before = Vec::new();
@@ -362,7 +357,7 @@ fn a_trip_continues_identically_after_sigkill_and_restart() {
     let read_before = p.client.get(&format!("/v1/trips/{trip}")).json();
     p.kill();
 
-    let p = serve(&data, &log);
+    let p = Process::serve(&data, &log);
     let c = p.client;
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json(), read_before);
     let mut continued = before;
