@@ -298,6 +298,20 @@ pub fn png(img: &image::GrayImage) -> Vec<u8> {
     out
 }
 
+/// How many of a trip's `estimates` (frame `i` of a generated route shows place `i`) name a
+/// reference within one frame of the truth.
+pub fn within_one_frame(estimates: &[serde_json::Value]) -> usize {
+    estimates
+        .iter()
+        .enumerate()
+        .filter(|(i, e)| {
+            e["ref"]
+                .as_i64()
+                .is_some_and(|j| (j - *i as i64).abs() <= 1)
+        })
+        .count()
+}
+
 /// Creates a HOG map and returns its id.
 pub fn create_hog_map(client: &Client, name: &str, cell_size: u32) -> String {
     let r = client.post_json(

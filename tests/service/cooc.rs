@@ -4,7 +4,7 @@
 
 use serde_json::{json, Value};
 
-use crate::common::{create_hog_map, Process, Route, Server};
+use crate::common::{create_hog_map, within_one_frame, Process, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -410,15 +410,7 @@ fn a_trip_on_a_cooc_map_localizes_and_continues_after_sigkill() {
     let t = c.get(&format!("/v1/trips/{trip}")).json();
     let est = t["estimates"].as_array().unwrap();
     assert_eq!(est.len(), 32);
-    let correct = est
-        .iter()
-        .enumerate()
-        .filter(|(i, e)| {
-            e["ref"]
-                .as_i64()
-                .is_some_and(|j| (j - *i as i64).abs() <= 1)
-        })
-        .count();
+    let correct = within_one_frame(est);
     assert!(
         correct >= 26,
         "{correct} of 32 frames within one frame: {t}"

@@ -5,7 +5,8 @@
 use serde_json::{json, Value};
 
 use crate::common::{
-    create_hog_map, create_vector_map, nordland, nordland_files, Process, Route, Server,
+    create_hog_map, create_vector_map, nordland, nordland_files, within_one_frame, Process, Route,
+    Server,
 };
 use crate::http::{Client, Part};
 use crate::spec::check;
@@ -101,15 +102,7 @@ fn trip_flow_on_generated_images() {
     for w in last["window"].as_array().unwrap() {
         assert_eq!(&est[w["frame"].as_u64().unwrap() as usize], w);
     }
-    let correct = est
-        .iter()
-        .enumerate()
-        .filter(|(i, e)| {
-            e["ref"]
-                .as_i64()
-                .is_some_and(|j| (j - *i as i64).abs() <= 1)
-        })
-        .count();
+    let correct = within_one_frame(est);
     assert!(
         correct >= 36,
         "{correct} of 40 frames within one frame: {t}"
