@@ -42,6 +42,15 @@ fn model_copy() -> Option<(tempfile::TempDir, PathBuf)> {
     Some((dir, path))
 }
 
+/// A server whose `--model-dir` holds a private copy of the model, and that copy's path; the
+/// folder lives as long as the returned guard.
+fn server_with_model_copy() -> Option<(tempfile::TempDir, PathBuf, Server)> {
+    let (dir, model) = model_copy()?;
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
+    Some((dir, model, server))
+}
+
 fn create(c: &Client, descriptor: Value) -> crate::http::Response {
     let r = c.post_json(
         "/v1/maps",
@@ -83,11 +92,9 @@ fn route_pngs() -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
 
 #[test]
 fn cnn_map_equals_the_library_and_records_the_model_identity() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -171,11 +178,9 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
 
 #[test]
 fn cnn_map_creation_errors_are_precise_400s_and_422s() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     // 400 `invalid_parameter` for a value the OpenAPI document rules out; 422
     // `inconsistent_parameter` for one it allows that the model, another field or the server's
@@ -273,11 +278,9 @@ fn the_servers_default_model_is_used_when_the_body_names_none() {
 
 #[test]
 fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -331,11 +334,9 @@ fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
 /// a model changed after creation is 409 `model_mismatch` that leaves the trip as it was.
 #[test]
 fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
