@@ -8,10 +8,9 @@ use std::path::{Path, PathBuf};
 use serde_json::{json, Value};
 
 use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use seasonloc::features::{decode_image, extract_batch};
 use seasonloc::localize::{localize, LocalizeOptions};
 
-use crate::common::{Route, Server};
+use crate::common::{library_descriptors, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -142,14 +141,6 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let http = r.json();
 
-    let decode = |set: &[Vec<u8>]| {
-        let imgs: Vec<_> = set
-            .iter()
-            .enumerate()
-            .map(|(i, b)| decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
-            .collect();
-        extract_batch(&spec, &imgs).unwrap()
-    };
     let options = LocalizeOptions {
         solver: seasonloc::solver::SolverParams {
             fan_out: 4,
@@ -162,7 +153,12 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
         normalization: seasonloc::similarity::Normalization::default(),
         ..Default::default()
     };
-    let lib = localize(&decode(&queries), &decode(&refs), &options).unwrap();
+    let lib = localize(
+        &library_descriptors(&spec, &queries),
+        &library_descriptors(&spec, &refs),
+        &options,
+    )
+    .unwrap();
     let preds = http["predictions"].as_array().unwrap();
     assert_eq!(preds.len(), lib.predictions.len());
     for (h, l) in preds.iter().zip(&lib.predictions) {

@@ -312,6 +312,21 @@ pub fn within_one_frame(estimates: &[serde_json::Value]) -> usize {
         .count()
 }
 
+/// The descriptors the library computes for encoded images with `extractor` (each decoded with
+/// [`seasonloc::features::decode_image`], no pixel limit): what the tests compare HTTP answers
+/// with.
+pub fn library_descriptors(
+    extractor: &dyn seasonloc::features::Extractor,
+    encoded: &[Vec<u8>],
+) -> seasonloc::Matrix {
+    let images: Vec<_> = encoded
+        .iter()
+        .enumerate()
+        .map(|(i, b)| seasonloc::features::decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
+        .collect();
+    seasonloc::features::extract_batch(extractor, &images).unwrap()
+}
+
 /// Creates a HOG map and returns its id.
 pub fn create_hog_map(client: &Client, name: &str, cell_size: u32) -> String {
     let r = client.post_json(
