@@ -634,6 +634,15 @@ pub trait Store: Send + Sync + 'static {
     ) -> StoreResult<Option<IdempotencyRecord>>;
 }
 
+/// The end of `rows` images appended to a map at index `start`, or [`StoreError::MapFull`] when
+/// it does not fit a `u32` index (both engines).
+pub(crate) fn append_end(map: u64, start: u32, rows: usize) -> StoreResult<u32> {
+    u32::try_from(rows)
+        .ok()
+        .and_then(|n| start.checked_add(n))
+        .ok_or(StoreError::MapFull(map))
+}
+
 /// Milliseconds since the Unix epoch (0 if the clock is before it).
 pub fn now_ms() -> u64 {
     std::time::SystemTime::now()

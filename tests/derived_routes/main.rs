@@ -6,6 +6,8 @@
 //! frames against the summer map, HOG 8 px; skipped with a message when `../shared` is absent).
 //! Everything runs with the shipped defaults except `F` where the case is about flows.
 
+#[path = "../support/nordland.rs"]
+mod nordland;
 mod routes;
 
 use routes::{Case, Data, Expectation};

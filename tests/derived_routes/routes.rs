@@ -142,24 +142,8 @@ impl Data {
     /// Nordland dev: the map is summer frames 0..1200, the pool all 2400 winter frames (those
     /// from 1200 on are off the map). `None` (with a message) when the data is absent.
     pub fn nordland() -> Option<Data> {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-        let Some(dir) = ["../shared", "../../shared"]
-            .iter()
-            .map(|s| root.join(s).join("data/nordland_64x32"))
-            .find(|d| d.join("summer").is_dir())
-        else {
-            eprintln!("SKIPPED: ../shared/data/nordland_64x32 not found");
-            return None;
-        };
-        let files = |season: &str| -> Vec<std::path::PathBuf> {
-            let mut f: Vec<_> = std::fs::read_dir(dir.join(season))
-                .unwrap()
-                .map(|e| e.unwrap().path())
-                .filter(|p| p.extension().is_some_and(|e| e == "png"))
-                .collect();
-            f.sort();
-            f
-        };
+        let dir = crate::nordland::nordland()?;
+        let files = |season: &str| crate::nordland::nordland_files(&dir.join(season));
         let spec = HogSpec::new(HogOptions {
             cell_size: 8,
             resize: None,

@@ -8,10 +8,9 @@ use std::path::{Path, PathBuf};
 use serde_json::{json, Value};
 
 use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use seasonloc::features::{decode_image, extract_batch};
 use seasonloc::localize::{localize, LocalizeOptions};
 
-use crate::common::{Route, Server};
+use crate::common::{library_descriptors, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -40,6 +39,15 @@ fn model_copy() -> Option<(tempfile::TempDir, PathBuf)> {
     let path = dir.path().join("model.onnx");
     std::fs::copy(&model, &path).unwrap();
     Some((dir, path))
+}
+
+/// A server whose `--model-dir` holds a private copy of the model, and that copy's path; the
+/// folder lives as long as the returned guard.
+fn server_with_model_copy() -> Option<(tempfile::TempDir, PathBuf, Server)> {
+    let (dir, model) = model_copy()?;
+    let models = dir.path().to_path_buf();
+    let server = Server::start_with(move |a| a.model_dir = Some(models));
+    Some((dir, model, server))
 }
 
 fn create(c: &Client, descriptor: Value) -> crate::http::Response {
@@ -83,11 +91,9 @@ fn route_pngs() -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
 
 #[test]
 fn cnn_map_equals_the_library_and_records_the_model_identity() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -135,14 +141,6 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let http = r.json();
 
-    let decode = |set: &[Vec<u8>]| {
-        let imgs: Vec<_> = set
-            .iter()
-            .enumerate()
-            .map(|(i, b)| decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
-            .collect();
-        extract_batch(&spec, &imgs).unwrap()
-    };
     let options = LocalizeOptions {
         solver: seasonloc::solver::SolverParams {
             fan_out: 4,
@@ -155,7 +153,12 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
         normalization: seasonloc::similarity::Normalization::default(),
         ..Default::default()
     };
-    let lib = localize(&decode(&queries), &decode(&refs), &options).unwrap();
+    let lib = localize(
+        &library_descriptors(&spec, &queries),
+        &library_descriptors(&spec, &refs),
+        &options,
+    )
+    .unwrap();
     let preds = http["predictions"].as_array().unwrap();
     assert_eq!(preds.len(), lib.predictions.len());
     for (h, l) in preds.iter().zip(&lib.predictions) {
@@ -171,11 +174,9 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
 
 #[test]
 fn cnn_map_creation_errors_are_precise_400s_and_422s() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     // 400 `invalid_parameter` for a value the OpenAPI document rules out; 422
     // `inconsistent_parameter` for one it allows that the model, another field or the server's
@@ -273,11 +274,9 @@ fn the_servers_default_model_is_used_when_the_body_names_none() {
 
 #[test]
 fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -331,11 +330,9 @@ fn a_model_file_changed_after_creation_is_a_409_that_stores_nothing() {
 /// a model changed after creation is 409 `model_mismatch` that leaves the trip as it was.
 #[test]
 fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
-    let Some((dir, model)) = model_copy() else {
+    let Some((_dir, model, server)) = server_with_model_copy() else {
         return;
     };
-    let models = dir.path().to_path_buf();
-    let server = Server::start_with(move |a| a.model_dir = Some(models));
     let c = &server.client;
     let r = create(c, stretch_block10(&model));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));

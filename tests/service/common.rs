@@ -3,13 +3,17 @@
 
 use std::io::Cursor;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seasonloc::config::ServeArgs;
 
 use crate::http::Client;
+
+#[path = "../support/nordland.rs"]
+mod nordland;
+pub use nordland::{nordland, nordland_files};
 
 /// The service running in this process (its own runtime thread) on `127.0.0.1:0`.
 pub struct Server {
@@ -118,6 +122,13 @@ pub struct Process {
 }
 
 impl Process {
+    /// Starts `seasonloc serve` on an ephemeral port with its store in `data`, stderr to `log`
+    /// (the restart and SIGKILL tests start it again on the same folder).
+    pub fn serve(data: &Path, log: &Path) -> Process {
+        let data = data.to_string_lossy();
+        Process::start(&["--addr", "127.0.0.1:0", "--data-dir", &data], &[], log)
+    }
+
     /// Starts `seasonloc serve` with `args` and environment `env`, stderr to `log`, and waits
     /// for its "listening on" line.
     pub fn start(args: &[&str], env: &[(&str, &str)], log: &Path) -> Process {
@@ -287,32 +298,33 @@ pub fn png(img: &image::GrayImage) -> Vec<u8> {
     out
 }
 
-/// `../shared/data/nordland_64x32` beside the repository (as in CI), or `../../shared/...`
-/// (a git worktree one level further down), if present.
-pub fn nordland() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    for shared in ["../shared", "../../shared"] {
-        let dir = root.join(shared).join("data/nordland_64x32");
-        if dir.join("summer").is_dir() && dir.join("winter").is_dir() {
-            return Some(dir);
-        }
-    }
-    eprintln!(
-        "SKIPPED: Nordland data not found at {} (CI clones shared/ beside the repo)",
-        root.join("../shared/data/nordland_64x32").display()
-    );
-    None
+/// How many of a trip's `estimates` (frame `i` of a generated route shows place `i`) name a
+/// reference within one frame of the truth.
+pub fn within_one_frame(estimates: &[serde_json::Value]) -> usize {
+    estimates
+        .iter()
+        .enumerate()
+        .filter(|(i, e)| {
+            e["ref"]
+                .as_i64()
+                .is_some_and(|j| (j - *i as i64).abs() <= 1)
+        })
+        .count()
 }
 
-/// File names of a Nordland season folder, sorted (= route order).
-pub fn nordland_files(dir: &Path) -> Vec<PathBuf> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "png"))
+/// The descriptors the library computes for encoded images with `extractor` (each decoded with
+/// [`seasonloc::features::decode_image`], no pixel limit): what the tests compare HTTP answers
+/// with.
+pub fn library_descriptors(
+    extractor: &dyn seasonloc::features::Extractor,
+    encoded: &[Vec<u8>],
+) -> seasonloc::Matrix {
+    let images: Vec<_> = encoded
+        .iter()
+        .enumerate()
+        .map(|(i, b)| seasonloc::features::decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
         .collect();
-    files.sort();
-    files
+    seasonloc::features::extract_batch(extractor, &images).unwrap()
 }
 
 /// Creates a HOG map and returns its id.

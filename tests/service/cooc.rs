@@ -4,7 +4,7 @@
 
 use serde_json::{json, Value};
 
-use crate::common::{create_hog_map, Process, Route, Server};
+use crate::common::{create_hog_map, within_one_frame, Process, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -178,17 +178,11 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let args = [
-        "--addr",
-        "127.0.0.1:0",
-        "--data-dir",
-        data.to_str().unwrap(),
-    ];
     let route = Route::new(20, 4);
     let refs: Vec<Vec<u8>> = (0..20).map(|i| route.reference_png(i)).collect();
     let queries: Vec<Vec<u8>> = (3..15).map(|i| route.query_png(i)).collect();
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let map = create_cooc(&p.client);
     let r = p
         .client
@@ -204,7 +198,7 @@ fn a_restart_keeps_the_cooc_map_and_its_drives() {
     let before = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
     assert!(p.terminate());
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let after = localize(&p.client, &map, &queries, json!({"method": "cooc"}));
     assert_eq!(after["predictions"], before["predictions"]);
     let r = drive(
@@ -370,19 +364,13 @@ fn a_trip_on_a_cooc_map_localizes_and_continues_after_sigkill() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let args = [
-        "--addr",
-        "127.0.0.1:0",
-        "--data-dir",
-        data.to_str().unwrap(),
-    ];
     let route = Route::new(40, 8);
     let refs: Vec<Vec<u8>> = (0..40).map(|i| route.reference_png(i)).collect();
     let batches: Vec<Vec<Vec<u8>>> = (0..4u32)
         .map(|b| (b * 8..b * 8 + 8).map(|i| route.query_png(i)).collect())
         .collect();
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let map = create_cooc(&p.client);
     let empty = open_trip_status(&p.client, &map);
     assert_eq!(empty, (409, "map_empty".into()));
@@ -402,7 +390,7 @@ fn a_trip_on_a_cooc_map_localizes_and_continues_after_sigkill() {
     assert_eq!(read_before["reference_count"], 40);
     p.kill();
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let c = &p.client;
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json(), read_before);
     let mut continued = before;
@@ -422,15 +410,7 @@ fn a_trip_on_a_cooc_map_localizes_and_continues_after_sigkill() {
     let t = c.get(&format!("/v1/trips/{trip}")).json();
     let est = t["estimates"].as_array().unwrap();
     assert_eq!(est.len(), 32);
-    let correct = est
-        .iter()
-        .enumerate()
-        .filter(|(i, e)| {
-            e["ref"]
-                .as_i64()
-                .is_some_and(|j| (j - *i as i64).abs() <= 1)
-        })
-        .count();
+    let correct = within_one_frame(est);
     assert!(
         correct >= 26,
         "{correct} of 32 frames within one frame: {t}"

@@ -91,6 +91,23 @@ fn post_frames(c: &Client, trip: &str, parts: &[Part]) -> Value {
     r.json()
 }
 
+/// Posts `parts` to `trip` and waits until the trip page open in `b` shows the answer's frame
+/// count and status without a reload; returns that status.
+fn post_frames_and_watch(b: &mut Browser, c: &Client, trip: &str, parts: &[Part]) -> String {
+    let v = post_frames(c, trip, parts);
+    let frames = v["frame_count"].as_u64().unwrap();
+    let status = v["status"].as_str().unwrap().to_string();
+    b.wait_for(
+        &format!(
+            "document.querySelector('#frame-count').innerText === '{frames}' && \
+             document.querySelector('#trip-status').innerText === '{status}'"
+        ),
+        LIVE_WAIT,
+    )
+    .unwrap();
+    status
+}
+
 /// One raw GET with extra headers; returns the status line's code and the head.
 fn raw_get(c: &Client, path: &str, headers: &[(&str, &str)]) -> (u16, String) {
     let mut s = std::net::TcpStream::connect(c.addr).unwrap();
@@ -306,17 +323,7 @@ fn dashboard_pages_in_a_browser_on_generated_images() {
         let parts: Vec<Part> = (batch * 10..batch * 10 + 10)
             .map(|i| Part::image(&format!("q{i}.png"), route.query_png(i)))
             .collect();
-        let v = post_frames(&c, &trip, &parts);
-        let frames = v["frame_count"].as_u64().unwrap();
-        let status = v["status"].as_str().unwrap().to_string();
-        b.wait_for(
-            &format!(
-                "document.querySelector('#frame-count').innerText === '{frames}' && \
-                 document.querySelector('#trip-status').innerText === '{status}'"
-            ),
-            LIVE_WAIT,
-        )
-        .unwrap();
+        post_frames_and_watch(&mut b, &c, &trip, &parts);
     }
     assert_eq!(b.text_of("#trip-status").as_deref(), Some("localized"));
     assert_eq!(
@@ -555,17 +562,8 @@ fn dashboard_pages_in_a_browser_on_nordland() {
     // map, which the trip reports as lost within two batches.
     let mut statuses = vec![first_status];
     for lo in [1500, 1510] {
-        let v = post_frames(&c, &trip, &nordland_parts(&winter, lo..lo + 10));
-        let frames = v["frame_count"].as_u64().unwrap();
-        let status = v["status"].as_str().unwrap().to_string();
-        b.wait_for(
-            &format!(
-                "document.querySelector('#frame-count').innerText === '{frames}' && \
-                 document.querySelector('#trip-status').innerText === '{status}'"
-            ),
-            LIVE_WAIT,
-        )
-        .unwrap();
+        let parts = nordland_parts(&winter, lo..lo + 10);
+        let status = post_frames_and_watch(&mut b, &c, &trip, &parts);
         statuses.push(status);
     }
     assert_eq!(

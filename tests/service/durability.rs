@@ -10,21 +10,6 @@ use serde_json::json;
 use crate::common::{create_hog_map, create_vector_map, Process, Route};
 use crate::http::Part;
 
-fn serve_args(dir: &std::path::Path) -> Vec<String> {
-    vec![
-        "--addr".into(),
-        "127.0.0.1:0".into(),
-        "--data-dir".into(),
-        dir.to_string_lossy().into_owned(),
-    ]
-}
-
-fn start(dir: &std::path::Path, log: &std::path::Path) -> Process {
-    let args = serve_args(dir);
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    Process::start(&args, &[], log)
-}
-
 #[test]
 fn restart_keeps_everything_acknowledged() {
     let tmp = tempfile::tempdir().unwrap();
@@ -32,7 +17,7 @@ fn restart_keeps_everything_acknowledged() {
     let log = tmp.path().join("serve.log");
     let route = Route::new(24, 11);
 
-    let p = start(&data, &log);
+    let p = Process::serve(&data, &log);
     let c = p.client;
     let map = create_hog_map(&c, "restart", 8);
     let parts: Vec<Part> = (0..24)
@@ -60,7 +45,7 @@ fn restart_keeps_everything_acknowledged() {
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(text.contains("store flushed"), "{text}");
 
-    let p = start(&data, &log);
+    let p = Process::serve(&data, &log);
     let c = p.client;
     assert_eq!(c.get("/v1/maps").json(), before_maps);
     let id = loc["id"].as_str().unwrap();
@@ -86,7 +71,7 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let p = start(&data, &log);
+    let p = Process::serve(&data, &log);
     let c = p.client;
     let map = create_vector_map(&c, "stream", 4);
     let acked: Mutex<Vec<(usize, usize)>> = Mutex::new(Vec::new());
@@ -126,7 +111,7 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
     );
 
     // Restart the binary: it comes up on the same folder and reports at least every acked row.
-    let p = start(&data, &log);
+    let p = Process::serve(&data, &log);
     let count = p.client.get(&format!("/v1/maps/{map}")).json()["image_count"]
         .as_u64()
         .unwrap() as usize;
@@ -215,7 +200,7 @@ fn sigterm_lets_in_flight_requests_finish() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let mut p = start(&data, &log);
+    let mut p = Process::serve(&data, &log);
     let map = create_vector_map(&p.client, "drain", 2);
     let body = serde_json::to_vec(&json!({"descriptors": [[1, 2], [3, 4]]})).unwrap();
     let mut s = std::net::TcpStream::connect(p.client.addr).unwrap();
@@ -240,7 +225,7 @@ fn sigterm_lets_in_flight_requests_finish() {
     s.read_to_string(&mut answer).unwrap();
     assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
     assert!(p.child.wait().unwrap().success());
-    let p = start(&data, &log);
+    let p = Process::serve(&data, &log);
     let m = p.client.get(&format!("/v1/maps/{map}")).json();
     assert_eq!(m["image_count"], 2);
     assert!(p.terminate());

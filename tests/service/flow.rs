@@ -5,11 +5,10 @@
 use serde_json::{json, Value};
 
 use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{decode_image, extract_batch};
 use seasonloc::localize::{localize, LocalizeOptions};
 use seasonloc::solver::{HiddenCost, SolverParams};
 
-use crate::common::{create_hog_map, nordland, nordland_files, Route, Server};
+use crate::common::{create_hog_map, library_descriptors, nordland, nordland_files, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
 
@@ -25,15 +24,12 @@ fn library(
         resize: None,
     })
     .unwrap();
-    let decode = |set: &[Vec<u8>]| {
-        let images: Vec<_> = set
-            .iter()
-            .enumerate()
-            .map(|(i, b)| decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
-            .collect();
-        extract_batch(&spec, &images).unwrap()
-    };
-    localize(&decode(queries), &decode(refs), options).unwrap()
+    localize(
+        &library_descriptors(&spec, queries),
+        &library_descriptors(&spec, refs),
+        options,
+    )
+    .unwrap()
 }
 
 fn assert_same_as_library(http: &Value, lib: &seasonloc::localize::Localization) {

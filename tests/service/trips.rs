@@ -5,7 +5,8 @@
 use serde_json::{json, Value};
 
 use crate::common::{
-    create_hog_map, create_vector_map, nordland, nordland_files, Process, Route, Server,
+    create_hog_map, create_vector_map, nordland, nordland_files, within_one_frame, Process, Route,
+    Server,
 };
 use crate::http::{Client, Part};
 use crate::spec::check;
@@ -101,15 +102,7 @@ fn trip_flow_on_generated_images() {
     for w in last["window"].as_array().unwrap() {
         assert_eq!(&est[w["frame"].as_u64().unwrap() as usize], w);
     }
-    let correct = est
-        .iter()
-        .enumerate()
-        .filter(|(i, e)| {
-            e["ref"]
-                .as_i64()
-                .is_some_and(|j| (j - *i as i64).abs() <= 1)
-        })
-        .count();
+    let correct = within_one_frame(est);
     assert!(
         correct >= 36,
         "{correct} of 40 frames within one frame: {t}"
@@ -339,11 +332,6 @@ fn concurrent_trips_do_not_interfere_and_one_trip_stays_ordered() {
     );
 }
 
-fn serve(dir: &std::path::Path, log: &std::path::Path) -> Process {
-    let d = dir.to_string_lossy().into_owned();
-    Process::start(&["--addr", "127.0.0.1:0", "--data-dir", &d], &[], log)
-}
-
 #[test]
 fn a_trip_continues_identically_after_sigkill_and_restart() {
     let tmp = tempfile::tempdir().unwrap();
@@ -352,7 +340,7 @@ fn a_trip_continues_identically_after_sigkill_and_restart() {
     let batches: Vec<Vec<Part>> = (0..5u32)
         .map(|b| query_parts(&route, b * 8..b * 8 + 8))
         .collect();
-    let p = serve(&data, &log);
+    let p = Process::serve(&data, &log);
     let map = route_map(&p.client, &route, 50);
     let trip = open(&p.client, &map, Some(json!({"lag": 12})));
     let mut before = Vec::new();
@@ -362,7 +350,7 @@ fn a_trip_continues_identically_after_sigkill_and_restart() {
     let read_before = p.client.get(&format!("/v1/trips/{trip}")).json();
     p.kill();
 
-    let p = serve(&data, &log);
+    let p = Process::serve(&data, &log);
     let c = p.client;
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json(), read_before);
     let mut continued = before;

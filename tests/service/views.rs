@@ -288,11 +288,9 @@ fn thumbnails_and_pictures_survive_a_sigkill() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let log = tmp.path().join("serve.log");
-    let dir = data.to_string_lossy().into_owned();
-    let args = ["--addr", "127.0.0.1:0", "--data-dir", dir.as_str()];
     let route = Route::new(20, 7);
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let c = &p.client;
     let map = create_hog_map(c, "crash", 8);
     assert_eq!(upload(c, &map, &references(&route, 0..20)).status, 200);
@@ -310,7 +308,7 @@ fn thumbnails_and_pictures_survive_a_sigkill() {
     // No chance to flush at shutdown: what was acknowledged must already be on disk.
     p.kill();
 
-    let p = Process::start(&args, &[], &log);
+    let p = Process::serve(&data, &log);
     let c = &p.client;
     for (i, before) in thumbs.iter().enumerate() {
         let r = c.get(&format!("/v1/maps/{map}/images/{i}/thumbnail"));

@@ -2,6 +2,8 @@
 //! streams real winter frames through a [`Trip`] and measures how many frames each jump takes
 //! to relocalize. Skips with a message when the shared data is absent.
 
+#[path = "../support/nordland.rs"]
+mod nordland;
 mod route;
 
 use route::{jump_route, relocalization_delays, JumpRoute};
@@ -56,24 +58,8 @@ fn stream(c: &Matrix, prior: &[f32], params: TripParams) -> Vec<FrameEstimate> {
 fn nordland_jump_inputs() -> Option<(Matrix, Matrix, JumpRoute)> {
     use seasonloc::features::extract_files;
     use seasonloc::features::hog::{HogOptions, HogSpec};
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    let Some(dir) = ["../shared", "../../shared"]
-        .iter()
-        .map(|s| root.join(s).join("data/nordland_64x32"))
-        .find(|d| d.join("summer").is_dir())
-    else {
-        eprintln!("SKIPPED: ../shared/data/nordland_64x32 not found");
-        return None;
-    };
-    let files = |season: &str| -> Vec<std::path::PathBuf> {
-        let mut f: Vec<_> = std::fs::read_dir(dir.join(season))
-            .unwrap()
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.extension().is_some_and(|e| e == "png"))
-            .collect();
-        f.sort();
-        f
-    };
+    let dir = nordland::nordland()?;
+    let files = |season: &str| nordland::nordland_files(&dir.join(season));
     let route = jump_route();
     let spec = HogSpec::new(HogOptions {
         cell_size: 8,

@@ -14,8 +14,8 @@ use tokio_postgres::Row;
 use super::{corrupt, db_id, small, unsigned, PgStore};
 use crate::store::sled::codec;
 use crate::store::{
-    now_ms, CoocWrite, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap, StoreError,
-    StoreResult,
+    append_end, now_ms, CoocWrite, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap,
+    StoreError, StoreResult,
 };
 use crate::Matrix;
 
@@ -203,13 +203,13 @@ impl PgStore {
         let thumbnails: Option<&[Vec<u8>]> = Some(batch.thumbnails()).filter(|t| !t.is_empty());
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
-        let lock = tx
-            .prepare_cached("SELECT dim, image_count, settings FROM maps WHERE id = $1 FOR UPDATE")
-            .await?;
-        let row = tx
-            .query_opt(&lock, &[&key])
-            .await?
-            .ok_or(StoreError::MapNotFound(map))?;
+        let row = lock_map(
+            &tx,
+            "SELECT dim, image_count, settings FROM maps WHERE id = $1 FOR UPDATE",
+            key,
+            map,
+        )
+        .await?;
         let stored_dim: Option<i64> = row.get(0);
         let start = small("maps", key, row.get(1))?;
         // A HOG map's first batch fixes its input geometry (ImageBatch::with_geometry), in
@@ -245,10 +245,7 @@ impl PgStore {
             expected: 0,
             got: cols,
         })?;
-        let end = u32::try_from(descriptors.rows())
-            .ok()
-            .and_then(|n| start.checked_add(n))
-            .ok_or(StoreError::MapFull(map))?;
+        let end = append_end(map, start, descriptors.rows())?;
         if end > start {
             let insert = tx
                 .prepare_cached(
@@ -441,13 +438,13 @@ impl PgStore {
             .collect();
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
-        let lock = tx
-            .prepare_cached("SELECT image_count FROM maps WHERE id = $1 FOR UPDATE")
-            .await?;
-        let row = tx
-            .query_opt(&lock, &[&key])
-            .await?
-            .ok_or(StoreError::MapNotFound(map))?;
+        let row = lock_map(
+            &tx,
+            "SELECT image_count FROM maps WHERE id = $1 FOR UPDATE",
+            key,
+            map,
+        )
+        .await?;
         let start = small("maps", key, row.get(0))?;
         let current = tx
             .prepare_cached("SELECT encoded FROM cooc_maps WHERE map_id = $1")
@@ -456,10 +453,7 @@ impl PgStore {
         if stored != previous {
             return Err(StoreError::Conflict(map));
         }
-        let end = u32::try_from(metas.len())
-            .ok()
-            .and_then(|n| start.checked_add(n))
-            .ok_or(StoreError::MapFull(map))?;
+        let end = append_end(map, start, metas.len())?;
         if end > start {
             let insert = tx
                 .prepare_cached(
@@ -488,6 +482,20 @@ impl PgStore {
         tx.commit().await?;
         Ok(start..end)
     }
+}
+
+/// `map`'s row read by `select` (a `SELECT ... FROM maps WHERE id = $1 FOR UPDATE`), locked
+/// until `tx` ends: where concurrent appends to one map queue up.
+async fn lock_map(
+    tx: &deadpool_postgres::Transaction<'_>,
+    select: &str,
+    key: i64,
+    map: u64,
+) -> StoreResult<Row> {
+    let lock = tx.prepare_cached(select).await?;
+    tx.query_opt(&lock, &[&key])
+        .await?
+        .ok_or(StoreError::MapNotFound(map))
 }
 
 /// Whether a database error is a primary-key violation (the id is taken).

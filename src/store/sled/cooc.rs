@@ -10,7 +10,7 @@
 use std::ops::Range;
 
 use super::{codec, SledStore};
-use crate::store::{CoocWrite, StoreError, StoreResult};
+use crate::store::{append_end, CoocWrite, StoreError, StoreResult};
 
 impl SledStore {
     /// The encoded co-occurrence map of `map`, `None` before its first images.
@@ -39,10 +39,7 @@ impl SledStore {
             return Err(StoreError::Conflict(map));
         }
         let start = record.image_count;
-        let end = u32::try_from(new_images.len())
-            .ok()
-            .and_then(|n| start.checked_add(n))
-            .ok_or(StoreError::MapFull(map))?;
+        let end = append_end(map, start, new_images.len())?;
         let mut batch = sled::Batch::default();
         for (k, meta) in new_images.iter().enumerate() {
             let index = start + k as u32;

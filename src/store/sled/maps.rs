@@ -5,8 +5,8 @@ use std::ops::Range;
 
 use super::{codec, SledStore};
 use crate::store::{
-    now_ms, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
-    StoreError, StoreResult,
+    append_end, now_ms, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord,
+    NewMap, StoreError, StoreResult,
 };
 use crate::Matrix;
 
@@ -110,10 +110,7 @@ impl SledStore {
             got: descriptors.cols(),
         })?;
         let start = record.image_count;
-        let end = u32::try_from(descriptors.rows())
-            .ok()
-            .and_then(|n| start.checked_add(n))
-            .ok_or(StoreError::MapFull(map))?;
+        let end = append_end(map, start, descriptors.rows())?;
         let mut batch = sled::Batch::default();
         for (k, (row, meta)) in descriptors.iter_rows().zip(metas).enumerate() {
             let index = start + k as u32;

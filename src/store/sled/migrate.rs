@@ -18,44 +18,33 @@ pub struct Migration {
     pub apply: fn(&sled::Db, &mut sled::Batch) -> StoreResult<()>,
 }
 
+/// One [`Migration`] whose documentation is `migrations/<file>`, so the name and the text cannot
+/// drift apart.
+macro_rules! step {
+    ($version:literal, $file:literal, $apply:expr) => {
+        Migration {
+            version: $version,
+            file: $file,
+            doc: include_str!(concat!("../../../migrations/", $file)),
+            apply: $apply,
+        }
+    };
+}
+
 /// Every step, in order.
 pub const MIGRATIONS: &[Migration] = &[
-    Migration {
-        version: 1,
-        file: "0001_initial.md",
-        doc: include_str!("../../../migrations/0001_initial.md"),
-        apply: initial,
-    },
-    Migration {
-        version: 2,
-        file: "0002_localizations_by_map.md",
-        doc: include_str!("../../../migrations/0002_localizations_by_map.md"),
-        apply: localizations_by_map,
-    },
-    Migration {
-        version: 3,
-        file: "0003_cnn_and_cooc_maps.md",
-        doc: include_str!("../../../migrations/0003_cnn_and_cooc_maps.md"),
-        apply: cnn_and_cooc_maps,
-    },
-    Migration {
-        version: 4,
-        file: "0004_trips.md",
-        doc: include_str!("../../../migrations/0004_trips.md"),
-        apply: trips,
-    },
-    Migration {
-        version: 5,
-        file: "0005_thumbnails_and_pictures.md",
-        doc: include_str!("../../../migrations/0005_thumbnails_and_pictures.md"),
-        apply: thumbnails_and_pictures,
-    },
-    Migration {
-        version: 6,
-        file: "0006_trip_state_parts.md",
-        doc: include_str!("../../../migrations/0006_trip_state_parts.md"),
-        apply: trip_state_parts,
-    },
+    step!(1, "0001_initial.md", nothing_to_convert),
+    step!(2, "0002_localizations_by_map.md", localizations_by_map),
+    // Version 3 adds descriptor kinds (CNN, co-occurrence) and `C` keys; every version-2
+    // record is already valid.
+    step!(3, "0003_cnn_and_cooc_maps.md", nothing_to_convert),
+    // Layouts before 4 have no trip keys.
+    step!(4, "0004_trips.md", nothing_to_convert),
+    // Layouts before 5 have no thumbnails or pictures: old maps and results simply have none.
+    step!(5, "0005_thumbnails_and_pictures.md", nothing_to_convert),
+    // Layout 6 stores a trip's state in parts (`b`, `s`, `r`); the `S` blobs of layouts 4-5
+    // stay readable and each is replaced by parts at its trip's next batch.
+    step!(6, "0006_trip_state_parts.md", nothing_to_convert),
 ];
 
 /// The layout this build writes.
@@ -111,23 +100,9 @@ pub fn migrate(db: &sled::Db) -> StoreResult<u32> {
     Ok(found)
 }
 
-fn initial(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
-    Ok(())
-}
-
-/// Layouts before 4 have no trip keys, so there is nothing to convert.
-fn trips(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
-    Ok(())
-}
-
-/// Layouts before 5 have no thumbnails or pictures: old maps and results simply have none.
-fn thumbnails_and_pictures(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
-    Ok(())
-}
-
-/// Layout 6 stores a trip's state in parts (`b`, `s`, `r`); the `S` blobs of layouts 4-5 stay
-/// readable and each is replaced by parts at its trip's next batch, so nothing is rewritten here.
-fn trip_state_parts(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
+/// A step that only raises the version: every record of the older layout is valid in the new
+/// one (each use in [`MIGRATIONS`] says why).
+fn nothing_to_convert(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 
@@ -137,12 +112,6 @@ fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<(
         let (id, map_id) = codec::decode_localization_ids(&k, &v)?;
         batch.insert(&codec::by_map_key(map_id, id), &[] as &[u8]);
     }
-    Ok(())
-}
-
-/// Version 3 adds descriptor kinds (CNN, co-occurrence) and `C` keys; every version-2 record is
-/// already valid.
-fn cnn_and_cooc_maps(_db: &sled::Db, _batch: &mut sled::Batch) -> StoreResult<()> {
     Ok(())
 }
 

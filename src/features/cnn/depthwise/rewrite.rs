@@ -185,12 +185,7 @@ fn expansion(
     outlet: OutletId,
     channels: usize,
 ) -> TractResult<Option<(OutletId, Expand)>> {
-    let only_use = |o: OutletId| -> TractResult<bool> {
-        Ok(o.slot == 0
-            && model.outlet_successors(o).len() == 1
-            && !model.output_outlets()?.contains(&o))
-    };
-    if !only_use(outlet)? {
+    if !only_use(model, outlet)? {
         return Ok(None);
     }
     let mut node = model.node(outlet.node);
@@ -218,7 +213,7 @@ fn expansion(
         for slot in 0..2 {
             let (data, konst) = (node.inputs[slot], node.inputs[1 - slot]);
             if let Some(values) = per_channel(konst)? {
-                if model.outlet_fact(data)?.shape == shape && only_use(data)? {
+                if model.outlet_fact(data)?.shape == shape && only_use(model, data)? {
                     bias = Some(values);
                     node = model.node(data.node);
                     break;
@@ -293,16 +288,11 @@ fn front_conv(
     outlet: OutletId,
     channels: usize,
 ) -> TractResult<Option<(OutletId, Expand)>> {
-    let only_use = |o: OutletId| -> TractResult<bool> {
-        Ok(o.slot == 0
-            && model.outlet_successors(o).len() == 1
-            && !model.output_outlets()?.contains(&o))
-    };
     let node = model.node(outlet.node);
     let Some(conv) = node.op_as::<Conv>() else {
         return Ok(None);
     };
-    if !only_use(outlet)? || node.inputs.len() != 3 {
+    if !only_use(model, outlet)? || node.inputs.len() != 3 {
         return Ok(None);
     }
     let spec = &conv.pool_spec;
@@ -337,7 +327,7 @@ fn front_conv(
         };
         let spatial_only =
             pad.pads.len() == r && pad.pads[..r - 2].iter().all(|&(a, b)| a == 0 && b == 0);
-        if zero && spatial_only && only_use(input)? && producer.inputs.len() == 1 {
+        if zero && spatial_only && only_use(model, input)? && producer.inputs.len() == 1 {
             let (top, bottom) = pad.pads[r - 2];
             let (left, right) = pad.pads[r - 1];
             let Some(src) = model.outlet_fact(producer.inputs[0])?.shape.as_concrete() else {
@@ -376,6 +366,14 @@ fn front_conv(
     Ok(Some((input, expand)))
 }
 
+/// Whether `o` is its node's first output, feeds exactly one node and is not a model output:
+/// the condition for folding its node into the one that follows.
+fn only_use(model: &TypedModel, o: OutletId) -> TractResult<bool> {
+    Ok(o.slot == 0
+        && model.outlet_successors(o).len() == 1
+        && !model.output_outlets()?.contains(&o))
+}
+
 /// When `outlet` is the output of a `bound` (`Max` or `Min`) with a constant scalar, used only
 /// by the one node that follows and of the shape of its other input: that input and the
 /// constant.
@@ -385,12 +383,10 @@ fn clamp_before(
     bound: &str,
 ) -> TractResult<Option<(OutletId, f32)>> {
     let node = model.node(outlet.node);
-    if outlet.slot != 0
-        || !node.op_is::<TypedBinOp>()
+    if !node.op_is::<TypedBinOp>()
         || node.op().name() != bound
         || node.inputs.len() != 2
-        || model.outlet_successors(outlet).len() != 1
-        || model.output_outlets()?.contains(&outlet)
+        || !only_use(model, outlet)?
     {
         return Ok(None);
     }
