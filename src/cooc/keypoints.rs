@@ -364,6 +364,56 @@ pub(crate) mod tests {
         assert_eq!(f.descriptors.len(), f.keypoints.len() * DESCRIPTOR_DIM);
     }
 
+    /// A deterministic textured image: overlapping rectangles of several sizes and grey
+    /// levels over a gentle gradient, from a fixed linear congruential sequence.
+    fn texture(w: u32, h: u32) -> GrayImage {
+        let mut state = 0x2545_f491u32;
+        let mut next = |m: u32| {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) % m
+        };
+        let mut img = GrayImage::from_fn(w, h, |x, y| Luma([(30 + (x + 2 * y) % 40) as u8]));
+        for _ in 0..40 {
+            let (x0, y0, rw, rh, v) = (next(w), next(h), 4 + next(24), 4 + next(24), next(256));
+            for y in y0..(y0 + rh).min(h) {
+                for x in x0..(x0 + rw).min(w) {
+                    img.put_pixel(x, y, Luma([v as u8]));
+                }
+            }
+        }
+        img
+    }
+
+    /// Pins every bit of the output (positions, responses, octaves, descriptors) on a fixed
+    /// image, so a refactoring of the detector or the descriptor that changes a value fails
+    /// here, not only in recognition quality. A deliberate change of the features updates the
+    /// digest (and is measured on real images, `docs/cooc.md`).
+    #[test]
+    fn the_output_on_a_fixed_image_is_pinned() {
+        use sha2::{Digest, Sha256};
+        let f = extract("texture", &texture(320, 240), &KeypointParams::default()).unwrap();
+        assert!(f.keypoints.len() > 50, "{} keypoints", f.keypoints.len());
+        let mut h = Sha256::new();
+        for k in &f.keypoints {
+            h.update(k.x.to_bits().to_le_bytes());
+            h.update(k.y.to_bits().to_le_bytes());
+            h.update(k.response.to_bits().to_le_bytes());
+            h.update([k.octave]);
+        }
+        for v in &f.descriptors {
+            h.update(v.to_bits().to_le_bytes());
+        }
+        let digest: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(
+            (f.keypoints.len(), digest.as_str()),
+            (
+                195,
+                "b6528ec84802f5100f71b755579d25a37cb2dee0de601f758eb367affba3739d"
+            ),
+            "keypoints or descriptors changed on the fixed image"
+        );
+    }
+
     #[test]
     fn flat_image_has_no_keypoints() {
         let img = GrayImage::from_pixel(64, 32, Luma([90]));
