@@ -26,7 +26,9 @@ impl Matrix {
 
     /// Wraps row-major `data`; fails when its length is not `rows * cols`.
     pub fn from_vec(rows: usize, cols: usize, data: Vec<f32>) -> Result<Self> {
-        if data.len() != rows * cols {
+        // `checked_mul`: a shape whose product overflows (a forged file header) must not wrap
+        // around to the length of some short `data`.
+        if rows.checked_mul(cols) != Some(data.len()) {
             return Err(Error::Shape(format!(
                 "{} values cannot form a {rows}x{cols} matrix",
                 data.len()
@@ -128,6 +130,14 @@ impl Matrix {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn from_vec_rejects_a_shape_whose_product_overflows() {
+        // 2^62 x 4 wraps to 0 in `usize`: it must not pass for an empty matrix.
+        let err = Matrix::from_vec(1 << 62, 4, Vec::new()).unwrap_err();
+        assert!(err.to_string().contains("cannot form"), "{err}");
+        assert!(Matrix::from_vec(2, 0, Vec::new()).is_ok());
+    }
 
     #[test]
     fn from_rows_rejects_ragged_rows() {

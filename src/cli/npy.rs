@@ -10,6 +10,7 @@ use crate::Matrix;
 
 /// Reads a 2-D float32/float64 `.npy` file into a [`Matrix`] (values converted to `f32`).
 pub fn read_matrix(path: &Path) -> Result<Matrix> {
+    let stored = data_bytes(path)?;
     let file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
     let npy = NpyFile::new(std::io::BufReader::new(file))
         .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
@@ -24,6 +25,30 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
     if rows == 0 || cols == 0 {
         bail!(
             "{}: the matrix is empty (shape {rows}x{cols})",
+            path.display()
+        );
+    }
+    let elem = match npy.dtype() {
+        DType::Plain(t) if t.type_char() == TypeChar::Float && matches!(t.size_field(), 4 | 8) => {
+            t.size_field()
+        }
+        other => bail!(
+            "{}: expected float32 or float64 data, got dtype {}",
+            path.display(),
+            other.descr()
+        ),
+    };
+    // The header's shape must describe exactly the bytes that follow it, checked before any
+    // allocation: a truncated or padded file, or a forged shape (whose product may not even fit
+    // in memory or in 64 bits), is refused with both sizes instead of read.
+    let wanted = (rows as u64)
+        .checked_mul(cols as u64)
+        .and_then(|n| n.checked_mul(elem));
+    if wanted != Some(stored) {
+        let wanted = wanted.map_or_else(|| "more than 2^64".to_string(), |n| n.to_string());
+        bail!(
+            "{}: the header's shape ({rows}, {cols}) of {elem}-byte values needs {wanted} bytes \
+             of data, the file has {stored}",
             path.display()
         );
     }
@@ -57,6 +82,57 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
         }
     };
     Ok(Matrix::from_vec(rows, cols, data)?)
+}
+
+/// Bytes after the `.npy` header: the file's length minus the preamble (magic, version, header
+/// length: a `u16` in version 1, a `u32` in versions 2 and 3) and the header. Also refuses a
+/// header whose shape has more than 2^64 values before `npyz` parses it (its product of the
+/// shape overflows). Anything else wrong with the header is left to `npyz` to report.
+fn data_bytes(path: &Path) -> Result<u64> {
+    use std::io::Read;
+    let mut file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
+    let len = file
+        .metadata()
+        .with_context(|| format!("{}", path.display()))?
+        .len();
+    let mut pre = [0u8; 12];
+    if file.read_exact(&mut pre).is_err() {
+        return Ok(0); // too short for any header: `npyz` says what is missing
+    }
+    let (start, header_len) = match pre[6] {
+        1 => (10, u64::from(u16::from_le_bytes([pre[8], pre[9]]))),
+        _ => (
+            12,
+            u64::from(u32::from_le_bytes([pre[8], pre[9], pre[10], pre[11]])),
+        ),
+    };
+    let mut header = Vec::new();
+    std::io::Read::by_ref(&mut file)
+        .take(header_len.saturating_sub(12 - start))
+        .read_to_end(&mut header)
+        .with_context(|| format!("{}", path.display()))?;
+    let header = String::from_utf8_lossy(&header);
+    let dims: Option<Vec<u64>> = header
+        .split_once("shape")
+        .and_then(|(_, rest)| rest.split_once('('))
+        .and_then(|(_, rest)| rest.split_once(')'))
+        .and_then(|(tuple, _)| {
+            let dims = tuple.split(',').map(str::trim).filter(|t| !t.is_empty());
+            dims.map(|t| t.parse().ok()).collect()
+        });
+    if let Some(dims) = dims {
+        if dims
+            .iter()
+            .try_fold(1u64, |a, &b| a.checked_mul(b))
+            .is_none()
+        {
+            bail!(
+                "{}: the header's shape {dims:?} has more than 2^64 values",
+                path.display()
+            );
+        }
+    }
+    Ok(len.saturating_sub(start + header_len))
 }
 
 /// Writes `m` as a 2-D little-endian float32 `.npy` file (C order).
@@ -149,6 +225,27 @@ mod tests {
         assert!(format!("{:#}", read_matrix(&p).unwrap_err()).contains("float32 or float64"));
         std::fs::write(&p, b"not numpy").unwrap();
         assert!(format!("{:#}", read_matrix(&p).unwrap_err()).contains("not a valid .npy"));
+        // The shape must describe exactly the bytes that follow the header.
+        for (shape, body, needle) in [
+            (
+                &[3usize, 3][..],
+                &[0u8; 8][..],
+                "needs 36 bytes of data, the file has 8",
+            ),
+            (
+                &[2, 2],
+                &[0u8; 20],
+                "needs 16 bytes of data, the file has 20",
+            ),
+            // Forged: far more than the file holds, and a product past 2^64.
+            (&[100_000_000, 100_000_000], &[0u8; 16], "the file has 16"),
+            (&[1 << 61, 4], &[0u8; 16], "needs more than 2^64 bytes"),
+            (&[1 << 62, 8], &[0u8; 16], "has more than 2^64 values"),
+        ] {
+            write_npy(&p, "<f4", false, shape, body);
+            let err = format!("{:#}", read_matrix(&p).unwrap_err());
+            assert!(err.contains(needle), "{shape:?}: {err}");
+        }
         let missing = dir.path().join("missing.npy");
         assert!(format!("{:#}", read_matrix(&missing).unwrap_err()).contains("missing.npy"));
     }
