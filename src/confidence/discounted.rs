@@ -52,33 +52,103 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> (usize, f6
     let hi = (j_star + span).min(d - 1);
     let near: Vec<f32> = (lo..=hi).map(|j| view.through(j)).collect();
     let far = view.best_outside(lo, hi).min(view.hidden);
-    let ratio = |centre: usize, r: usize| -> f64 {
+    pick(
+        &Near {
+            lo,
+            near: &near,
+            far,
+        },
+        ro,
+        j_star,
+    )
+}
+
+/// The values of one row a readout looks at: `m(x_ij)` of the columns `lo ..` and the best
+/// route through any other column or a hidden node.
+struct Near<'a> {
+    lo: usize,
+    near: &'a [f32],
+    far: f32,
+}
+
+impl Near<'_> {
+    /// `outside / inside` (0 when no route passes inside the band).
+    fn ratio_of(&self, inside: f32, outside: f32) -> f64 {
+        if inside.is_finite() {
+            f64::from(outside) / f64::from(inside)
+        } else {
+            0.0
+        }
+    }
+
+    /// The ratio with the columns within `r` of `centre` as the band, by one scan.
+    fn ratio(&self, centre: usize, r: usize) -> f64 {
         let (a, b) = (centre.saturating_sub(r), centre + r);
-        let (mut inside, mut outside) = (f32::INFINITY, far);
-        for (j, &v) in (lo..=hi).zip(&near) {
+        let (mut inside, mut outside) = (f32::INFINITY, self.far);
+        for (j, &v) in (self.lo..).zip(self.near) {
             if (a..=b).contains(&j) {
                 inside = inside.min(v);
             } else {
                 outside = outside.min(v);
             }
         }
-        if inside.is_finite() {
-            f64::from(outside) / f64::from(inside)
-        } else {
-            0.0
+        self.ratio_of(inside, outside)
+    }
+}
+
+/// The prediction and confidence of [`read`] from the row's values: the claim's candidates
+/// in `O(span)` (one sliding-window minimum for the bands, prefix and suffix minima for the
+/// rest), not `O(claim · span)`, so a large `claim` (a large scoring tolerance) stays linear.
+/// Minima are exact, so every ratio is the one [`Near::ratio`] computes (test
+/// `the_linear_claim_readout_is_the_direct_one`).
+fn pick(row: &Near<'_>, ro: Readout, j_star: usize) -> (usize, f64) {
+    let (lo, near, c) = (row.lo, row.near, ro.claim);
+    let hi = lo + near.len() - 1;
+    let first = j_star.saturating_sub(c);
+    let last = (j_star + c).min(hi);
+    // pre[k] = min near[..k], suf[k] = min near[k..].
+    let mut pre = Vec::with_capacity(near.len() + 1);
+    pre.push(f32::INFINITY);
+    for &v in near {
+        pre.push(pre[pre.len() - 1].min(v));
+    }
+    let mut suf = vec![f32::INFINITY; near.len() + 1];
+    for k in (0..near.len()).rev() {
+        suf[k] = suf[k + 1].min(near[k]);
+    }
+    // Candidates in column order; both ends of their bands only move right: a monotone deque.
+    let mut claimed = Vec::with_capacity(last + 1 - first);
+    let mut deque = std::collections::VecDeque::new();
+    let mut next = 0;
+    for centre in first..=last {
+        let a = centre.saturating_sub(c).max(lo) - lo;
+        let b = (centre + c).min(hi) - lo;
+        while next <= b {
+            while deque.back().is_some_and(|&k: &usize| near[k] >= near[next]) {
+                deque.pop_back();
+            }
+            deque.push_back(next);
+            next += 1;
         }
-    };
-    let mut best = (j_star, ratio(j_star, ro.claim));
-    for delta in 1..=ro.claim {
+        while deque.front().is_some_and(|&k| k < a) {
+            deque.pop_front();
+        }
+        let inside = deque.front().map_or(f32::INFINITY, |&k| near[k]);
+        let outside = row.far.min(pre[a]).min(suf[b + 1]);
+        claimed.push(row.ratio_of(inside, outside));
+    }
+    let at = |col: usize| claimed[col - first];
+    // The path's match unless another candidate is strictly better; nearer first, left first.
+    let mut best = (j_star, at(j_star));
+    for delta in 1..=c {
         let candidates = [j_star.checked_sub(delta), Some(j_star + delta)];
-        for c in candidates.into_iter().flatten().filter(|&c| c < d) {
-            let pinned = ratio(c, ro.claim);
-            if pinned > best.1 {
-                best = (c, pinned);
+        for col in candidates.into_iter().flatten().filter(|&col| col <= last) {
+            if at(col) > best.1 {
+                best = (col, at(col));
             }
         }
     }
-    (best.0, ratio(best.0, ro.radius))
+    (best.0, row.ratio(best.0, ro.radius))
 }
 
 /// The discounted readout of every `(row, path match)` in `targets` on `chat`: `(prediction,
@@ -118,6 +188,44 @@ mod tests {
     use super::*;
     use crate::solver::match_cost;
     use proptest::prelude::*;
+
+    /// [`pick`] as first written: every candidate's band scanned anew, `O(claim · span)`.
+    fn pick_direct(row: &Near<'_>, ro: Readout, j_star: usize, d: usize) -> (usize, f64) {
+        let mut best = (j_star, row.ratio(j_star, ro.claim));
+        for delta in 1..=ro.claim {
+            let candidates = [j_star.checked_sub(delta), Some(j_star + delta)];
+            for c in candidates.into_iter().flatten().filter(|&c| c < d) {
+                let pinned = row.ratio(c, ro.claim);
+                if pinned > best.1 {
+                    best = (c, pinned);
+                }
+            }
+        }
+        (best.0, row.ratio(best.0, ro.radius))
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(512))]
+        /// The linear readout names the same frame with the same confidence, bit for bit, as
+        /// scanning every candidate's band; values on a coarse grid (ties), some `+inf`.
+        #[test]
+        fn the_linear_claim_readout_is_the_direct_one(
+            d in 1usize..60, j in 0usize..60, claim in 0usize..8, radius in 0usize..6,
+            values in proptest::collection::vec(0u8..12, 120), far in 0u8..13,
+        ) {
+            let j_star = j % d;
+            let span = claim + claim.max(radius);
+            let lo = j_star.saturating_sub(span);
+            let hi = (j_star + span).min(d - 1);
+            let value = |v: u8| if v == 11 { f32::INFINITY } else { 1.0 + f32::from(v) / 4.0 };
+            let near: Vec<f32> = values[..=hi - lo].iter().map(|&v| value(v)).collect();
+            let row = Near { lo, near: &near, far: value(far) };
+            let ro = Readout { radius, claim };
+            let (fast, direct) = (pick(&row, ro, j_star), pick_direct(&row, ro, j_star, d));
+            prop_assert_eq!(fast.0, direct.0);
+            prop_assert_eq!(fast.1.to_bits(), direct.1.to_bits());
+        }
+    }
 
     /// Every route from row 0 to the last row by brute force, each node cost weighted by
     /// `g^|t-i|`; the ratio for row `i`, prediction `js`.
