@@ -123,6 +123,11 @@ fn validate(
     default_model: Option<&std::path::Path>,
 ) -> Result<NewMapSpec, ApiError> {
     let name = req.name.trim().to_string();
+    // PostgreSQL's `text` cannot hold U+0000: refused on every engine, so that both accept the
+    // same names (and a NUL in a name is a client's bug, not a character anyone types).
+    if name.contains('\0') {
+        return Err(ApiError::param("name", "must not contain U+0000 (NUL)"));
+    }
     let chars = name.chars().count();
     if chars == 0 || chars > MAX_NAME_CHARS {
         return Err(ApiError::param(
