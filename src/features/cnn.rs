@@ -132,10 +132,15 @@ impl CnnOptions {
         if let Some(m) = self.mean.iter().find(|m| !m.is_finite()) {
             return Err(Error::param("cnn_mean", format!("{m} is not finite")));
         }
-        if let Some(s) = self.scale.iter().find(|s| !s.is_finite() || **s == 0.0) {
+        // A zero, subnormal or infinite divisor turns every pixel into an infinity or NaN: the
+        // divisor must be a normal f32 (|s| in f32::MIN_POSITIVE..=f32::MAX, the spec's range).
+        if let Some(s) = self.scale.iter().find(|s| !s.is_normal()) {
             return Err(Error::param(
                 "cnn_scale",
-                format!("{s}: must be finite and non-zero"),
+                format!(
+                    "{s}: must be finite and non-zero, of magnitude at least {:e}",
+                    f32::MIN_POSITIVE
+                ),
             ));
         }
         Ok(())
@@ -530,7 +535,7 @@ mod tests {
     fn settings_are_validated_before_the_model_is_read() {
         let base = CnnOptions::efficientnet_lite0("/nonexistent/model.onnx");
         type Edit = fn(&mut CnnOptions);
-        let cases: [(&str, Edit); 6] = [
+        let cases: [(&str, Edit); 8] = [
             ("cnn_layer", |o| o.layer = " ".into()),
             ("cnn_input_size", |o| o.input_size = (0, 224)),
             ("cnn_input_size", |o| o.input_size = (224, 100_000)),
@@ -541,6 +546,8 @@ mod tests {
             }),
             ("cnn_mean", |o| o.mean[1] = f32::NAN),
             ("cnn_scale", |o| o.scale[2] = 0.0),
+            ("cnn_scale", |o| o.scale[0] = f32::MIN_POSITIVE / 2.0),
+            ("cnn_scale", |o| o.scale[1] = -f32::INFINITY),
         ];
         for (want, edit) in cases {
             let mut o = base.clone();
@@ -553,7 +560,10 @@ mod tests {
         o.resize = CnnResize::ShortSideCrop { short_side: 200 };
         let err = CnnSpec::new(o).unwrap_err();
         assert_eq!(inconsistent_error(&err).0, "cnn_short_side", "{err}");
-        // Valid settings get as far as reading the file.
+        // Valid settings get as far as reading the file, the extreme divisors too.
+        let mut o = base.clone();
+        o.scale = [f32::MIN_POSITIVE, -f32::MIN_POSITIVE, f32::MAX];
+        assert!(matches!(CnnSpec::new(o).unwrap_err(), Error::Io { .. }));
         match CnnSpec::new(base).unwrap_err() {
             Error::Io { path, .. } => assert_eq!(path, Path::new("/nonexistent/model.onnx")),
             other => panic!("expected Io, got {other:?}"),
