@@ -41,10 +41,6 @@ use crate::{Error, Result};
 pub const MAX_INPUT_SIDE: u32 = 4096;
 /// Largest accepted `short_side` of the crop resize (four times [`MAX_INPUT_SIDE`]).
 pub const MAX_SHORT_SIDE: u32 = 4 * MAX_INPUT_SIDE;
-/// Smallest magnitude of a per-channel divisor: a divisor is a pixel scale (the shipped model's
-/// is 128), so anything near zero is a mistake, and a stated bound lets the HTTP contract say
-/// exactly which values are refused (a JSON number this small would round to an `f32` zero).
-pub const MIN_SCALE: f32 = 1e-30;
 
 /// How an image is brought to the network's input size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -136,14 +132,15 @@ impl CnnOptions {
         if let Some(m) = self.mean.iter().find(|m| !m.is_finite()) {
             return Err(Error::param("cnn_mean", format!("{m} is not finite")));
         }
-        if let Some(s) = self
-            .scale
-            .iter()
-            .find(|s| !s.is_finite() || s.abs() < MIN_SCALE)
-        {
+        // A zero, subnormal or infinite divisor turns every pixel into an infinity or NaN: the
+        // divisor must be a normal f32 (|s| in f32::MIN_POSITIVE..=f32::MAX, the spec's range).
+        if let Some(s) = self.scale.iter().find(|s| !s.is_normal()) {
             return Err(Error::param(
                 "cnn_scale",
-                format!("{s}: must be finite with a magnitude of at least {MIN_SCALE:e}"),
+                format!(
+                    "{s}: must be finite and non-zero, of magnitude at least {:e}",
+                    f32::MIN_POSITIVE
+                ),
             ));
         }
         Ok(())
@@ -549,8 +546,8 @@ mod tests {
             }),
             ("cnn_mean", |o| o.mean[1] = f32::NAN),
             ("cnn_scale", |o| o.scale[2] = 0.0),
-            ("cnn_scale", |o| o.scale[0] = -0.9e-30),
-            ("cnn_scale", |o| o.scale[1] = f32::INFINITY),
+            ("cnn_scale", |o| o.scale[0] = f32::MIN_POSITIVE / 2.0),
+            ("cnn_scale", |o| o.scale[1] = -f32::INFINITY),
         ];
         for (want, edit) in cases {
             let mut o = base.clone();
@@ -563,9 +560,9 @@ mod tests {
         o.resize = CnnResize::ShortSideCrop { short_side: 200 };
         let err = CnnSpec::new(o).unwrap_err();
         assert_eq!(inconsistent_error(&err).0, "cnn_short_side", "{err}");
-        // Valid settings get as far as reading the file: the smallest scale of either sign too.
+        // Valid settings get as far as reading the file, the extreme divisors too.
         let mut o = base.clone();
-        o.scale = [MIN_SCALE, -MIN_SCALE, -1.0];
+        o.scale = [f32::MIN_POSITIVE, -f32::MIN_POSITIVE, f32::MAX];
         assert!(matches!(CnnSpec::new(o).unwrap_err(), Error::Io { .. }));
         match CnnSpec::new(base).unwrap_err() {
             Error::Io { path, .. } => assert_eq!(path, Path::new("/nonexistent/model.onnx")),

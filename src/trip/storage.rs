@@ -284,6 +284,33 @@ mod tests {
         assert_eq!(held.restore(600).unwrap().image_bytes(), trip.image_bytes());
     }
 
+    #[test]
+    fn state_size_is_bounded_by_the_lag_window_not_the_trip_length() {
+        // The README's "State per trip": the trip's heap and its stored form (written from
+        // scratch) depend on `lag` and `D`, not on how many frames the trip has seen.
+        let d = 30;
+        let params = TripParams::default();
+        let mut trip = Trip::new(prior(d), params).unwrap();
+        let (mut heap, mut stored) = (Vec::new(), Vec::new());
+        for b in 0..100 {
+            trip.push_batch(&batch(b * 10, 10, d, 2)).unwrap();
+            // As the service does after each batch's write.
+            trip.take_delta();
+            heap.push(trip.heap_bytes());
+            let s = trip.stored_state();
+            stored.push(
+                s.base.len() + s.snapshot.len() + s.log.iter().map(|(_, r)| r.len()).sum::<usize>(),
+            );
+        }
+        assert_eq!(trip.frames(), 1000);
+        // The log cycles between `lag` and `2·lag` rows (32 and 64 here): once the window has
+        // filled, batches 8..24 (160 frames, several cycles) reach every size the state has.
+        for sizes in [&heap, &stored] {
+            let cycle = *sizes[8..24].iter().max().unwrap();
+            assert!(sizes[24..].iter().all(|&s| s <= cycle), "{sizes:?}");
+        }
+    }
+
     /// A format-1 blob of `t` as the previous versions wrote it (`SLTR`, format byte 1).
     fn legacy_blob(t: &Trip) -> Vec<u8> {
         let mut w = state::StateWriter::new();

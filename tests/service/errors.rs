@@ -480,8 +480,68 @@ fn the_specs_numeric_bounds_are_the_servers() {
         (Some(1), Some(MAX_SHORT_SIDE.into()))
     );
 
+    // A CNN divisor is a normal f32 (zero, subnormal or infinite ones make every pixel
+    // infinite), so its bounds are f32::MIN_POSITIVE..=f32::MAX on either side of zero; a
+    // mean is any finite f32.
+    let cnn = &schemas["CnnDescriptor"]["properties"];
+    assert_eq!(cnn["mean"]["items"]["$ref"], "#/components/schemas/Float32");
+    let (tiny, huge) = (f64::from(f32::MIN_POSITIVE), f64::from(f32::MAX));
+    let scale: Vec<_> = cnn["scale"]["items"]["oneOf"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["minimum"].as_f64().unwrap(),
+                r["maximum"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(scale, [(tiny, huge), (-huge, -tiny)]);
+
     let server = strict_server();
     let c = server.client;
+    // Divisors and means inside those bounds pass the settings' checks (the missing model
+    // file is what is refused, 422); outside them a 400 names the field. The first 400 was
+    // found by schemathesis: 1e-213, valid by the earlier document, is 0 as an f32.
+    for (mean, scale, field) in [
+        (json!([huge, -huge, 0]), json!([tiny, -tiny, huge]), None),
+        (
+            json!([1, 2, 3]),
+            json!([1e-213, 1, 1]),
+            Some("descriptor.scale"),
+        ),
+        (
+            json!([1, 2, 3]),
+            json!([tiny / 2.0, 1, 1]),
+            Some("descriptor.scale"),
+        ),
+        (json!([1, 2, 3]), json!([1, 1, 0]), Some("descriptor.scale")),
+        (
+            json!([1, 2, 3]),
+            json!([1, 1e39, 1]),
+            Some("descriptor.scale"),
+        ),
+        (
+            json!([1, 1e39, 3]),
+            json!([1, 1, 1]),
+            Some("descriptor.mean"),
+        ),
+    ] {
+        let descriptor = json!({"kind": "cnn", "model": "none.onnx", "layer": "x", "mean": mean, "scale": scale});
+        let r = c.post_json("/v1/maps", &json!({"name": "b", "descriptor": descriptor}));
+        let body = String::from_utf8_lossy(&r.body);
+        match field {
+            Some(field) => {
+                expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+                assert!(body.contains(field), "{descriptor}: {body}");
+            }
+            None => {
+                expect(&r, "post", "/v1/maps", 422, "inconsistent_parameter");
+                assert!(body.contains("descriptor.model"), "{descriptor}: {body}");
+            }
+        }
+    }
     // CNN sides past the bounds are 400s naming them, checked before any model file is read
     // (an input side near u32::MAX once overflowed the default short side: a dropped
     // connection instead of an answer).

@@ -108,6 +108,11 @@ pub fn validate(schema: &Value, value: &Value, path: &str) -> Result<(), String>
             return Err(format!("{path}: {value} < {min}"));
         }
     }
+    if let Some(max) = schema.get("maximum").and_then(Value::as_f64) {
+        if value.as_f64().is_some_and(|v| v > max) {
+            return Err(format!("{path}: {value} > {max}"));
+        }
+    }
     if ty == "object" {
         let obj = value.as_object().expect("checked above");
         let props = schema.get("properties").and_then(Value::as_object);
@@ -246,4 +251,11 @@ fn the_checker_catches_drift() {
     let mut wrong = map;
     wrong["id"] = serde_json::json!("xyz");
     assert!(validate(&schema, &wrong, "$").is_err());
+    // Numeric bounds on both sides: a CNN divisor is a normal f32 of either sign.
+    let cnn = serde_json::json!({"$ref": "#/components/schemas/CnnDescriptor"});
+    let with_scale = |s: f64| serde_json::json!({"kind": "cnn", "layer": "x", "scale": [s, 1, 1]});
+    validate(&cnn, &with_scale(128.0), "$").unwrap();
+    validate(&cnn, &with_scale(-0.5), "$").unwrap();
+    assert!(validate(&cnn, &with_scale(0.0), "$").is_err());
+    assert!(validate(&cnn, &with_scale(1e39), "$").is_err());
 }

@@ -65,16 +65,16 @@ pub enum DescriptorDto {
     /// images, further drives added with `POST /v1/maps/{id}/drives`. Unset fields keep the
     /// library defaults; answers set every field.
     Cooc {
-        /// Branching factor of the vocabulary tree (default 16).
+        /// Branching factor of the vocabulary tree (default 32).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         vocabulary_branching: Option<usize>,
-        /// Depth of the vocabulary tree (default 2: 256 words).
+        /// Depth of the vocabulary tree (default 2: 1,024 words).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         vocabulary_depth: Option<usize>,
         /// Upsampling before corner detection (default 2).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         upsample: Option<u32>,
-        /// Keypoints kept per image (default 80).
+        /// Keypoints kept per image (default 300).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_keypoints: Option<usize>,
         /// Spatial grid `[columns, rows]` (default `[12, 8]`).
@@ -83,7 +83,7 @@ pub enum DescriptorDto {
         /// Tolerated grid-offset difference in cells (default 1).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         spatial_tolerance: Option<u16>,
-        /// Merge drives adjacent in time (default true).
+        /// Merge drives adjacent in time (default false).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         merge_adjacent_drives: Option<bool>,
         /// Seed of the vocabulary's k-means.
