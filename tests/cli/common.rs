@@ -81,6 +81,13 @@ impl Run {
             self.args
         );
         assert_eq!(stderr.trim_end().lines().count(), 1, "one line: {stderr}");
+        // An error and its source both in the line ("x: No such file: No such file") reads
+        // as two failures.
+        let clauses: Vec<&str> = stderr.trim_end().split(": ").collect();
+        assert!(
+            clauses.windows(2).all(|w| w[0] != w[1]),
+            "a clause repeated: {stderr}"
+        );
     }
 }
 

@@ -296,6 +296,15 @@ fn eval_rejects_bad_input_with_one_line() {
             with(base(&route.query), &["--plot", "/no/such/dir/p.png"]),
             "/no/such/dir",
         ),
+        (
+            {
+                let mut v = base(&route.query);
+                let gt = v.iter().position(|a| a == "--ground-truth").unwrap() + 1;
+                v[gt] = dir.path("missing.csv").to_str().unwrap().to_string();
+                v
+            },
+            "missing.csv",
+        ),
     ];
     for (args, needle) in cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
