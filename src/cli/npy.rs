@@ -10,7 +10,13 @@ use crate::Matrix;
 
 /// Reads a 2-D float32/float64 `.npy` file into a [`Matrix`] (values converted to `f32`).
 pub fn read_matrix(path: &Path) -> Result<Matrix> {
-    let stored = data_bytes(path)?;
+    // A regular file is checked against its header before anything is read; a pipe
+    // (`/dev/stdin`) cannot be read twice and is read as it comes (a short stream fails the
+    // read, a forged shape `Matrix::from_vec`).
+    let stored = match std::fs::metadata(path) {
+        Ok(meta) if meta.is_file() => Some(data_bytes(path)?),
+        _ => None,
+    };
     let file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
     let npy = NpyFile::new(std::io::BufReader::new(file))
         .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
@@ -44,7 +50,7 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
     let wanted = (rows as u64)
         .checked_mul(cols as u64)
         .and_then(|n| n.checked_mul(elem));
-    if wanted != Some(stored) {
+    if let Some(stored) = stored.filter(|&stored| wanted != Some(stored)) {
         let wanted = wanted.map_or_else(|| "more than 2^64".to_string(), |n| n.to_string());
         bail!(
             "{}: the header's shape ({rows}, {cols}) of {elem}-byte values needs {wanted} bytes \

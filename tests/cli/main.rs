@@ -658,3 +658,38 @@ fn eval_cooc_flags_are_validated_before_any_work() {
     with(&["--save-similarity", dir.path("c.npy").to_str().unwrap()])
         .failure_mentions("--save-similarity");
 }
+
+/// `--similarity /dev/stdin`: a pipe is read as it comes (the size check of regular files
+/// reads the header first and must not consume the stream), with the same answer as the file.
+#[test]
+fn solve_reads_a_matrix_piped_on_stdin() {
+    let dir = Dir::new();
+    let file = dir.path("m.npy");
+    npy_f32(
+        &file,
+        3,
+        4,
+        &[3.0, 1.0, 1.0, 1.0, 1.0, 3.0, 1.0, 1.0, 1.0, 1.0, 3.0, 1.0],
+    );
+    let from_file = seasonloc(&["solve", "--similarity", file.to_str().unwrap()]).success_json();
+    // A real pipe (a redirected file would reopen as a regular file).
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_seasonloc"))
+        .args(["solve", "--similarity", "/dev/stdin"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let bytes = std::fs::read(&file).unwrap();
+    let mut stdin = child.stdin.take().unwrap();
+    std::io::Write::write_all(&mut stdin, &bytes).unwrap();
+    drop(stdin);
+    let piped = child.wait_with_output().unwrap();
+    assert!(
+        piped.status.success(),
+        "{}",
+        String::from_utf8_lossy(&piped.stderr)
+    );
+    let piped: Value = serde_json::from_slice(&piped.stdout).unwrap();
+    assert_eq!(piped, from_file);
+}
