@@ -56,7 +56,8 @@ pub struct ServeArgs {
     /// `body_timeout`; the whole request stays under `--request-timeout-secs`.
     #[arg(long, env = "SEASONLOC_BODY_READ_TIMEOUT_SECS", default_value_t = 20)]
     pub body_read_timeout_secs: u64,
-    /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core).
+    /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core; at most
+    /// 1024).
     #[arg(long, env = "SEASONLOC_WORKER_THREADS", default_value_t = 0)]
     pub worker_threads: usize,
     /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C before exiting anyway.
@@ -198,6 +199,9 @@ impl std::fmt::Debug for DatabaseUrl {
     }
 }
 
+/// Largest `--worker-threads`.
+pub const MAX_WORKER_THREADS: usize = 1024;
+
 /// A configuration value that cannot work.
 #[derive(Debug, thiserror::Error)]
 #[error("invalid setting `{name}`: {reason}")]
@@ -288,6 +292,17 @@ impl ServeArgs {
             return Err(ConfigError {
                 name: "data_dir",
                 reason: "must not be empty".into(),
+            });
+        }
+        // Far above any machine's cores: a typo such as 100000 would otherwise start that many
+        // threads (and their stacks) before the server says a word.
+        if self.worker_threads > MAX_WORKER_THREADS {
+            return Err(ConfigError {
+                name: "worker_threads",
+                reason: format!(
+                    "must be at most {MAX_WORKER_THREADS} (0 = one per core), got {}",
+                    self.worker_threads
+                ),
             });
         }
         let worker_threads = if self.worker_threads == 0 {
@@ -478,5 +493,21 @@ mod tests {
         let err = args.validate().unwrap_err();
         assert_eq!(err.name, "localize_queue");
         assert!(err.to_string().contains("localize_queue"));
+    }
+
+    #[test]
+    fn worker_threads_are_bounded() {
+        let with = |n| ServeArgs {
+            worker_threads: n,
+            ..ServeArgs::default()
+        };
+        let err = with(100_000).validate().unwrap_err();
+        assert_eq!(err.name, "worker_threads");
+        assert!(err.to_string().contains("at most 1024"), "{err}");
+        assert_eq!(
+            with(MAX_WORKER_THREADS).validate().unwrap().worker_threads,
+            1024
+        );
+        assert!(with(0).validate().unwrap().worker_threads >= 1);
     }
 }
