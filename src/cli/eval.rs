@@ -163,7 +163,7 @@ pub struct EvalArgs {
     /// Write `query_index,ref_index,confidence` of the main method here.
     #[arg(long)]
     pub predictions: Option<PathBuf>,
-    /// Write a precision-recall plot (PNG) of all scored methods here.
+    /// Write a precision-recall plot of all scored methods here (`.png`, or `.jpg`).
     #[arg(long)]
     pub plot: Option<PathBuf>,
     /// Write the raw cosine similarity matrix C (Q x D, float32 .npy) here, e.g. to feed
@@ -220,6 +220,20 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         .flatten()
     {
         check_output_location(out)?;
+    }
+    if let Some(plot) = &args.plot {
+        // Checked before the run: the plot is drawn last, and the image encoder only knows
+        // the formats this build decodes.
+        let ext = plot
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        if !matches!(ext.as_deref(), Some("png" | "jpg" | "jpeg")) {
+            bail!(
+                "--plot {}: the plot is a PNG or JPEG image, name it *.png (or *.jpg)",
+                plot.display()
+            );
+        }
     }
     let mut methods = vec![args.method];
     methods.extend(args.compare.iter().copied().filter(|m| *m != args.method));

@@ -296,6 +296,22 @@ fn eval_rejects_bad_input_with_one_line() {
             with(base(&route.query), &["--plot", "/no/such/dir/p.png"]),
             "/no/such/dir",
         ),
+        // Refused before the run, not by the encoder at its end.
+        (
+            with(
+                base(&route.query),
+                &["--plot", dir.path("p.svg").to_str().unwrap()],
+            ),
+            "name it *.png",
+        ),
+        // A missing model is the CNN's problem, not the input geometry's.
+        (
+            with(
+                base(&route.query),
+                &["--descriptor", "cnn", "--cnn-model", "/no/such/m.onnx"],
+            ),
+            "--descriptor cnn: /no/such/m.onnx",
+        ),
         (
             {
                 let mut v = base(&route.query);

@@ -83,15 +83,19 @@ pub(super) fn run_job(
             .context("list_images returns at least one image")?;
         let first = image_file_size(first_file)?;
         let extractor = args.descriptor.to_extractor(first).with_context(|| {
-            format!(
-                "the map's input geometry ({}x{} px, {})",
-                first.0,
-                first.1,
-                match args.descriptor.resize {
-                    Some(_) => "--resize".to_string(),
-                    None => format!("the first reference image {}", first_file.display()),
-                }
-            )
+            match args.descriptor.descriptor {
+                // A CNN has its own input size: what fails there is the model or its settings.
+                crate::cli::DescriptorKind::Cnn => "--descriptor cnn".to_string(),
+                crate::cli::DescriptorKind::Hog => format!(
+                    "the map's input geometry ({}x{} px, {})",
+                    first.0,
+                    first.1,
+                    match args.descriptor.resize {
+                        Some(_) => "--resize".to_string(),
+                        None => format!("the first reference image {}", first_file.display()),
+                    }
+                ),
+            }
         })?;
         let references = extract("reference", extractor.as_ref(), reference_files)?;
         let queries = extract("query", extractor.as_ref(), query_files)?;
