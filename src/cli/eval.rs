@@ -259,6 +259,13 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     if let Some(t) = args.reference_time.iter().find(|t| !t.is_finite()) {
         bail!("--reference-time must be a finite number, got {t}");
     }
+    if !args.reference_time.is_empty() && !methods.iter().any(|m| m.is_cooc()) {
+        bail!(
+            "--reference-time orders the mapping drives of a co-occurrence map; `{}` does not \
+             use it (score cooc, cooc-seq or cooc-flow, or leave it out)",
+            args.method.name()
+        );
+    }
     let drives = reference_drives(args)?;
     if args.leave_one_out {
         return leave_one_out(args, &drives, started);

@@ -635,6 +635,10 @@ fn eval_several_drives_are_checked_before_any_work() {
     ];
     times.extend_from_slice(&query);
     eval(&times).failure_mentions("--reference-time");
+    // A drive's time means nothing to the descriptor methods: refused, not ignored.
+    let mut flow_time = vec!["--reference-time", "1", "--method", "flow"];
+    flow_time.extend_from_slice(&query);
+    eval(&flow_time).failure_mentions("does not use it");
     eval(&["--leave-one-out", "--method", "cooc"]).failure_mentions("at least two");
     eval(&["--method", "cooc"]).failure_mentions("--query");
     eval(&[
