@@ -61,6 +61,10 @@ pub use params::{
 };
 pub use persist::{StateDelta, StoredState};
 
+/// Largest lag window of a trip in cells (`lag` x the map's references): about 300 MiB of
+/// state. The default lag of 32 stays below it up to 524,288 references.
+pub const MAX_WINDOW_CELLS: usize = 1 << 24;
+
 /// The raw rows of the lag window and the normalisation sums before it: what a trip needs to
 /// write a snapshot at the start of its window. Absent for a trip continued from a format-1
 /// state (which kept neither; it stores a full image per batch instead, see [`persist`]).
@@ -106,6 +110,20 @@ impl Trip {
         }
         params.validate()?;
         let d = prior.len();
+        // The lag window keeps about 19 bytes per cell (back-pointers, `ĉ`, raw rows) of
+        // `lag x D`: bounded per trip so that one trip cannot take the server's memory.
+        let cells = d.saturating_mul(params.lag);
+        if cells > MAX_WINDOW_CELLS {
+            return Err(Error::inconsistent(
+                "lag",
+                format!(
+                    "a lag window of {} frames on a map of {d} references keeps {cells} cells \
+                     of state; at most {MAX_WINDOW_CELLS} (a lag of at most {} on this map)",
+                    params.lag,
+                    MAX_WINDOW_CELLS / d
+                ),
+            ));
+        }
         let prior_mean = prior.iter().map(|v| f64::from(*v)).sum::<f64>() / d as f64;
         Ok(Trip {
             params,
@@ -374,6 +392,26 @@ mod tests {
             }
         }
         m
+    }
+
+    #[test]
+    fn the_lag_window_is_bounded_by_the_maps_size() {
+        let with_lag = |lag| TripParams {
+            lag,
+            ..TripParams::default()
+        };
+        // 30,790 references (the paper's map): lag 544 fits, 545 does not.
+        let d = 30_790;
+        assert!(Trip::new(prior(d), with_lag(544)).is_ok());
+        match Trip::new(prior(d), with_lag(545)) {
+            Err(Error::Inconsistent { name, reason }) => {
+                assert_eq!(name, "lag");
+                assert!(reason.contains("at most 544"), "{reason}");
+            }
+            other => panic!("expected the lag refused, got {:?}", other.err()),
+        }
+        // The largest lag on a small map.
+        assert!(Trip::new(prior(1_000), with_lag(10_000)).is_ok());
     }
 
     pub(super) fn prior(d: usize) -> Vec<f32> {
