@@ -413,14 +413,27 @@ fn responses_carry_a_request_id() {
     check("get", "/readyz", &r);
 }
 
+/// The largest `f64` below a positive `x`.
+fn f64_below(x: f64) -> f64 {
+    f64::from_bits(x.to_bits() - 1)
+}
+
 /// The bounds the OpenAPI states are the server's: a value at a bound is served, one past it
 /// is refused (schemathesis found the spec silent about them; see the README's test section).
 #[test]
 fn the_specs_numeric_bounds_are_the_servers() {
     let doc = crate::spec::doc();
     let f32_schema = &doc["components"]["schemas"]["Float32"];
-    assert_eq!(f32_schema["maximum"].as_f64(), Some(f64::from(f32::MAX)));
-    assert_eq!(f32_schema["minimum"].as_f64(), Some(f64::from(f32::MIN)));
+    // The bounds are where rounding to f32 reaches infinity (2^128 - 2^103, a tie that rounds
+    // to infinity: exclusive), not f32::MAX itself, whose JSON neighbours above still round to
+    // f32::MAX and are accepted (schemathesis found -3.402823466385289e38 taken: ST201).
+    let midpoint = 2f64.powi(128) - 2f64.powi(103);
+    assert_eq!(midpoint as f32, f32::INFINITY);
+    assert_eq!(f64_below(midpoint) as f32, f32::MAX);
+    assert_eq!(f32_schema["maximum"].as_f64(), Some(midpoint));
+    assert_eq!(f32_schema["minimum"].as_f64(), Some(-midpoint));
+    assert_eq!(f32_schema["exclusiveMaximum"], true);
+    assert_eq!(f32_schema["exclusiveMinimum"], true);
     let param_max = |path: &str, name: &str| -> Option<u64> {
         let op = &doc["paths"][path]["get"]["parameters"];
         let shared = &doc["paths"][path]["parameters"];
@@ -481,11 +494,15 @@ fn the_specs_numeric_bounds_are_the_servers() {
     );
 
     // A CNN divisor is a normal f32 (zero, subnormal or infinite ones make every pixel
-    // infinite), so its bounds are f32::MIN_POSITIVE..=f32::MAX on either side of zero; a
-    // mean is any finite f32.
+    // infinite), so its bounds are the numbers that round to f32::MIN_POSITIVE..=f32::MAX on
+    // either side of zero: from 2^-126 - 2^-150 (a tie that rounds to the even
+    // f32::MIN_POSITIVE: inclusive) to below the midpoint; a mean is any Float32.
     let cnn = &schemas["CnnDescriptor"]["properties"];
     assert_eq!(cnn["mean"]["items"]["$ref"], "#/components/schemas/Float32");
-    let (tiny, huge) = (f64::from(f32::MIN_POSITIVE), f64::from(f32::MAX));
+    let tiny = 2f64.powi(-126) - 2f64.powi(-150);
+    assert_eq!(tiny as f32, f32::MIN_POSITIVE);
+    assert!(!(f64_below(tiny) as f32).is_normal());
+    let huge = midpoint;
     let scale: Vec<_> = cnn["scale"]["items"]["oneOf"]
         .as_array()
         .unwrap()
@@ -504,8 +521,28 @@ fn the_specs_numeric_bounds_are_the_servers() {
     // Divisors and means inside those bounds pass the settings' checks (the missing model
     // file is what is refused, 422); outside them a 400 names the field. The first 400 was
     // found by schemathesis: 1e-213, valid by the earlier document, is 0 as an f32.
+    let (below_huge, below_tiny) = (f64_below(huge), f64_below(tiny));
     for (mean, scale, field) in [
-        (json!([huge, -huge, 0]), json!([tiny, -tiny, huge]), None),
+        (
+            json!([below_huge, -below_huge, 0]),
+            json!([tiny, -tiny, below_huge]),
+            None,
+        ),
+        (
+            json!([1, 2, 3]),
+            json!([below_tiny, 1, 1]),
+            Some("descriptor.scale"),
+        ),
+        (
+            json!([huge, 2, 3]),
+            json!([1, 1, 1]),
+            Some("descriptor.mean"),
+        ),
+        (
+            json!([1, 2, 3]),
+            json!([1, -huge, 1]),
+            Some("descriptor.scale"),
+        ),
         (
             json!([1, 2, 3]),
             json!([1e-213, 1, 1]),
