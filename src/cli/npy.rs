@@ -13,11 +13,14 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
     // A regular file is checked against its header before anything is read; a pipe
     // (`/dev/stdin`) cannot be read twice and is read as it comes (a short stream fails the
     // read, a forged shape `Matrix::from_vec`).
-    let stored = match std::fs::metadata(path) {
-        Ok(meta) if meta.is_file() => Some(data_bytes(path)?),
-        _ => None,
+    let mut file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
+    let stored = if file.metadata().is_ok_and(|m| m.is_file()) {
+        let stored = data_bytes(&mut file, path)?;
+        std::io::Seek::rewind(&mut file).with_context(|| format!("{}", path.display()))?;
+        Some(stored)
+    } else {
+        None
     };
-    let file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
     let npy = NpyFile::new(std::io::BufReader::new(file))
         .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
     let shape = npy.shape().to_vec();
@@ -59,21 +62,16 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
         );
     }
     let order = npy.order();
-    let data: Vec<f32> = match npy.dtype() {
-        DType::Plain(t) if t.type_char() == TypeChar::Float && t.size_field() == 4 => npy
-            .into_vec::<f32>()
-            .with_context(|| format!("{}: reading float32 data", path.display()))?,
-        DType::Plain(t) if t.type_char() == TypeChar::Float && t.size_field() == 8 => npy
-            .into_vec::<f64>()
+    // `elem` is 4 or 8: the dtype was checked above.
+    let data: Vec<f32> = if elem == 4 {
+        npy.into_vec::<f32>()
+            .with_context(|| format!("{}: reading float32 data", path.display()))?
+    } else {
+        npy.into_vec::<f64>()
             .with_context(|| format!("{}: reading float64 data", path.display()))?
             .into_iter()
             .map(|v| v as f32)
-            .collect(),
-        other => bail!(
-            "{}: expected float32 or float64 data, got dtype {}",
-            path.display(),
-            other.descr()
-        ),
+            .collect()
     };
     let data = match order {
         Order::C => data,
@@ -93,10 +91,10 @@ pub fn read_matrix(path: &Path) -> Result<Matrix> {
 /// Bytes after the `.npy` header: the file's length minus the preamble (magic, version, header
 /// length: a `u16` in version 1, a `u32` in versions 2 and 3) and the header. Also refuses a
 /// header whose shape has more than 2^64 values before `npyz` parses it (its product of the
-/// shape overflows). Anything else wrong with the header is left to `npyz` to report.
-fn data_bytes(path: &Path) -> Result<u64> {
+/// shape overflows). Anything else wrong with the header is left to `npyz` to report. Reads
+/// from the file's current position (its start); `path` names it in errors.
+fn data_bytes(file: &mut std::fs::File, path: &Path) -> Result<u64> {
     use std::io::Read;
-    let mut file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
     let len = file
         .metadata()
         .with_context(|| format!("{}", path.display()))?
@@ -113,7 +111,7 @@ fn data_bytes(path: &Path) -> Result<u64> {
         ),
     };
     let mut header = Vec::new();
-    std::io::Read::by_ref(&mut file)
+    std::io::Read::by_ref(file)
         .take(header_len.saturating_sub(12 - start))
         .read_to_end(&mut header)
         .with_context(|| format!("{}", path.display()))?;
