@@ -71,16 +71,16 @@ struct Near<'a> {
     far: f32,
 }
 
-impl Near<'_> {
-    /// `outside / inside` (0 when no route passes inside the band).
-    fn ratio_of(&self, inside: f32, outside: f32) -> f64 {
-        if inside.is_finite() {
-            f64::from(outside) / f64::from(inside)
-        } else {
-            0.0
-        }
+/// `outside / inside` (0 when no route passes inside the band).
+fn ratio_of(inside: f32, outside: f32) -> f64 {
+    if inside.is_finite() {
+        f64::from(outside) / f64::from(inside)
+    } else {
+        0.0
     }
+}
 
+impl Near<'_> {
     /// The ratio with the columns within `r` of `centre` as the band, by one scan.
     fn ratio(&self, centre: usize, r: usize) -> f64 {
         let (a, b) = (centre.saturating_sub(r), centre + r);
@@ -92,7 +92,7 @@ impl Near<'_> {
                 outside = outside.min(v);
             }
         }
-        self.ratio_of(inside, outside)
+        ratio_of(inside, outside)
     }
 }
 
@@ -135,7 +135,7 @@ fn pick(row: &Near<'_>, ro: Readout, j_star: usize) -> (usize, f64) {
         }
         let inside = deque.front().map_or(f32::INFINITY, |&k| near[k]);
         let outside = row.far.min(pre[a]).min(suf[b + 1]);
-        claimed.push(row.ratio_of(inside, outside));
+        claimed.push(ratio_of(inside, outside));
     }
     let at = |col: usize| claimed[col - first];
     // The path's match unless another candidate is strictly better; nearer first, left first.
