@@ -6,6 +6,7 @@ mod auth;
 mod browser;
 mod cnn;
 mod common;
+mod contract;
 mod cooc;
 mod dashboard;
 mod docker;

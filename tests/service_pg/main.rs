@@ -20,6 +20,8 @@ mod auth;
 mod cnn;
 #[path = "../service/common.rs"]
 mod common;
+#[path = "../service/contract.rs"]
+mod contract;
 #[path = "../service/cooc.rs"]
 mod cooc;
 #[path = "../service/errors.rs"]
