@@ -59,6 +59,8 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
+    // The key file first: a deployment that forgot to mount it fails before touching the store.
+    let auth = AppState::load_auth(&settings)?;
     let store: Arc<dyn Store> = match &settings.database_url {
         Some(url) => Arc::new(PgStore::connect(&url.0).await?),
         None => {
@@ -88,7 +90,7 @@ pub async fn serve(
             },
         },
     )?);
-    let state = AppState::new(Arc::clone(&use_cases), settings)?;
+    let state = AppState::new(Arc::clone(&use_cases), settings, auth)?;
     match &state.auth {
         Some(auth) => {
             tracing::info!(

@@ -41,13 +41,19 @@ pub struct AppState {
 }
 
 impl AppState {
-    /// Builds the state over the use cases; loads the API key file when one is configured.
-    pub fn new(app: Arc<App>, settings: Settings) -> anyhow::Result<Self> {
-        let openapi_json = Bytes::from(openapi_json()?);
-        let auth = match &settings.api_keys {
+    /// Loads the API key file when one is configured. The service calls it before it opens its
+    /// store, so that a missing or broken key file stops it before any side effect (a new data
+    /// folder, a schema migration).
+    pub fn load_auth(settings: &Settings) -> anyhow::Result<Option<Arc<Auth>>> {
+        Ok(match &settings.api_keys {
             Some(path) => Some(Arc::new(Auth::load(path, settings.max_requests_per_key)?)),
             None => None,
-        };
+        })
+    }
+
+    /// Builds the state over the use cases with the access control `auth` ([`Self::load_auth`]).
+    pub fn new(app: Arc<App>, settings: Settings, auth: Option<Arc<Auth>>) -> anyhow::Result<Self> {
+        let openapi_json = Bytes::from(openapi_json()?);
         Ok(AppState {
             auth,
             app,

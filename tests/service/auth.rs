@@ -635,6 +635,9 @@ fn a_missing_or_bad_key_file_stops_start_up() {
         assert!(!out.status.success());
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains("API key file"), "{err}");
+        // Checked before the store is opened: no data folder, no migration.
+        assert!(!dir.path().join("data").exists(), "{err}");
+        assert!(!err.contains("store layout upgraded"), "{err}");
     }
 }
 

@@ -2,69 +2,10 @@
 //! a volume, the exposed port equal to the listen address, and the HEALTHCHECK command run
 //! verbatim (port substituted) against the binary started with the image's environment.
 
-use std::collections::HashMap;
 use std::path::Path;
 
 use crate::common::Process;
-
-struct Runtime {
-    env: HashMap<String, String>,
-    user: String,
-    expose: Vec<String>,
-    volumes: Vec<String>,
-    healthcheck: Vec<String>,
-    entrypoint: Vec<String>,
-    cmd: Vec<String>,
-    stages: usize,
-}
-
-fn json_array(s: &str) -> Vec<String> {
-    serde_json::from_str(s.trim()).unwrap_or_else(|e| panic!("exec form expected ({e}): {s}"))
-}
-
-/// Parses the last stage of the Dockerfile (continuation lines joined).
-fn runtime_stage() -> Runtime {
-    let text =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("Dockerfile")).unwrap();
-    let joined = text.replace("\\\n", " ");
-    let lines: Vec<&str> = joined
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#'))
-        .collect();
-    let stages = lines.iter().filter(|l| l.starts_with("FROM ")).count();
-    let last = lines.iter().rposition(|l| l.starts_with("FROM ")).unwrap();
-    let mut rt = Runtime {
-        env: HashMap::new(),
-        user: "root".into(),
-        expose: vec![],
-        volumes: vec![],
-        healthcheck: vec![],
-        entrypoint: vec![],
-        cmd: vec![],
-        stages,
-    };
-    for l in &lines[last + 1..] {
-        let (instr, rest) = l.split_once(' ').unwrap_or((l, ""));
-        match instr {
-            "ENV" => {
-                let (k, v) = rest.split_once('=').unwrap();
-                rt.env.insert(k.trim().into(), v.trim().into());
-            }
-            "USER" => rt.user = rest.trim().into(),
-            "EXPOSE" => rt.expose.push(rest.trim().into()),
-            "VOLUME" => rt.volumes.push(rest.trim().into()),
-            "HEALTHCHECK" => {
-                let cmd = rest.split_once("CMD").unwrap().1;
-                rt.healthcheck = json_array(cmd);
-            }
-            "ENTRYPOINT" => rt.entrypoint = json_array(rest),
-            "CMD" => rt.cmd = json_array(rest),
-            _ => {}
-        }
-    }
-    rt
-}
+use crate::dockerfile::runtime_stage;
 
 #[test]
 fn runtime_stage_is_small_non_root_and_consistent() {

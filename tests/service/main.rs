@@ -10,6 +10,8 @@ mod contract;
 mod cooc;
 mod dashboard;
 mod docker;
+#[path = "../support/dockerfile.rs"]
+mod dockerfile;
 mod durability;
 mod errors;
 mod flow;

@@ -1,7 +1,8 @@
 //! The service's integration tests again, with every in-process server on PostgreSQL (a real
 //! server started by `seasonloc::store::postgres::testing`, one database per server), plus the
 //! tests only a shared database has: several replicas on one database, and faults of the
-//! database under a replica ([`replicas`]).
+//! database under a replica ([`replicas`]), and a replica started from the Kubernetes manifests
+//! ([`deploy`]).
 //!
 //! The test files are `tests/service/*.rs`, compiled a second time (not copied): the harness
 //! (`common::on_postgres`) picks the engine from this binary's name. Tests of the embedded
@@ -24,6 +25,9 @@ mod common;
 mod contract;
 #[path = "../service/cooc.rs"]
 mod cooc;
+mod deploy;
+#[path = "../support/dockerfile.rs"]
+mod dockerfile;
 #[path = "../service/errors.rs"]
 mod errors;
 #[path = "../service/flow.rs"]
