@@ -13,15 +13,15 @@
 # (Compose/Swarm `secrets:` and Kubernetes secret volumes mount at the same path; send SIGHUP
 # to the process after rotating the file.)
 
-FROM rust:1.85-slim-bookworm AS build
+FROM rust:1.91-slim-bookworm AS build
 WORKDIR /src
-COPY Cargo.toml Cargo.lock* ./
+COPY Cargo.toml Cargo.lock ./
 COPY src ./src
 COPY benches ./benches
 COPY migrations ./migrations
 COPY openapi ./openapi
 COPY assets ./assets
-RUN cargo build --release --locked --bin seasonloc || cargo build --release --bin seasonloc
+RUN cargo build --release --locked --bin seasonloc
 
 FROM debian:bookworm-slim AS runtime
 RUN useradd --system --uid 10001 --home-dir /nonexistent --shell /usr/sbin/nologin seasonloc \

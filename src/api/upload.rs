@@ -146,7 +146,7 @@ pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<M
     if body.is_empty() {
         return Err(ApiError::EmptyBatch("the body holds no descriptors".into()));
     }
-    if body.len() % (4 * dim) != 0 {
+    if !body.len().is_multiple_of(4 * dim) {
         return Err(ApiError::DescriptorLength(format!(
             "a body of {} bytes is not a whole number of {dim}-value rows of 4-byte floats",
             body.len()

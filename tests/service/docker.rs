@@ -7,6 +7,74 @@ use std::path::Path;
 use crate::common::Process;
 use crate::dockerfile::runtime_stage;
 
+/// `major.minor` of a version string (`"1.88.0"` -> `(1, 88)`).
+fn minor_version(v: &str) -> (u32, u32) {
+    let mut parts = v
+        .split('.')
+        .map(|p| p.parse::<u32>().unwrap_or_else(|_| panic!("{v}")));
+    (parts.next().unwrap(), parts.next().unwrap_or(0))
+}
+
+#[test]
+fn the_build_stage_toolchain_builds_the_locked_dependencies() {
+    // The build stage's image (`FROM rust:X.Y-...`), the crate's declared `rust-version`, and
+    // the newest `rust-version` in the locked dependency tree must agree: an image older than
+    // a dependency's minimum fails `cargo build --locked` (as `rust:1.85` did once `tract`
+    // needed 1.91), and a `rust-version` below it promises what no build can keep.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dockerfile = std::fs::read_to_string(root.join("Dockerfile")).unwrap();
+    let image = dockerfile
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("FROM rust:"))
+        .expect("a build stage FROM rust:X.Y-...");
+    let toolchain = minor_version(image.split(['-', ' ']).next().unwrap());
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = std::process::Command::new(cargo)
+        .args(["metadata", "--format-version", "1", "--locked", "--offline"])
+        .current_dir(root)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let ours = meta["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "seasonloc")
+        .and_then(|p| p["rust_version"].as_str())
+        .expect("Cargo.toml declares a rust-version");
+    assert_eq!(
+        minor_version(ours),
+        toolchain,
+        "Cargo.toml rust-version and the Dockerfile's build image differ"
+    );
+    let newest = meta["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|p| {
+            Some((
+                minor_version(p["rust_version"].as_str()?),
+                p["name"].as_str()?,
+            ))
+        })
+        .max()
+        .expect("some package declares a rust-version");
+    assert!(
+        newest.0 <= toolchain,
+        "{} needs Rust {}.{}; the Docker build uses {}.{}",
+        newest.1,
+        newest.0 .0,
+        newest.0 .1,
+        toolchain.0,
+        toolchain.1
+    );
+}
+
 #[test]
 fn runtime_stage_is_small_non_root_and_consistent() {
     let rt = runtime_stage();

@@ -284,11 +284,11 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
         status: TripStatus::Lost,
         state: TripStateWrite {
             base: None,
-            snapshot: (state % 2 == 0).then(|| vec![state; 3]),
+            snapshot: state.is_multiple_of(2).then(|| vec![state; 3]),
             log: (expected..expected + n)
                 .map(|f| (f, vec![f as u8; 4000]))
                 .collect(),
-            drop_log_before: (state % 2 == 0).then_some(expected),
+            drop_log_before: state.is_multiple_of(2).then_some(expected),
         },
         estimates: (expected.saturating_sub(1)..expected + n)
             .map(|f| FrameRecord {

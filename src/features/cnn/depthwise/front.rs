@@ -151,7 +151,7 @@ fn front_band4<'a>(
     let taps = w[0].len();
     let mut t = 0;
     // A 3x3 front convolution (the stem) in whole input channels of 9 taps.
-    if taps % 9 == 0 {
+    if taps.is_multiple_of(9) {
         while t < taps {
             let wt = w.map(|w| &w[t..t + 9]);
             fma_chain4::<9>(a0, a1, a2, a3, wt, |j| stream(t + j));

@@ -232,7 +232,7 @@ fn deinterleave(src_row: &[f32], pl: usize, len: usize, rows: &mut [f32], f: imp
     let wq = second.len();
     let first = &mut first[..wq];
     // Even input columns land in phase `pl % 2`, odd ones in the other.
-    let (even, odd) = if pl % 2 == 0 {
+    let (even, odd) = if pl.is_multiple_of(2) {
         (first, second)
     } else {
         (second, first)
