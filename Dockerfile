@@ -21,7 +21,9 @@ COPY benches ./benches
 COPY migrations ./migrations
 COPY openapi ./openapi
 COPY assets ./assets
-RUN cargo build --release --locked --bin seasonloc
+# Exactly the locked dependency tree; the image keeps symbol names (backtraces) but not the line
+# tables of the release profile (45 MB instead of 195 MB).
+RUN cargo build --release --locked --bin seasonloc --config 'profile.release.strip="debuginfo"'
 
 FROM debian:bookworm-slim AS runtime
 RUN useradd --system --uid 10001 --home-dir /nonexistent --shell /usr/sbin/nologin seasonloc \

@@ -28,6 +28,13 @@ fn the_build_stage_toolchain_builds_the_locked_dependencies() {
         .find_map(|l| l.trim().strip_prefix("FROM rust:"))
         .expect("a build stage FROM rust:X.Y-...");
     let toolchain = minor_version(image.split(['-', ' ']).next().unwrap());
+    assert!(
+        dockerfile
+            .lines()
+            .filter(|l| l.contains("cargo build"))
+            .all(|l| l.contains("--locked") && !l.contains("||")),
+        "the image must build the locked tree, with no fallback"
+    );
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = std::process::Command::new(cargo)
         .args(["metadata", "--format-version", "1", "--locked", "--offline"])
