@@ -234,6 +234,18 @@ fn the_objects_fit_together() {
         c.env.contains_key("SEASONLOC_DATABASE_URL"),
         "replicas need the shared database"
     );
+    // Every setting is one the binary reads: an unknown name (a typo) would be ignored silently.
+    let help = std::process::Command::new(env!("CARGO_BIN_EXE_seasonloc"))
+        .args(["serve", "--help"])
+        .output()
+        .unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    for name in c.env.keys().filter(|k| k.starts_with("SEASONLOC_")) {
+        assert!(
+            help.contains(&format!("[env: {name}")),
+            "{name} is set by the manifests but `seasonloc serve` has no such setting"
+        );
+    }
 }
 
 /// Where a path of the pod lands under `root`: mounts under `root/mounts`, the rest of the
