@@ -1,12 +1,15 @@
-//! The `Idempotency-Key` request header of `POST /v1/trips/{id}/frames` and
-//! `POST /v1/maps/{id}/images` (decision D5; the use case is `crate::app::Idempotency`): a
-//! retried batch with the same key and the same parts is applied once and answered as the
-//! first time, with `Idempotent-Replayed: true`; the same key with other parts is 409
-//! `idempotency_key_reused`.
+//! The `Idempotency-Key` request header of the routes that append to a map or a trip
+//! (`POST /v1/trips/{id}/frames`, `POST /v1/maps/{id}/images`, `/descriptors`, `/drives`;
+//! decision D5; the use case is `crate::app::Idempotency`): a retried batch with the same key
+//! and the same content is applied once and answered as the first time, with
+//! `Idempotent-Replayed: true`; the same key with other content is 409 `idempotency_key_reused`.
 //!
-//! The request's fingerprint is a SHA-256 over its parts' contents (each image's bytes and the
-//! JSON part, length-prefixed, in order), not over the raw body: a retry has a new multipart
-//! boundary, and file names are cosmetic.
+//! The request's fingerprint is a SHA-256 over what defines it, not over the raw body: for
+//! multipart batches its parts' contents (each image's bytes and the JSON part, length-prefixed,
+//! in order; a retry has a new multipart boundary, and file names are cosmetic); for
+//! descriptors the body with its media type and `?dim=`. Routes that share a map's key space
+//! (images, descriptors, drives) hash a route tag first (images: none, as stored since the
+//! header was introduced), so a key of one route never replays another's answer.
 
 use axum::http::{HeaderMap, HeaderName, HeaderValue};
 use sha2::{Digest, Sha256};
@@ -21,18 +24,48 @@ pub const KEY: HeaderName = HeaderName::from_static("idempotency-key");
 /// The response header on a replayed answer.
 pub const REPLAYED: HeaderName = HeaderName::from_static("idempotent-replayed");
 
-/// The request's key and fingerprint, `None` without the header.
+/// The request's key and fingerprint, `None` without the header: a batch of images (and its
+/// JSON part) appended to a map or a trip.
 pub fn from_request(headers: &HeaderMap, upload: &Upload) -> Result<Option<Idempotency>, ApiError> {
-    let Some(value) = headers.get(KEY) else {
+    from_upload(headers, None, upload)
+}
+
+/// [`from_request`] for an upload whose route shares a map's key space with the image
+/// appends but means something else (`drives`): `tag` is hashed first.
+pub fn from_tagged_request(
+    headers: &HeaderMap,
+    tag: &str,
+    upload: &Upload,
+) -> Result<Option<Idempotency>, ApiError> {
+    from_upload(headers, Some(tag), upload)
+}
+
+/// The key of a request defined by `parts` (each length-prefixed, in order) after `tag`.
+pub fn from_parts(
+    headers: &HeaderMap,
+    tag: &str,
+    parts: &[&[u8]],
+) -> Result<Option<Idempotency>, ApiError> {
+    let Some(key) = key_of(headers)? else {
         return Ok(None);
     };
-    let key = value.to_str().map_err(|_| {
-        ApiError::param(
-            "Idempotency-Key",
-            "must be visible ASCII characters (e.g. a UUID)",
-        )
-    })?;
-    let mut hash = Sha256::new();
+    let mut hash = tagged(Some(tag));
+    for part in parts {
+        hash.update((part.len() as u64).to_le_bytes());
+        hash.update(part);
+    }
+    Ok(Some(Idempotency::new(key, hash.finalize().to_vec())?))
+}
+
+fn from_upload(
+    headers: &HeaderMap,
+    tag: Option<&str>,
+    upload: &Upload,
+) -> Result<Option<Idempotency>, ApiError> {
+    let Some(key) = key_of(headers)? else {
+        return Ok(None);
+    };
+    let mut hash = tagged(tag);
     for image in &upload.images {
         hash.update((image.bytes.len() as u64).to_le_bytes());
         hash.update(&image.bytes);
@@ -46,6 +79,31 @@ pub fn from_request(headers: &HeaderMap, upload: &Upload) -> Result<Option<Idemp
         None => hash.update([0]),
     }
     Ok(Some(Idempotency::new(key, hash.finalize().to_vec())?))
+}
+
+/// A hash that starts with `tag` (length-prefixed behind a marker no untagged fingerprint
+/// starts with: those start with a part's length or a 0/1 byte, never `u64::MAX`).
+fn tagged(tag: Option<&str>) -> Sha256 {
+    let mut hash = Sha256::new();
+    if let Some(tag) = tag {
+        hash.update(u64::MAX.to_le_bytes());
+        hash.update((tag.len() as u64).to_le_bytes());
+        hash.update(tag.as_bytes());
+    }
+    hash
+}
+
+/// The header's value, `None` without it.
+fn key_of(headers: &HeaderMap) -> Result<Option<&str>, ApiError> {
+    let Some(value) = headers.get(KEY) else {
+        return Ok(None);
+    };
+    value.to_str().map(Some).map_err(|_| {
+        ApiError::param(
+            "Idempotency-Key",
+            "must be visible ASCII characters (e.g. a UUID)",
+        )
+    })
 }
 
 /// The response headers: `Idempotent-Replayed: true` on a replay.

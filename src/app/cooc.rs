@@ -20,6 +20,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
+use super::idempotency::Idempotency;
 use super::images::{decode_gray, ImageInput};
 use super::kind::{kind, Kind};
 use super::maps::AppendOutcome;
@@ -74,6 +75,34 @@ pub struct DriveOutcome {
     pub drives: usize,
     /// Images added by this drive.
     pub images: usize,
+    /// Whether this is the stored answer of an earlier request with the same idempotency key
+    /// (nothing was fused).
+    pub replayed: bool,
+}
+
+/// A drive's answer as stored for replays: the drive count after it and its image count.
+fn encode_drive(drives: usize, images: usize) -> Vec<u8> {
+    [drives as u64, images as u64]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect()
+}
+
+/// [`encode_drive`] read back.
+fn decode_drive(bytes: &[u8]) -> AppResult<(usize, usize)> {
+    let Ok::<[u8; 16], _>(b) = bytes.try_into() else {
+        return Err(AppError::Internal(format!(
+            "a stored drive answer has {} bytes, not 16",
+            bytes.len()
+        )));
+    };
+    let (mut drives, mut images) = ([0u8; 8], [0u8; 8]);
+    drives.copy_from_slice(&b[..8]);
+    images.copy_from_slice(&b[8..]);
+    Ok((
+        u64::from_le_bytes(drives) as usize,
+        u64::from_le_bytes(images) as usize,
+    ))
 }
 
 impl App {
@@ -157,6 +186,65 @@ impl App {
 
     /// Adds a further drive of the route to a co-occurrence map.
     pub async fn add_drive(&self, id: u64, drive: DriveInput) -> AppResult<DriveOutcome> {
+        self.add_drive_once(id, drive, None).await
+    }
+
+    /// [`App::add_drive`] with an optional idempotency key (the map's key space, shared with
+    /// its image appends): a drive whose key was applied already is not fused again but answered
+    /// as the first time (`app/idempotency.rs`).
+    pub async fn add_drive_once(
+        &self,
+        id: u64,
+        drive: DriveInput,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<DriveOutcome> {
+        let scope = IdempotencyRecord::images_scope(id);
+        let Some(key) = idempotency else {
+            return self.fuse_drive(id, drive, None).await;
+        };
+        if let Some(done) = self.replayed_drive(&key, &scope).await? {
+            return Ok(done);
+        }
+        match self
+            .fuse_drive(id, drive, Some((&key, scope.clone())))
+            .await
+        {
+            // A concurrent request with the same key may have stored first.
+            Err(e @ AppError::MapChanged(_)) => match self.replayed_drive(&key, &scope).await? {
+                Some(done) => Ok(done),
+                None => Err(e),
+            },
+            other => other,
+        }
+    }
+
+    /// The stored answer of a drive added with `key`, if there was one.
+    async fn replayed_drive(
+        &self,
+        key: &Idempotency,
+        scope: &str,
+    ) -> AppResult<Option<DriveOutcome>> {
+        let stored = self.store.idempotency_record(scope, key.key()).await?;
+        let Some(record) = key.replay(stored)? else {
+            return Ok(None);
+        };
+        let (drives, images) = decode_drive(&record.response)?;
+        tracing::info!(%scope, key = %record.key, "idempotent retry answered from the stored drive");
+        Ok(Some(DriveOutcome {
+            drives,
+            images,
+            replayed: true,
+        }))
+    }
+
+    /// Fuses `drive` into the map and stores it, with the idempotency record of `key` (in
+    /// `scope`) in the same write when there is one.
+    async fn fuse_drive(
+        &self,
+        id: u64,
+        drive: DriveInput,
+        key: Option<(&Idempotency, String)>,
+    ) -> AppResult<DriveOutcome> {
         // Re-read: the map may have been built since the caller's check.
         let map = self.map_for_drives(id).await?;
         if drive.locations.len() != drive.images.len() {
@@ -200,17 +288,22 @@ impl App {
                 Ok((cooc.to_bytes(), cooc.locations().drives().len()))
             })
             .await?;
+        let idempotency = key.map(|(k, scope)| k.record(scope, encode_drive(drives, images)));
         self.store
             .put_cooc_map(CoocWrite {
                 map: id,
                 previous: Some(previous),
                 encoded,
                 new_images: Vec::new(),
-                idempotency: None,
+                idempotency,
             })
             .await?;
         tracing::info!(map = %format!("{id:016x}"), images, drives, "drive added");
-        Ok(DriveOutcome { drives, images })
+        Ok(DriveOutcome {
+            drives,
+            images,
+            replayed: false,
+        })
     }
 
     /// A trip's prior column means on a co-occurrence map ([`CoocMap::trip_prior`]); computed

@@ -213,15 +213,36 @@ impl App {
         metas: Vec<ImageMeta>,
         idempotency: Option<Idempotency>,
     ) -> AppResult<AppendOutcome> {
-        let scope = IdempotencyRecord::images_scope(map.id);
+        let id = map.id;
+        self.append_once(id, idempotency, |record| {
+            self.append_keyed(map, images, metas, record)
+        })
+        .await
+    }
+
+    /// Runs `append` once per idempotency key of map `map`'s appends: without a key it just
+    /// runs; with one whose append is stored, the stored answer is replayed; otherwise `append`
+    /// runs with the record to store in the same write, and if a concurrent request with the
+    /// same key stored first, that one is replayed.
+    async fn append_once<F, Fut>(
+        &self,
+        map: u64,
+        idempotency: Option<Idempotency>,
+        append: F,
+    ) -> AppResult<AppendOutcome>
+    where
+        F: FnOnce(Option<IdempotencyRecord>) -> Fut,
+        Fut: std::future::Future<Output = AppResult<AppendOutcome>>,
+    {
+        let scope = IdempotencyRecord::images_scope(map);
         let Some(key) = idempotency else {
-            return self.append_keyed(map, images, metas, None).await;
+            return append(None).await;
         };
         if let Some(done) = self.replayed_append(&key, &scope).await? {
             return Ok(done);
         }
         let record = key.record(scope.clone(), Vec::new());
-        match self.append_keyed(map, images, metas, Some(record)).await {
+        match append(Some(record)).await {
             // A concurrent request with the same key may have stored first.
             Err(e @ AppError::MapChanged(_)) => match self.replayed_append(&key, &scope).await? {
                 Some(done) => Ok(done),
@@ -319,8 +340,24 @@ impl App {
         descriptors: Matrix,
         metas: Vec<ImageMeta>,
     ) -> AppResult<AppendOutcome> {
-        self.store_batch(ImageBatch::new(map, descriptors, metas)?)
+        self.append_descriptors_once(map, descriptors, metas, None)
             .await
+    }
+
+    /// [`App::append_descriptors`] with an optional idempotency key, as
+    /// [`App::append_images_once`] (one key space per map for both kinds of append).
+    pub async fn append_descriptors_once(
+        &self,
+        map: u64,
+        descriptors: Matrix,
+        metas: Vec<ImageMeta>,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<AppendOutcome> {
+        let batch = ImageBatch::new(map, descriptors, metas)?;
+        self.append_once(map, idempotency, |record| {
+            self.store_batch(batch.with_idempotency(record))
+        })
+        .await
     }
 
     /// The JPEG thumbnail of image `index` of map `id` (stored at upload), `None` when the

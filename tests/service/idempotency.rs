@@ -1,10 +1,11 @@
-//! `Idempotency-Key` on `POST /v1/trips/{id}/frames` and `POST /v1/maps/{id}/images` (on the
-//! embedded store in `service`, on PostgreSQL in `service_pg`): a retry with the same key and
-//! parts is applied once and answered as the first time; the key with other parts is 409.
+//! `Idempotency-Key` on every route that appends: `POST /v1/trips/{id}/frames` and
+//! `POST /v1/maps/{id}/images`, `/descriptors`, `/drives` (on the embedded store in `service`,
+//! on PostgreSQL in `service_pg`): a retry with the same key and parts is applied once and
+//! answered as the first time; the key with other parts is 409.
 
 use serde_json::{json, Value};
 
-use crate::common::{create_hog_map, Route, Server};
+use crate::common::{create_hog_map, create_vector_map, Route, Server};
 use crate::http::{Client, Part, Response};
 use crate::spec::check;
 
@@ -163,4 +164,126 @@ fn concurrent_retries_of_one_batch_apply_it_once() {
         .count();
     assert_eq!(replays, 3);
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 6);
+}
+
+#[test]
+fn a_retried_batch_of_descriptors_is_stored_once() {
+    let server = Server::start();
+    let c = &server.client;
+    let map = create_vector_map(c, "idem-descriptors", 4);
+    let path = format!("/v1/maps/{map}/descriptors");
+    let send = |ct: &str, query: &str, body: &[u8], key: &str| {
+        let r = c.request_with(
+            "POST",
+            &format!("{path}{query}"),
+            &[("Idempotency-Key", key)],
+            Some(ct),
+            body,
+        );
+        check("POST", "/v1/maps/{id}/descriptors", &r);
+        r
+    };
+    let json_body =
+        serde_json::to_vec(&json!({"descriptors": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]}))
+            .unwrap();
+    let first = send("application/json", "", &json_body, "desc-a");
+    assert_eq!(first.status, 200, "{}", body(&first));
+    assert_eq!(first.json()["indices"], json!([0, 1]));
+    assert_eq!(first.header("idempotent-replayed"), None);
+    let again = send("application/json", "", &json_body, "desc-a");
+    assert_eq!(again.status, 200, "{}", body(&again));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 2);
+
+    // A raw body: the same, and its `?dim=` and media type are part of the request.
+    let raw: Vec<u8> = [0.5f32, 0.5, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let octet = "application/octet-stream";
+    let first = send(octet, "?dim=4", &raw, "desc-b");
+    assert_eq!(first.json()["indices"], json!([2, 3]));
+    let again = send(octet, "?dim=4", &raw, "desc-b");
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 4);
+    for (ct, query, bytes) in [
+        (octet, "?dim=4", &raw[..16]),
+        (octet, "", &raw[..]),
+        ("application/json", "", &json_body[..]),
+    ] {
+        let reused = send(ct, query, bytes, "desc-b");
+        assert_eq!(
+            (reused.status, reused.code().as_str()),
+            (409, "idempotency_key_reused"),
+            "{ct} {query}"
+        );
+    }
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 4);
+}
+
+#[test]
+fn a_retried_drive_is_fused_once() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(30, 24);
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "idem-drives", "descriptor": {"kind": "cooc", "vocabulary_branching": 8}}),
+    );
+    assert_eq!(r.status, 201, "{}", body(&r));
+    let map = r.json()["id"].as_str().unwrap().to_string();
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..30));
+    assert_eq!(r.status, 200, "{}", body(&r));
+    let path = format!("/v1/maps/{map}/drives");
+    let drive_parts = |frames: std::ops::Range<u32>, time: f64| {
+        let mut p: Vec<Part> = frames
+            .clone()
+            .map(|i| Part::image(&format!("n{i}.png"), route.query_png(i)))
+            .collect();
+        let locations: Vec<u32> = frames.collect();
+        p.push(Part::json(
+            "drive",
+            &json!({"locations": locations, "time": time}),
+        ));
+        p
+    };
+    let send = |parts: &[Part], key: Option<&str>| {
+        let headers: Vec<(&str, &str)> = key.map(|k| ("Idempotency-Key", k)).into_iter().collect();
+        let r = c.post_multipart_with(&path, parts, &headers).unwrap();
+        check("POST", "/v1/maps/{id}/drives", &r);
+        assert!(
+            r.status == 200 || r.status == 409,
+            "{}: {}",
+            r.status,
+            body(&r)
+        );
+        r
+    };
+    let a = drive_parts(0..10, 20.0);
+    let first = send(&a, Some("drive-a"));
+    assert_eq!(first.json(), json!({"drives": 2, "images": 10}));
+    let again = send(&a, Some("drive-a"));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    // The replay fused nothing: the next drive is the third.
+    let b = send(&drive_parts(10..20, 21.0), None);
+    assert_eq!(b.json(), json!({"drives": 3, "images": 10}));
+    let again = send(&a, Some("drive-a"));
+    assert_eq!(again.json(), first.json());
+    let c_ = send(&drive_parts(20..30, 22.0), None);
+    assert_eq!(c_.json()["drives"], 4);
+    // The key with another drive, or sent to the map's image appends, is another request.
+    let reused = send(&drive_parts(0..10, 23.0), Some("drive-a"));
+    assert_eq!(
+        (reused.status, reused.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    let images = post(c, &format!("/v1/maps/{map}/images"), &a[..10], "drive-a");
+    assert_eq!(
+        (images.status, images.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    assert_eq!(send(&drive_parts(0..5, 24.0), None).json()["drives"], 5);
 }

@@ -4,6 +4,7 @@
 
 use axum::extract::multipart::{Multipart, MultipartRejection};
 use axum::extract::{Path, State};
+use axum::http::HeaderMap;
 use axum::routing::post;
 use axum::{Json, Router};
 pub mod dto;
@@ -12,7 +13,7 @@ use self::dto::{DriveDto, DriveResponse};
 use crate::api::error::ApiError;
 use crate::api::extract::{map_id, parse_json_object};
 use crate::api::state::AppState;
-use crate::api::upload;
+use crate::api::{idempotency, upload};
 use crate::app::DriveInput;
 
 /// The routes of this resource.
@@ -23,8 +24,9 @@ pub fn router() -> Router<AppState> {
 async fn add_drive(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
-) -> Result<Json<DriveResponse>, ApiError> {
+) -> Result<(HeaderMap, Json<DriveResponse>), ApiError> {
     let id = map_id(&id)?;
     state.app.map_for_drives(id).await?;
     let s = &state.settings;
@@ -56,19 +58,25 @@ async fn add_drive(
     if !time.is_finite() {
         return Err(ApiError::param("drive.time", "must be a finite number"));
     }
+    let key = idempotency::from_tagged_request(&headers, "drives", &batch)?;
     let outcome = state
         .app
-        .add_drive(
+        .add_drive_once(
             id,
             DriveInput {
                 images: batch.images,
                 locations: drive.locations,
                 time,
             },
+            key,
         )
         .await?;
-    Ok(Json(DriveResponse {
-        drives: outcome.drives,
-        images: outcome.images,
-    }))
+    let headers = idempotency::headers(outcome.replayed);
+    Ok((
+        headers,
+        Json(DriveResponse {
+            drives: outcome.drives,
+            images: outcome.images,
+        }),
+    ))
 }

@@ -336,7 +336,7 @@ async fn append_descriptors(
     query: Result<Query<RawQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
-) -> Result<Json<AppendResponse>, ApiError> {
+) -> Result<(HeaderMap, Json<AppendResponse>), ApiError> {
     let id = map_id(&id)?;
     let body = body.map_err(|r| bytes_rejection(r, state.settings.max_body_bytes))?;
     let map = state.app.map_for_descriptors(id).await?;
@@ -392,6 +392,18 @@ async fn append_descriptors(
             "descriptors must be sent as application/json or application/octet-stream, got `{content_type}`"
         )));
     };
-    let outcome = state.app.append_descriptors(id, descriptors, metas).await?;
-    Ok(Json(appended(&state, &outcome)))
+    // The request is its media type, `?dim=` and body (a JSON retry is sent byte for byte).
+    let kind: &[u8] = if content_type.starts_with("application/json") {
+        b"json"
+    } else {
+        b"octet-stream"
+    };
+    let dim = q.dim.map(|d| d.to_string()).unwrap_or_default();
+    let key = idempotency::from_parts(&headers, "descriptors", &[kind, dim.as_bytes(), &body])?;
+    let outcome = state
+        .app
+        .append_descriptors_once(id, descriptors, metas, key)
+        .await?;
+    let headers = idempotency::headers(outcome.replayed);
+    Ok((headers, Json(appended(&state, &outcome))))
 }
