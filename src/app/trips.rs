@@ -65,10 +65,64 @@ pub struct FramesOutcome {
 impl App {
     /// Opens a trip on map `id` with validated parameters.
     pub async fn open_trip(&self, id: u64, params: TripParams) -> AppResult<TripRecord> {
+        Ok(self.open_trip_once(id, params, None).await?.0)
+    }
+
+    /// [`App::open_trip`] with an optional idempotency key (the map's key space): a request
+    /// whose key opened a trip already (on any replica) opens none but answers that trip, as
+    /// it is now, with `true` (a replay).
+    pub async fn open_trip_once(
+        &self,
+        id: u64,
+        params: TripParams,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<(TripRecord, bool)> {
+        let scope = IdempotencyRecord::images_scope(id);
+        let Some(key) = idempotency else {
+            return Ok((self.open_new_trip(id, params, None).await?, false));
+        };
+        if let Some(trip) = self.replayed_trip(&key, &scope).await? {
+            return Ok((trip, true));
+        }
+        let record = key.record(scope.clone(), Vec::new());
+        match self.open_new_trip(id, params, Some(record)).await {
+            // A concurrent request with the same key may have stored first.
+            Err(e @ AppError::MapChanged(_)) => match self.replayed_trip(&key, &scope).await? {
+                Some(trip) => Ok((trip, true)),
+                None => Err(e),
+            },
+            other => other.map(|trip| (trip, false)),
+        }
+    }
+
+    /// The trip a request with `key` opened, if there was one.
+    async fn replayed_trip(&self, key: &Idempotency, scope: &str) -> AppResult<Option<TripRecord>> {
+        let stored = self.store.idempotency_record(scope, key.key()).await?;
+        let Some(record) = key.replay(stored)? else {
+            return Ok(None);
+        };
+        let Ok::<[u8; 8], _>(id) = record.response.as_slice().try_into() else {
+            return Err(AppError::Internal(format!(
+                "the stored trip of key `{}` is {} bytes, not 8",
+                record.key,
+                record.response.len()
+            )));
+        };
+        let trip = self.store.get_trip(u64::from_le_bytes(id)).await?;
+        tracing::info!(%scope, key = %record.key, "idempotent retry answered with the trip it opened");
+        Ok(Some(trip))
+    }
+
+    async fn open_new_trip(
+        &self,
+        id: u64,
+        params: TripParams,
+        idempotency: Option<IdempotencyRecord>,
+    ) -> AppResult<TripRecord> {
         let map = self.get_map(id).await?;
         if let Kind::Cooc(_) = kind(&map) {
             let prior = self.cooc_trip_prior(&map).await?;
-            return self.create_trip(&map, prior, params).await;
+            return self.create_trip(&map, prior, params, idempotency).await;
         }
         let checked = map.clone();
         let has_extractor = self
@@ -100,7 +154,7 @@ impl App {
                 prior
             }
         };
-        self.create_trip(&map, prior, params).await
+        self.create_trip(&map, prior, params, idempotency).await
     }
 
     /// Stores a new trip on `map` (all its current images) with the map's prior column means.
@@ -109,6 +163,7 @@ impl App {
         map: &MapRecord,
         prior: std::sync::Arc<Vec<f32>>,
         params: TripParams,
+        idempotency: Option<IdempotencyRecord>,
     ) -> AppResult<TripRecord> {
         let (id, count) = (map.id, map.image_count);
         let state = self
@@ -122,9 +177,16 @@ impl App {
             params: TripParamsDocument::from(&params),
             base: state.base,
             snapshot: state.snapshot,
+            idempotency,
         };
-        let record =
-            ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_trip(n)).await?;
+        // A keyed request's record answers with the trip's id.
+        let set_id = |n: &mut NewTrip, id: u64| {
+            n.id = id;
+            if let Some(r) = n.idempotency.as_mut() {
+                r.response = id.to_le_bytes().to_vec();
+            }
+        };
+        let record = ids::create_with_new_id(new, set_id, |n| self.store.create_trip(n)).await?;
         tracing::info!(map = %format!("{id:016x}"), trip = %format!("{:016x}", record.id), "trip opened");
         Ok(record)
     }

@@ -258,7 +258,8 @@ impl IdempotencyRecord {
         format!("trip/{id:016x}/frames")
     }
 
-    /// The scope of the keys of map `id`'s image batches.
+    /// The scope of the keys of map `id`'s appends (images, descriptors, drives) and of the
+    /// trips opened on it.
     pub fn images_scope(id: u64) -> String {
         format!("map/{id:016x}/images")
     }
@@ -438,6 +439,9 @@ pub struct NewTrip {
     pub base: Vec<u8>,
     /// Its initial snapshot (opaque bytes owned by `crate::trip`); the log starts empty.
     pub snapshot: Vec<u8>,
+    /// Stored in the same write, when the request had an idempotency key (its response names
+    /// the trip); fails with [`StoreError::IdempotencyKeyTaken`] when the key is stored already.
+    pub idempotency: Option<IdempotencyRecord>,
 }
 
 /// A trip's solver state as stored: opaque parts owned by `crate::trip` (`trip::persist`).

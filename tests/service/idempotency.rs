@@ -287,3 +287,83 @@ fn a_retried_drive_is_fused_once() {
     );
     assert_eq!(send(&drive_parts(0..5, 24.0), None).json()["drives"], 5);
 }
+
+#[test]
+fn a_retried_trip_opening_opens_one_trip() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(20, 25);
+    let map = create_hog_map(c, "idem-trips", 8);
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..20));
+    assert_eq!(r.status, 200, "{}", body(&r));
+    let path = format!("/v1/maps/{map}/trips");
+    let open = |params: &Value, key: &str| {
+        let bytes = serde_json::to_vec(params).unwrap();
+        let r = c.request_with(
+            "POST",
+            &path,
+            &[("Idempotency-Key", key)],
+            Some("application/json"),
+            &bytes,
+        );
+        check("POST", "/v1/maps/{id}/trips", &r);
+        r
+    };
+    let params = json!({"lag": 8});
+    let first = open(&params, "open-a");
+    assert_eq!(first.status, 201, "{}", body(&first));
+    assert_eq!(first.header("idempotent-replayed"), None);
+    let again = open(&params, "open-a");
+    assert_eq!(again.status, 201, "{}", body(&again));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    // The replay answers the trip as it is now.
+    let trip = first.json()["id"].as_str().unwrap().to_string();
+    let r = c.post_multipart(&format!("/v1/trips/{trip}/frames"), &frames(&route, 0..3));
+    assert_eq!(r.status, 200, "{}", body(&r));
+    let later = open(&params, "open-a");
+    assert_eq!(later.json()["id"], first.json()["id"]);
+    assert_eq!(later.json()["frame_count"], 3);
+    let listed = c.get(&format!("/v1/maps/{map}/trips")).json();
+    assert_eq!(listed["items"].as_array().unwrap().len(), 1, "{listed}");
+    // Other parameters, or a key of the map's image appends, are another request.
+    let other = open(&json!({"lag": 9}), "open-a");
+    assert_eq!(
+        (other.status, other.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    post(
+        c,
+        &format!("/v1/maps/{map}/images"),
+        &refs(&route, 0..2),
+        "img-1",
+    );
+    let shared = open(&params, "img-1");
+    assert_eq!(
+        (shared.status, shared.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    let fresh = open(&params, "open-b");
+    assert_eq!(fresh.status, 201);
+    assert_ne!(fresh.json()["id"], first.json()["id"]);
+    // Concurrent retries of one opening: one trip, the others replay it.
+    let answers: Vec<Response> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4).map(|_| s.spawn(|| open(&params, "race"))).collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let ids: std::collections::HashSet<String> = answers
+        .iter()
+        .map(|a| {
+            assert_eq!(a.status, 201, "{}", body(a));
+            a.json()["id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    assert_eq!(ids.len(), 1);
+    let replays = answers
+        .iter()
+        .filter(|a| a.header("idempotent-replayed").is_some())
+        .count();
+    assert_eq!(replays, 3);
+    let listed = c.get(&format!("/v1/maps/{map}/trips")).json();
+    assert_eq!(listed["items"].as_array().unwrap().len(), 3, "{listed}");
+}

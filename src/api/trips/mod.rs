@@ -71,7 +71,7 @@ async fn open(
     Path(id): Path<String>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
-) -> Result<(StatusCode, Json<TripResponse>), ApiError> {
+) -> Result<(StatusCode, HeaderMap, Json<TripResponse>), ApiError> {
     let map = map_id(&id)?;
     let body = body.map_err(|r| bytes_rejection(r, state.settings.max_body_bytes))?;
     // No body at all takes the defaults; anything else must be a JSON object (a body of
@@ -91,8 +91,13 @@ async fn open(
         parse_json_object(&body, None)?
     };
     let params = dto.into_params()?;
-    let record = state.app.open_trip(map, params).await?;
-    Ok((StatusCode::CREATED, Json(response(&record))))
+    let key = idempotency::from_parts(&headers, "trips", &[&body])?;
+    let (record, replayed) = state.app.open_trip_once(map, params, key).await?;
+    Ok((
+        StatusCode::CREATED,
+        idempotency::headers(replayed),
+        Json(response(&record)),
+    ))
 }
 
 async fn frames(

@@ -181,15 +181,17 @@ impl PgStore {
         let id = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
         let created_ms = now_ms();
         let params = new.params.to_json()?;
-        let client = self.client().await?;
-        let stmt = client
+        let mut client = self.client().await?;
+        // One transaction: the trip and, for a keyed request, its idempotency record.
+        let tx = client.transaction().await?;
+        let stmt = tx
             .prepare_cached(
                 "INSERT INTO trips (id, map_id, created_ms, closed_ms, frame_count,
                                     reference_count, status, params, base, snapshot)
                  VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5, $7) RETURNING id",
             )
             .await?;
-        let row = client
+        let row = tx
             .query_one(
                 &stmt,
                 &[
@@ -213,6 +215,8 @@ impl PgStore {
                 }
             })?;
         let id: i64 = row.get(0);
+        PgStore::claim_key(&tx, map, new.idempotency.as_ref(), None).await?;
+        tx.commit().await?;
         Ok(TripRecord {
             id: unsigned("trips", id, id)?,
             map_id: new.map_id,

@@ -273,6 +273,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             params: TripParamsDocument::from(&TripParams::default()),
             base: vec![b'B'; 3000],
             snapshot: vec![0],
+            idempotency: None,
         })
         .await
         .unwrap();
@@ -339,6 +340,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             params: TripParamsDocument::from(&TripParams::default()),
             base: vec![1],
             snapshot: vec![2],
+            idempotency: None,
         })
         .await
         .unwrap();

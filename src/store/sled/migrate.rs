@@ -244,6 +244,7 @@ mod tests {
                 params: TripParamsDocument::from(&crate::trip::TripParams::default()),
                 base: vec![7],
                 snapshot: vec![8],
+                idempotency: None,
             })
             .unwrap();
         let page = PageRequest {

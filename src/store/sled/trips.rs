@@ -48,6 +48,7 @@ impl SledStore {
             &codec::trip_by_map_key(record.map_id, record.id),
             &[] as &[u8],
         );
+        self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
@@ -223,6 +224,7 @@ mod tests {
             params: TripParamsDocument::from(&TripParams::default()),
             base: vec![b'B', state],
             snapshot: vec![b'S', state],
+            idempotency: None,
         }
     }
 
