@@ -180,6 +180,7 @@ fn main() {
                     cell_size: CELL,
                     resize: None,
                 },
+                idempotency: None,
             })
             .expect("map");
         for b in &ingest_batches {

@@ -20,6 +20,18 @@ impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
     type Rejection = ApiError;
 
     async fn from_request(req: Request, state: &AppState) -> Result<Self, Self::Rejection> {
+        let ApiJsonBody(value, _) = ApiJsonBody::from_request(req, state).await?;
+        Ok(ApiJson(value))
+    }
+}
+
+/// [`ApiJson`] with the body's bytes kept as well (what an `Idempotency-Key` fingerprints).
+pub struct ApiJsonBody<T>(pub T, pub Bytes);
+
+impl<T: DeserializeOwned> FromRequest<AppState> for ApiJsonBody<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(req: Request, state: &AppState) -> Result<Self, Self::Rejection> {
         if !is_json(req.headers()) {
             return Err(ApiError::UnsupportedMediaType(
                 "expected a request with `Content-Type: application/json`".into(),
@@ -28,7 +40,8 @@ impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
         let body = Bytes::from_request(req, state)
             .await
             .map_err(|e| bytes_rejection(e, state.settings.max_body_bytes))?;
-        parse_json_object(&body, None).map(ApiJson)
+        let value = parse_json_object(&body, None)?;
+        Ok(ApiJsonBody(value, body))
     }
 }
 

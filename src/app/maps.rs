@@ -104,6 +104,58 @@ fn check_cnn(options: CnnOptions, max_len: usize) -> AppResult<CnnSettings> {
 impl App {
     /// Creates a map.
     pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
+        Ok(self.create_map_once(spec, None).await?.0)
+    }
+
+    /// [`App::create_map`] with an optional idempotency key: a request whose key created a
+    /// map already (on any replica, and the map still exists) creates none but answers that
+    /// map, as it is now, with `true` (a replay).
+    pub async fn create_map_once(
+        &self,
+        spec: NewMapSpec,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<(MapRecord, bool)> {
+        let scope = IdempotencyRecord::maps_scope();
+        let Some(key) = idempotency else {
+            return Ok((self.create_new_map(spec, None).await?, false));
+        };
+        if let Some(map) = self.replayed_map(&key, &scope).await? {
+            return Ok((map, true));
+        }
+        let record = key.record(scope.clone(), Vec::new());
+        match self.create_new_map(spec, Some(record)).await {
+            // A concurrent request with the same key may have stored first.
+            Err(e @ AppError::MapChanged(_)) => match self.replayed_map(&key, &scope).await? {
+                Some(map) => Ok((map, true)),
+                None => Err(e),
+            },
+            other => other.map(|map| (map, false)),
+        }
+    }
+
+    /// The map a request with `key` created, if there was one.
+    async fn replayed_map(&self, key: &Idempotency, scope: &str) -> AppResult<Option<MapRecord>> {
+        let stored = self.store.idempotency_record(scope, key.key()).await?;
+        let Some(record) = key.replay(stored)? else {
+            return Ok(None);
+        };
+        let Ok::<[u8; 8], _>(id) = record.response.as_slice().try_into() else {
+            return Err(AppError::Internal(format!(
+                "the stored map of key `{}` is {} bytes, not 8",
+                record.key,
+                record.response.len()
+            )));
+        };
+        let map = self.get_map(u64::from_le_bytes(id)).await?;
+        tracing::info!(key = %record.key, "idempotent retry answered with the map it created");
+        Ok(Some(map))
+    }
+
+    async fn create_new_map(
+        &self,
+        spec: NewMapSpec,
+        idempotency: Option<IdempotencyRecord>,
+    ) -> AppResult<MapRecord> {
         let max_len = self.config.max_descriptor_len;
         let descriptor = match spec.descriptor {
             DescriptorSpec::Settings(DescriptorSettings::Precomputed { dim })
@@ -138,9 +190,16 @@ impl App {
             id: 0,
             name: spec.name,
             descriptor,
+            idempotency,
         };
-        let map =
-            ids::create_with_new_id(new, |n, id| n.id = id, |n| self.store.create_map(n)).await?;
+        // A keyed request's record answers with the map's id.
+        let set_id = |n: &mut NewMap, id: u64| {
+            n.id = id;
+            if let Some(r) = n.idempotency.as_mut() {
+                r.response = id.to_le_bytes().to_vec();
+            }
+        };
+        let map = ids::create_with_new_id(new, set_id, |n| self.store.create_map(n)).await?;
         tracing::info!(map = %format!("{:016x}", map.id), name = %map.name, "map created");
         Ok(map)
     }

@@ -199,6 +199,11 @@ pub struct NewMap {
     pub name: String,
     /// Validated descriptor settings.
     pub descriptor: DescriptorSettings,
+    /// Stored in the same write, when the request had an idempotency key (scope
+    /// [`IdempotencyRecord::maps_scope`], its response the map's id); fails with
+    /// [`StoreError::IdempotencyKeyTaken`] when the key is stored already. Deleting the map
+    /// deletes it.
+    pub idempotency: Option<IdempotencyRecord>,
 }
 
 /// A stored map.
@@ -256,6 +261,12 @@ impl IdempotencyRecord {
     /// The scope of the keys of trip `id`'s batches.
     pub fn trip_scope(id: u64) -> String {
         format!("trip/{id:016x}/frames")
+    }
+
+    /// The scope of the keys of map creations (their response is the new map's id, 8 bytes
+    /// little-endian).
+    pub fn maps_scope() -> String {
+        "maps".to_string()
     }
 
     /// The scope of the keys of map `id`'s appends (images, descriptors, drives) and of the

@@ -367,3 +367,61 @@ fn a_retried_trip_opening_opens_one_trip() {
     let listed = c.get(&format!("/v1/maps/{map}/trips")).json();
     assert_eq!(listed["items"].as_array().unwrap().len(), 3, "{listed}");
 }
+
+#[test]
+fn a_retried_map_creation_creates_one_map() {
+    let server = Server::start();
+    let c = &server.client;
+    let create = |spec: &Value, key: &str| {
+        let bytes = serde_json::to_vec(spec).unwrap();
+        let r = c.request_with(
+            "POST",
+            "/v1/maps",
+            &[("Idempotency-Key", key)],
+            Some("application/json"),
+            &bytes,
+        );
+        check("POST", "/v1/maps", &r);
+        r
+    };
+    let count = || c.get("/v1/maps").json()["maps"].as_array().unwrap().len();
+    let spec = json!({"name": "idem-map", "descriptor": {"kind": "hog", "cell_size": 8}});
+    let first = create(&spec, "map-a");
+    assert_eq!(first.status, 201, "{}", body(&first));
+    assert_eq!(first.header("idempotent-replayed"), None);
+    let again = create(&spec, "map-a");
+    assert_eq!(again.status, 201, "{}", body(&again));
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    assert_eq!(count(), 1);
+    let other = create(
+        &json!({"name": "other", "descriptor": {"kind": "hog", "cell_size": 8}}),
+        "map-a",
+    );
+    assert_eq!(
+        (other.status, other.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    // Concurrent retries: one map.
+    let answers: Vec<Response> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4).map(|_| s.spawn(|| create(&spec, "race"))).collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let ids: std::collections::HashSet<String> = answers
+        .iter()
+        .map(|a| {
+            assert_eq!(a.status, 201, "{}", body(a));
+            a.json()["id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    assert_eq!(ids.len(), 1);
+    assert_eq!(count(), 2);
+    // The key lives as long as its map: after a delete it creates a new one.
+    let id = first.json()["id"].as_str().unwrap().to_string();
+    assert_eq!(c.delete(&format!("/v1/maps/{id}")).status, 204);
+    let after = create(&spec, "map-a");
+    assert_eq!(after.status, 201, "{}", body(&after));
+    assert_eq!(after.header("idempotent-replayed"), None);
+    assert_ne!(after.json()["id"], first.json()["id"]);
+    assert_eq!(count(), 2);
+}

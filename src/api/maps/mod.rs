@@ -22,7 +22,7 @@ use self::dto::{
     MAX_NAME_CHARS,
 };
 use crate::api::error::ApiError;
-use crate::api::extract::{bytes_rejection, map_id, parse_json, parse_json_object, ApiJson};
+use crate::api::extract::{bytes_rejection, map_id, parse_json, parse_json_object, ApiJsonBody};
 use crate::api::state::AppState;
 use crate::api::{idempotency, upload, views};
 use crate::app::{AppendOutcome, DescriptorSpec, NewMapSpec};
@@ -237,11 +237,17 @@ fn validate(
 
 async fn create(
     State(state): State<AppState>,
-    ApiJson(req): ApiJson<CreateMapRequest>,
-) -> Result<(StatusCode, Json<MapResponse>), ApiError> {
+    headers: HeaderMap,
+    ApiJsonBody(req, body): ApiJsonBody<CreateMapRequest>,
+) -> Result<(StatusCode, HeaderMap, Json<MapResponse>), ApiError> {
     let spec = validate(req, state.settings.default_cnn_model.as_deref())?;
-    let map = state.app.create_map(spec).await?;
-    Ok((StatusCode::CREATED, Json(map.into())))
+    let key = idempotency::from_parts(&headers, "maps", &[&body])?;
+    let (map, replayed) = state.app.create_map_once(spec, key).await?;
+    Ok((
+        StatusCode::CREATED,
+        idempotency::headers(replayed),
+        Json(map.into()),
+    ))
 }
 
 async fn list(State(state): State<AppState>) -> Result<Json<MapListResponse>, ApiError> {

@@ -114,14 +114,16 @@ impl PgStore {
             image_count: 0,
             created_ms: 0,
         });
-        let client = self.client().await?;
-        let stmt = client
+        let mut client = self.client().await?;
+        // One transaction: the map and, for a keyed request, its idempotency record.
+        let tx = client.transaction().await?;
+        let stmt = tx
             .prepare_cached(
                 "INSERT INTO maps (id, name, settings, dim, image_count, created_ms)
                  VALUES ($5, $1, $2, $3, 0, $4) RETURNING id",
             )
             .await?;
-        let row = client
+        let row = tx
             .query_one(
                 &stmt,
                 &[
@@ -141,6 +143,8 @@ impl PgStore {
                 }
             })?;
         let id: i64 = row.get(0);
+        PgStore::claim_key(&tx, id, new.idempotency.as_ref(), None).await?;
+        tx.commit().await?;
         Ok(MapRecord {
             id: unsigned("maps", id, id)?,
             name: new.name,

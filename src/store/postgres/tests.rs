@@ -24,6 +24,7 @@ fn precomputed(dim: u32) -> NewMap {
         id: crate::store::test_id(),
         name: "m".into(),
         descriptor: DescriptorSettings::Precomputed { dim },
+        idempotency: None,
     }
 }
 
@@ -147,6 +148,7 @@ async fn batches_read_back_across_their_boundaries() {
             cell_size: 8,
             resize: Some((64, 32)),
         },
+        idempotency: None,
     };
     let h = store.create_map(hog.clone()).await.unwrap();
     let listed = store.list_maps().await.unwrap();
@@ -397,6 +399,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             id: crate::store::test_id(),
             name: "c".into(),
             descriptor: DescriptorSettings::Cooc(Box::default()),
+            idempotency: None,
         })
         .await
         .unwrap();

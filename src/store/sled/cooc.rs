@@ -82,6 +82,7 @@ mod tests {
                 id: crate::store::test_id(),
                 name: "c".into(),
                 descriptor: DescriptorSettings::Cooc(Box::default()),
+                idempotency: None,
             })
             .unwrap();
         assert_eq!(store.cooc_map(m.id).unwrap(), None);

@@ -30,8 +30,10 @@ impl SledStore {
             image_count: 0,
             created_ms: now_ms(),
         };
-        self.db
-            .insert(codec::map_key(record.id), codec::encode_map(&record))?;
+        let mut batch = sled::Batch::default();
+        batch.insert(&codec::map_key(record.id), codec::encode_map(&record));
+        self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
+        self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
     }
@@ -78,6 +80,7 @@ impl SledStore {
         }
         self.remove_trips(id, &mut batch)?;
         self.remove_keys(&IdempotencyRecord::images_scope(id), &mut batch)?;
+        self.remove_creation_key(id, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(())
@@ -228,6 +231,7 @@ mod tests {
                 cell_size: 8,
                 resize: None,
             },
+            idempotency: None,
         }
     }
 
@@ -314,6 +318,7 @@ mod tests {
                 id: crate::store::test_id(),
                 name: "own".into(),
                 descriptor: DescriptorSettings::Precomputed { dim: 2 },
+                idempotency: None,
             })
             .unwrap();
         assert_eq!(map.dim, Some(2));

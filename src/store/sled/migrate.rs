@@ -231,6 +231,7 @@ mod tests {
                 id: 0x1000,
                 name: "cnn".into(),
                 descriptor: cnn.clone(),
+                idempotency: None,
             })
             .unwrap();
         assert_eq!(store.get_map(created.id).unwrap().descriptor, cnn);

@@ -198,6 +198,21 @@ impl SledStore {
         Ok(())
     }
 
+    /// Adds the removal of the record of the key that created map `id`, if any, to `batch`
+    /// (creations share one scope; the record's response names the map).
+    fn remove_creation_key(&self, id: u64, batch: &mut sled::Batch) -> StoreResult<()> {
+        let scope = IdempotencyRecord::maps_scope();
+        let prefix = codec::idempotency_prefix(&scope);
+        for kv in self.db.scan_prefix(&prefix) {
+            let (k, v) = kv?;
+            let key = String::from_utf8_lossy(&k[prefix.len()..]).into_owned();
+            if codec::decode_idempotency(&k, &scope, &key, &v)?.response == id.to_le_bytes() {
+                batch.remove(k);
+            }
+        }
+        Ok(())
+    }
+
     /// Adds the removal of every idempotency record of `scope` to `batch`.
     fn remove_keys(&self, scope: &str, batch: &mut sled::Batch) -> StoreResult<()> {
         for kv in self.db.scan_prefix(codec::idempotency_prefix(scope)) {
@@ -339,6 +354,7 @@ pub(crate) fn test_map(store: &SledStore) -> u64 {
             id: super::test_id(),
             name: "m".into(),
             descriptor: super::DescriptorSettings::Precomputed { dim: 1 },
+            idempotency: None,
         })
         .expect("a new map in a fresh store")
         .id
@@ -379,6 +395,7 @@ mod open_tests {
                     id: u64::from(round) + 1,
                     name: format!("m{round}"),
                     descriptor: crate::store::DescriptorSettings::Precomputed { dim: 2 },
+                    idempotency: None,
                 })
                 .unwrap();
             drop(store);
