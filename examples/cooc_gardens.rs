@@ -4,6 +4,9 @@
 //! maps for every query traversal, for `cooc`, `cooc-seq` and `cooc-flow`, scored as spec §4
 //! with tolerance 2; and a trip on each map fed the query drive's frames in batches of 10
 //! (`CoocMap::trip_rows`, default trip parameters), scored at arrival and after the lag window.
+//! Each fused map also prints the `pooled (...)` lines: the three methods with the sources pooled
+//! by maximum-ratio combining (`support/pooled_fusion.rs`; `docs/cooc.md`, session 10), the
+//! alternative measured against the shipped most-decisive-source rule and not adopted.
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
@@ -301,7 +304,7 @@ fn run(
         }
         if map.locations().sources() > 1 {
             // Session 10: the sources pooled by maximum-ratio combining instead of one source
-            // per query window, for both signal-to-noise estimates.
+            // per query window, for three signal-to-noise estimates.
             for weight in [
                 PoolWeight::Margin,
                 PoolWeight::Decisiveness,
