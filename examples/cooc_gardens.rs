@@ -4,6 +4,9 @@
 //! maps for every query traversal, for `cooc`, `cooc-seq` and `cooc-flow`, scored as spec §4
 //! with tolerance 2; and a trip on each map fed the query drive's frames in batches of 10
 //! (`CoocMap::trip_rows`, default trip parameters), scored at arrival and after the lag window.
+//! Each fused map also prints the `pooled (...)` lines: the three methods with the sources pooled
+//! by maximum-ratio combining (`support/pooled_fusion.rs`; `docs/cooc.md`, session 10), the
+//! alternative measured against the shipped most-decisive-source rule and not adopted.
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
@@ -42,8 +45,11 @@ use seasonloc::features::{list_images, load_image_file_as, Pixels};
 use seasonloc::similarity::Normalization;
 use seasonloc::trip::TripParams;
 
+#[path = "support/pooled_fusion.rs"]
+mod pooled_fusion;
 #[path = "support/trip_stream.rs"]
 mod trip_stream;
+use pooled_fusion::{pooled_aps, PoolWeight};
 use trip_stream::{predictions, stream};
 
 const TRAVERSALS: [&str; 3] = ["day_left", "day_right", "night_right"];
@@ -294,6 +300,21 @@ fn run(
             row.push(format!("{:.3}", m.ap));
             if method == CoocMethod::Single {
                 row.push(format!("{:.2}", m.correct as f64 / n as f64));
+            }
+        }
+        if map.locations().sources() > 1 {
+            // Session 10: the sources pooled by maximum-ratio combining instead of one source
+            // per query window, for three signal-to-noise estimates.
+            for weight in [
+                PoolWeight::Margin,
+                PoolWeight::Decisiveness,
+                PoolWeight::ExcessMargin,
+            ] {
+                let aps = pooled_aps(&map, &queries, &options, weight, &gt, n);
+                println!(
+                    "  pooled ({weight:?}): cooc / cooc-seq / cooc-flow AP {:.3} / {:.3} / {:.3}",
+                    aps[0], aps[1], aps[2]
+                );
             }
         }
         // The sequence matching with SeqSLAM's local contrast enhancement (10 locations).

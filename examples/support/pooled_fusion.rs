@@ -1,0 +1,316 @@
+//! Session 10's alternative fusion rule for maps built from several drives, measured by
+//! `cooc_gardens` against the shipped one and not adopted (`docs/cooc.md`, session 10): instead
+//! of each query window taking the rows of its most decisive source
+//! (`seasonloc::cooc::fused_similarity`), every source's standardised row is combined with the
+//! others, weighted by its signal-to-noise estimate (maximum-ratio combining). Kept here so the
+//! session's table can be reproduced.
+
+use seasonloc::cooc::{source_order, CoocMap, CoocOptions, CoocQueries, SequenceParams};
+use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
+use seasonloc::similarity::Normalization;
+use seasonloc::{Error, Matrix, Result};
+
+/// The noise of one source's row: its peak, the mean and spread of its off-peak scores (as
+/// `seasonloc::cooc::decisiveness` measures them) and the best off-peak score (the runner-up). `None` when the
+/// source has no location.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RowNoise {
+    peak: f64,
+    mean: f64,
+    sd: f64,
+    runner_up: f64,
+    third: f64,
+}
+
+impl RowNoise {
+    fn of(row: &[f32], present: &[bool], exclusion: usize) -> Option<RowNoise> {
+        let (peak_at, peak) = row
+            .iter()
+            .zip(present)
+            .enumerate()
+            .filter(|(_, (_, &p))| p)
+            .map(|(j, (&v, _))| (j, v))
+            .fold(None, |best: Option<(usize, f32)>, (j, v)| match best {
+                Some((_, b)) if b >= v => best,
+                _ => Some((j, v)),
+            })?;
+        let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
+        let mut runner_up: Option<(usize, f64)> = None;
+        for (j, (&v, &p)) in row.iter().zip(present).enumerate() {
+            if p && j.abs_diff(peak_at) > exclusion {
+                n += 1;
+                sum += f64::from(v);
+                sq += f64::from(v) * f64::from(v);
+                if runner_up.is_none_or(|(_, r)| f64::from(v) > r) {
+                    runner_up = Some((j, f64::from(v)));
+                }
+            }
+        }
+        let third = runner_up.and_then(|(at, _)| {
+            row.iter()
+                .zip(present)
+                .enumerate()
+                .filter(|(j, (_, &p))| {
+                    p && j.abs_diff(peak_at) > exclusion && j.abs_diff(at) > exclusion
+                })
+                .map(|(_, (&v, _))| f64::from(v))
+                .reduce(f64::max)
+        });
+        let (mean, sd) = if n == 0 {
+            (0.0, 1.0)
+        } else {
+            let mean = sum / n as f64;
+            (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
+        };
+        Some(RowNoise {
+            peak: f64::from(peak),
+            mean,
+            sd,
+            runner_up: runner_up.map_or(mean, |(_, r)| r),
+            third: third.or(runner_up.map(|(_, r)| r)).unwrap_or(mean),
+        })
+    }
+
+    /// `seasonloc::cooc::decisiveness`: the peak's z-score over the off-peak noise.
+    fn decisiveness(&self) -> f64 {
+        (self.peak - self.mean) / self.sd
+    }
+
+    /// The peak's margin over the runner-up in units of the spread: the estimate of the
+    /// source's signal-to-noise ratio (the peak's z-score minus the level the source's own
+    /// noise reaches in the same row, which is what a source without the place peaks at).
+    fn margin(&self) -> f64 {
+        (self.peak - self.runner_up) / self.sd
+    }
+
+    /// [`RowNoise::margin`] less what noise alone gives it: the top spacings of `n` noise
+    /// scores are, by extreme-value theory (Gumbel tail, scale `b`), independent with
+    /// `E[x1 - x2] = b` and `E[x2 - x3] = b / 2`, so `(x1 - x2) - 2 (x2 - x3)` has mean 0 for a
+    /// source without the place, and the peak's excess over its noise for one with it.
+    fn excess_margin(&self) -> f64 {
+        ((self.peak - self.runner_up) - 2.0 * (self.runner_up - self.third)) / self.sd
+    }
+}
+
+/// The signal-to-noise estimate [`pooled_rows`] weighs a source by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PoolWeight {
+    /// The peak's margin over the runner-up, in units of the off-peak spread.
+    Margin,
+    /// The peak's z-score over the off-peak noise (`seasonloc::cooc::decisiveness`).
+    Decisiveness,
+    /// The margin less its expectation under noise alone (`RowNoise::excess_margin`).
+    ExcessMargin,
+}
+
+/// The maximum-ratio combination of the sources' rows (`docs/cooc.md`, session 10; measured, not adopted): per query
+/// and source, `rows` standardised over their own off-peak noise (`z = (x - mean) / sd`, as
+/// `seasonloc::cooc::decisiveness` measures it), weighted by the source's signal-to-noise ratio `w`, the mean
+/// over `window` queries centred on the query of the peak's margin over its runner-up on the
+/// `ranking` rows ([`RowNoise::margin`]); the fused value `Σ w z / sqrt(Σ w²)` (unit noise when
+/// the sources' noises are independent) is put back on the sources' scale, `mean* + sd* · f`
+/// with `mean*`, `sd*` the sources' means and spreads weighted by `w²`. A location only one
+/// weighted source has takes that source's value as it is, so a query whose weight rests on one
+/// source keeps that source's row exactly; where no source has weight, the most decisive
+/// source's row (as `seasonloc::cooc::source_order`).
+pub fn pooled_rows(
+    rows: &[Matrix],
+    ranking: &[Matrix],
+    present: &[bool],
+    exclusion: usize,
+    window: usize,
+    weight: PoolWeight,
+) -> Result<Matrix> {
+    let (q, l) = check_sources(ranking, present)?;
+    check_sources(rows, present)?;
+    if rows.len() != ranking.len() || rows[0].rows() != q {
+        return Err(Error::Shape(format!(
+            "{} rows to fuse for {} ranked sources",
+            rows.len(),
+            ranking.len()
+        )));
+    }
+    let margins: Vec<Vec<f64>> = ranking
+        .iter()
+        .enumerate()
+        .map(|(s, m)| {
+            (0..q)
+                .map(|i| {
+                    RowNoise::of(m.row(i), &present[s * l..(s + 1) * l], exclusion).map_or(
+                        0.0,
+                        |r| match weight {
+                            PoolWeight::Margin => r.margin(),
+                            PoolWeight::Decisiveness => r.decisiveness(),
+                            PoolWeight::ExcessMargin => r.excess_margin(),
+                        },
+                    )
+                })
+                .collect()
+        })
+        .collect();
+    let order = source_order(ranking, present, exclusion, window)?;
+    let w = window.max(1);
+    let mut out = Matrix::zeros(q, l);
+    for (i, ranked) in order.iter().enumerate() {
+        let lo = i.saturating_sub((w - 1) / 2);
+        let hi = lo.saturating_add(w).min(q);
+        let weights: Vec<f64> = margins
+            .iter()
+            .map(|m| (m[lo..hi].iter().sum::<f64>() / (hi - lo) as f64).max(0.0))
+            .collect();
+        let noise: Vec<Option<RowNoise>> = rows
+            .iter()
+            .enumerate()
+            .map(|(s, m)| RowNoise::of(m.row(i), &present[s * l..(s + 1) * l], exclusion))
+            .collect();
+        let dst = out.row_mut(i);
+        for (j, o) in dst.iter_mut().enumerate() {
+            let weighted: Vec<(usize, f64, RowNoise)> = (0..rows.len())
+                .filter(|&s| present[s * l + j] && weights[s] > 0.0)
+                .filter_map(|s| noise[s].map(|r| (s, weights[s], r)))
+                .collect();
+            *o = match weighted.as_slice() {
+                [] => ranked
+                    .iter()
+                    .find(|&&s| present[s * l + j])
+                    .map_or(0.0, |&s| rows[s].get(i, j)),
+                [(s, _, _)] => rows[*s].get(i, j),
+                many => {
+                    let (mut num, mut w2, mut mean, mut sd) = (0f64, 0f64, 0f64, 0f64);
+                    for &(s, ws, r) in many {
+                        let z = (f64::from(rows[s].get(i, j)) - r.mean) / r.sd;
+                        num += ws * z;
+                        w2 += ws * ws;
+                        mean += ws * ws * r.mean;
+                        sd += ws * ws * r.sd;
+                    }
+                    ((mean + sd * num / w2.sqrt()) / w2) as f32
+                }
+            };
+        }
+    }
+    Ok(out)
+}
+
+/// Checks that `per_source` are `Q x L` matrices and `present` has `sources x L` flags;
+/// returns `(Q, L)`.
+fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, usize)> {
+    let Some(first) = per_source.first() else {
+        return Err(Error::Empty("no score matrix to fuse".into()));
+    };
+    let (q, l) = (first.rows(), first.cols());
+    if present.len() != per_source.len() * l
+        || per_source.iter().any(|m| m.cols() != l || m.rows() != q)
+    {
+        return Err(Error::Shape(format!(
+            "{} score matrices of {q}x{l} and {} presence flags do not match",
+            per_source.len(),
+            present.len()
+        )));
+    }
+    Ok((q, l))
+}
+
+/// Each source's `s + 1` normalised on its own over its locations (`present`) and all queries,
+/// as `seasonloc::cooc::fused_similarity` normalises them; 0 where the source has no location.
+fn normalise_sources(
+    per_source: &[Matrix],
+    present: &[bool],
+    normalization: Normalization,
+) -> Result<Vec<Matrix>> {
+    let (q, l) = check_sources(per_source, present)?;
+    let mut normalised = Vec::with_capacity(per_source.len());
+    for (d, s) in per_source.iter().enumerate() {
+        let cols: Vec<usize> = (0..l).filter(|&j| present[d * l + j]).collect();
+        let mut full = Matrix::zeros(q, l);
+        if !cols.is_empty() {
+            let mut c = Matrix::zeros(q, cols.len());
+            for i in 0..q {
+                let (src, dst) = (s.row(i), c.row_mut(i));
+                for (o, &j) in dst.iter_mut().zip(&cols) {
+                    *o = src[j] + 1.0;
+                }
+            }
+            let c = normalization.apply(&c)?;
+            for i in 0..q {
+                let (src, dst) = (c.row(i), full.row_mut(i));
+                for (&v, &j) in src.iter().zip(&cols) {
+                    dst[j] = v;
+                }
+            }
+        }
+        normalised.push(full);
+    }
+    Ok(normalised)
+}
+
+/// AP (tolerance 2) of `cooc`, `cooc-seq` and `cooc-flow` on a fused map with the sources
+/// pooled by [`pooled_rows`] (`weight`), each method reading the pooled rows as
+/// `CoocQueries::localize` reads the fused ones: `cooc` the best location of the pooled raw
+/// scores (weights on the floored-normalised rows, window 1), `cooc-seq` and `cooc-flow` the
+/// pooled normalised rows over the fusion window.
+pub fn pooled_aps(
+    map: &CoocMap,
+    queries: &CoocQueries,
+    options: &CoocOptions,
+    weight: PoolWeight,
+    gt: &GroundTruth,
+    n: usize,
+) -> [f64; 3] {
+    let per_source = map.score_matrices_by_source(queries.words());
+    let present = map.locations().source_present();
+    let window = if options.fusion_window == 0 {
+        options.sequence.length
+    } else {
+        options.fusion_window
+    };
+    let excl = options.sequence.exclusion;
+    let pooled = |rows_normalization: Option<Normalization>, ranking: Normalization, window| {
+        let ranked = normalise_sources(&per_source, &present, ranking).expect("normalised");
+        match rows_normalization {
+            None => pooled_rows(&per_source, &ranked, &present, excl, window, weight),
+            Some(_) => pooled_rows(&ranked, &ranked, &present, excl, window, weight),
+        }
+        .expect("pooled rows")
+    };
+    let single: Vec<Prediction> = pooled(None, Normalization::default(), 1)
+        .iter_rows()
+        .enumerate()
+        .filter_map(|(i, row)| {
+            let (best, &s) = row
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
+            (s > 0.0).then_some(Prediction {
+                query: i,
+                reference: best,
+                confidence: f64::from(s),
+            })
+        })
+        .collect();
+    let params = options.sequence;
+    let seq_input = if params.normalization == Normalization::None {
+        pooled(None, Normalization::None, window)
+    } else {
+        pooled(Some(params.normalization), params.normalization, window)
+    };
+    let seq = seasonloc::cooc::sequence::match_sequences(
+        &seq_input,
+        &SequenceParams {
+            normalization: Normalization::None,
+            ..params
+        },
+    )
+    .expect("sequences");
+    let chat = pooled(
+        Some(options.flow.normalization),
+        options.flow.normalization,
+        window,
+    );
+    let (_, flow) = seasonloc::localize::solve_with_confidence(&chat, &options.flow).expect("flow");
+    [single, seq, flow].map(|p| {
+        evaluate(&p, gt, n, 2, &Exclusions::none())
+            .expect("metrics")
+            .ap
+    })
+}
