@@ -1,15 +1,17 @@
-//! The `Idempotency-Key` request header of the routes that append to a map or a trip
-//! (`POST /v1/trips/{id}/frames`, `POST /v1/maps/{id}/images`, `/descriptors`, `/drives`;
-//! decision D5; the use case is `crate::app::Idempotency`): a retried batch with the same key
-//! and the same content is applied once and answered as the first time, with
-//! `Idempotent-Replayed: true`; the same key with other content is 409 `idempotency_key_reused`.
+//! The `Idempotency-Key` request header of the routes that create or append (`POST /v1/maps`,
+//! `POST /v1/maps/{id}/images`, `/descriptors`, `/drives`, `/trips`, `/localize`,
+//! `POST /v1/trips/{id}/frames`; decision D5; the use case is `crate::app::Idempotency`): a
+//! retried request with the same key and the same content is applied once and answered as the
+//! first time, with `Idempotent-Replayed: true`; the same key with other content is 409
+//! `idempotency_key_reused`.
 //!
 //! The request's fingerprint is a SHA-256 over what defines it, not over the raw body: for
 //! multipart batches its parts' contents (each image's bytes and the JSON part, length-prefixed,
-//! in order; a retry has a new multipart boundary, and file names are cosmetic); for
-//! descriptors the body with its media type and `?dim=`. Routes that share a map's key space
-//! (images, descriptors, drives) hash a route tag first (images: none, as stored since the
-//! header was introduced), so a key of one route never replays another's answer.
+//! in order; a retry has a new multipart boundary, and file names are cosmetic); for JSON and
+//! raw bodies the body (for descriptors with its media type and `?dim=`). Routes that share a
+//! key space (a map's images, descriptors, drives, trips and localizations) hash a route tag
+//! first (images: none, as stored since the header was introduced), so a key of one route
+//! never replays another's answer.
 
 use axum::http::{HeaderMap, HeaderName, HeaderValue};
 use sha2::{Digest, Sha256};

@@ -8,6 +8,7 @@
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
+use super::idempotency::Idempotency;
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
@@ -16,7 +17,8 @@ use crate::localize::{localize_with_picture, Localization, LocalizeOptions};
 use crate::picture::MatrixPicture;
 use crate::store::document::{StoredMethod, StoredParams, StoredTimings};
 use crate::store::{
-    LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest, StoredPicture,
+    IdempotencyRecord, LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest,
+    StoredPicture,
 };
 use crate::Matrix;
 
@@ -62,6 +64,66 @@ pub fn service_name(m: CoocMethod) -> &'static str {
 impl App {
     /// Localizes `input` against map `id` and stores the result under a new id.
     pub async fn localize(&self, id: u64, input: LocalizeInput) -> AppResult<LocalizationRecord> {
+        Ok(self.localize_once(id, input, None).await?.0)
+    }
+
+    /// [`App::localize`] with an optional idempotency key (the map's key space): a request
+    /// whose key was answered already (on any replica) is not computed again but answered with
+    /// the stored result, with `true` (a replay). [`App::replayed_localization`] looks first,
+    /// so that a caller can answer a replay before it queues for a CPU.
+    pub async fn localize_once(
+        &self,
+        id: u64,
+        input: LocalizeInput,
+        idempotency: Option<Idempotency>,
+    ) -> AppResult<(LocalizationRecord, bool)> {
+        let Some(key) = idempotency else {
+            return Ok((self.compute_localization(id, input, None).await?, false));
+        };
+        if let Some(done) = self.replayed_localization(id, &key).await? {
+            return Ok((done, true));
+        }
+        let record = key.record(IdempotencyRecord::images_scope(id), Vec::new());
+        match self.compute_localization(id, input, Some(record)).await {
+            // A concurrent request with the same key may have stored first.
+            Err(e @ AppError::MapChanged(_)) => match self.replayed_localization(id, &key).await? {
+                Some(done) => Ok((done, true)),
+                None => Err(e),
+            },
+            other => other.map(|r| (r, false)),
+        }
+    }
+
+    /// The stored result of the request with `key` on map `id`, if there was one (a key of
+    /// another request is [`AppError::IdempotencyKeyReused`]).
+    pub async fn replayed_localization(
+        &self,
+        id: u64,
+        key: &Idempotency,
+    ) -> AppResult<Option<LocalizationRecord>> {
+        let scope = IdempotencyRecord::images_scope(id);
+        let stored = self.store.idempotency_record(&scope, key.key()).await?;
+        let Some(record) = key.replay(stored)? else {
+            return Ok(None);
+        };
+        let Ok::<[u8; 8], _>(lid) = record.response.as_slice().try_into() else {
+            return Err(AppError::Internal(format!(
+                "the stored result of key `{}` is {} bytes, not 8",
+                record.key,
+                record.response.len()
+            )));
+        };
+        let result = self.store.get_localization(u64::from_le_bytes(lid)).await?;
+        tracing::info!(%scope, key = %record.key, "idempotent retry answered with the stored result");
+        Ok(Some(result))
+    }
+
+    async fn compute_localization(
+        &self,
+        id: u64,
+        input: LocalizeInput,
+        idempotency: Option<IdempotencyRecord>,
+    ) -> AppResult<LocalizationRecord> {
         let LocalizeInput {
             queries,
             options,
@@ -201,13 +263,17 @@ impl App {
             map_id: id,
             result,
             picture: picture.map(|(_, png)| png),
+            idempotency,
         };
-        let record = ids::create_with_new_id(
-            new,
-            |n, id| n.id = id,
-            |n| self.store.create_localization(n),
-        )
-        .await?;
+        // A keyed request's record answers with the result's id.
+        let set_id = |n: &mut NewLocalization, id: u64| {
+            n.id = id;
+            if let Some(r) = n.idempotency.as_mut() {
+                r.response = id.to_le_bytes().to_vec();
+            }
+        };
+        let record =
+            ids::create_with_new_id(new, set_id, |n| self.store.create_localization(n)).await?;
         tracing::info!(
             map = %format!("{id:016x}"),
             localization = %format!("{:016x}", record.id),

@@ -412,6 +412,10 @@ pub struct NewLocalization {
     /// The PNG of the similarity-matrix picture that `result.picture` describes, stored in
     /// the same atomic write (`None` when the result has no picture).
     pub picture: Option<Vec<u8>>,
+    /// Stored in the same write, when the request had an idempotency key (its response is the
+    /// result's id); fails with [`StoreError::IdempotencyKeyTaken`] when the key is stored
+    /// already.
+    pub idempotency: Option<IdempotencyRecord>,
 }
 
 /// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).

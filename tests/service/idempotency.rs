@@ -1,7 +1,8 @@
-//! `Idempotency-Key` on every route that appends: `POST /v1/trips/{id}/frames` and
-//! `POST /v1/maps/{id}/images`, `/descriptors`, `/drives` (on the embedded store in `service`,
-//! on PostgreSQL in `service_pg`): a retry with the same key and parts is applied once and
-//! answered as the first time; the key with other parts is 409.
+//! `Idempotency-Key` on every route that creates or appends: `POST /v1/maps`,
+//! `POST /v1/maps/{id}/images`, `/descriptors`, `/drives`, `/trips`, `/localize` and
+//! `POST /v1/trips/{id}/frames` (on the embedded store in `service`, on PostgreSQL in
+//! `service_pg`): a retry with the same key and content is applied once and answered as the
+//! first time; the key with other content is 409.
 
 use serde_json::{json, Value};
 
@@ -424,4 +425,90 @@ fn a_retried_map_creation_creates_one_map() {
     assert_eq!(after.header("idempotent-replayed"), None);
     assert_ne!(after.json()["id"], first.json()["id"]);
     assert_eq!(count(), 2);
+}
+
+#[test]
+fn a_retried_localization_is_answered_from_the_store() {
+    let server = Server::start();
+    let c = &server.client;
+    let route = Route::new(30, 26);
+    let map = create_hog_map(c, "idem-localize", 8);
+    let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..30));
+    assert_eq!(r.status, 200, "{}", body(&r));
+    let path = format!("/v1/maps/{map}/localize");
+    let count = || {
+        c.get(&format!("/v1/localizations?map={map}")).json()["items"]
+            .as_array()
+            .unwrap()
+            .len()
+    };
+    let queries = frames(&route, 5..15);
+    let first = post(c, &path, &queries, "loc-a");
+    check("POST", "/v1/maps/{id}/localize", &first);
+    assert_eq!(first.status, 200, "{}", body(&first));
+    assert_eq!(first.header("idempotent-replayed"), None);
+    let again = post(c, &path, &queries, "loc-a");
+    check("POST", "/v1/maps/{id}/localize", &again);
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    // The stored result itself, timings included: nothing was computed again.
+    assert_eq!(again.json(), first.json());
+    assert_eq!(count(), 1);
+    let other = post(c, &path, &frames(&route, 6..16), "loc-a");
+    assert_eq!(
+        (other.status, other.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    let append_key = post(
+        c,
+        &format!("/v1/maps/{map}/images"),
+        &refs(&route, 0..2),
+        "img-x",
+    );
+    assert_eq!(append_key.status, 200);
+    let shared = post(c, &path, &queries, "img-x");
+    assert_eq!(
+        (shared.status, shared.code().as_str()),
+        (409, "idempotency_key_reused")
+    );
+    let fresh = post(c, &path, &queries, "loc-b");
+    assert_eq!(fresh.header("idempotent-replayed"), None);
+    assert_ne!(fresh.json()["id"], first.json()["id"]);
+    assert_eq!(count(), 2);
+}
+
+#[test]
+fn a_retried_localization_of_descriptors_is_answered_from_the_store() {
+    let server = Server::start();
+    let c = &server.client;
+    let map = create_vector_map(c, "idem-localize-json", 3);
+    let rows: Vec<Vec<f32>> = (0..12)
+        .map(|i| {
+            let t = i as f32 * 0.5;
+            vec![t.sin() + 1.5, t.cos() + 1.5, 1.0]
+        })
+        .collect();
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({ "descriptors": rows }),
+    );
+    assert_eq!(r.status, 200, "{}", body(&r));
+    let request = serde_json::to_vec(&json!({"descriptors": rows[3..9]})).unwrap();
+    let send = |bytes: &[u8], key: &str| {
+        let r = c.request_with(
+            "POST",
+            &format!("/v1/maps/{map}/localize"),
+            &[("Idempotency-Key", key)],
+            Some("application/json"),
+            bytes,
+        );
+        check("POST", "/v1/maps/{id}/localize", &r);
+        r
+    };
+    let first = send(&request, "json-a");
+    assert_eq!(first.status, 200, "{}", body(&first));
+    let again = send(&request, "json-a");
+    assert_eq!(again.header("idempotent-replayed"), Some("true"));
+    assert_eq!(again.json(), first.json());
+    let other = serde_json::to_vec(&json!({"descriptors": rows[2..9]})).unwrap();
+    assert_eq!(send(&other, "json-a").status, 409);
 }

@@ -22,10 +22,10 @@ use crate::api::admission::Refusal;
 use crate::api::error::ApiError;
 use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
-use crate::api::upload;
 use crate::api::views;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
-use crate::app::{LocalizeInput, Queries};
+use crate::api::{idempotency, upload};
+use crate::app::{Idempotency, LocalizeInput, Queries};
 use crate::store::{LocalizationRecord, PageRequest};
 
 /// The routes of this resource.
@@ -37,7 +37,13 @@ pub fn router() -> Router<AppState> {
         .route("/v1/localizations/{id}/picture", get(views::picture))
 }
 
-async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError> {
+/// The request's input and its idempotency key (fingerprinted over the JSON body, or over the
+/// multipart parts, behind the route's tag: a map's appends share its key space).
+async fn parse(
+    state: &AppState,
+    req: Request,
+) -> Result<(LocalizeInput, Option<Idempotency>), ApiError> {
+    let headers = req.headers().clone();
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -53,11 +59,13 @@ async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError
         let method = body.params.method.map(Into::into);
         let options = body.params.into_options()?;
         let m = upload::descriptor_matrix(&body.descriptors, None, s.max_batch_images)?;
-        Ok(LocalizeInput {
+        let key = idempotency::from_parts(&headers, "localize", &[b"json", &bytes])?;
+        let input = LocalizeInput {
             queries: Queries::Descriptors(m),
             options,
             method,
-        })
+        };
+        Ok((input, key))
     } else {
         let multipart = Multipart::from_request(req, state)
             .await
@@ -68,11 +76,13 @@ async fn parse(state: &AppState, req: Request) -> Result<LocalizeInput, ApiError
             None => LocalizeParams::default(),
         };
         let method = params.method.map(Into::into);
-        Ok(LocalizeInput {
+        let key = idempotency::from_tagged_request(&headers, "localize", &batch)?;
+        let input = LocalizeInput {
             queries: Queries::Images(batch.images),
             options: params.into_options()?,
             method,
-        })
+        };
+        Ok((input, key))
     }
 }
 
@@ -85,10 +95,19 @@ async fn run(
     // A place in the queue before the body is read (a full queue refuses without reading
     // it), the CPU turn once it is parsed (a slow upload never holds a turn).
     let reservation = state.admission.reserve().map_err(|r| refused(&state, r))?;
-    let input = parse(&state, req).await?;
+    let (input, key) = parse(&state, req).await?;
+    // A retry of an answered request is answered from the store, without a CPU turn.
+    if let Some(k) = &key {
+        if let Some(done) = state.app.replayed_localization(map, k).await? {
+            return json_document(&done, true);
+        }
+    }
     let turn = reservation.turn().await.map_err(|r| refused(&state, r))?;
-    let record = state.app.localize(map, input).await?;
+    let (record, replayed) = state.app.localize_once(map, input, key).await?;
     turn.finish();
+    if replayed {
+        return json_document(&record, true);
+    }
     let r = &record.document.result;
     let m = &state.metrics;
     m.observe_stage("load_references", r.timings.load_references);
@@ -96,7 +115,7 @@ async fn run(
     m.observe_stage("similarity", r.timings.similarity);
     m.observe_stage("solve", r.timings.solve);
     m.add_queries_localized(r.query_count as u64);
-    json_document(&record)
+    json_document(&record, false)
 }
 
 /// The answer to a request the localize queue did not admit.
@@ -124,7 +143,8 @@ fn refused(state: &AppState, refusal: Refusal) -> ApiError {
 
 /// The wire form of a stored result: the stored document's fields, byte for byte the JSON the
 /// store keeps (a test checks it on the golden store).
-fn json_document(record: &LocalizationRecord) -> Result<Response, ApiError> {
+/// `replayed` adds `Idempotent-Replayed: true`.
+fn json_document(record: &LocalizationRecord, replayed: bool) -> Result<Response, ApiError> {
     let bytes = serde_json::to_vec(&LocalizationResponse::from(&record.document))
         .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
     let mut r = Body::from(bytes).into_response();
@@ -132,12 +152,13 @@ fn json_document(record: &LocalizationRecord) -> Result<Response, ApiError> {
         header::CONTENT_TYPE,
         HeaderValue::from_static("application/json"),
     );
+    r.headers_mut().extend(idempotency::headers(replayed));
     Ok(r)
 }
 
 async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let lid = parse_id(&id).ok_or(ApiError::LocalizationNotFound(id))?;
-    json_document(&state.app.get_localization(lid).await?)
+    json_document(&state.app.get_localization(lid).await?, false)
 }
 
 async fn list(

@@ -93,7 +93,7 @@ impl PgStore {
     ) -> StoreResult<LocalizationRecord> {
         let map = db_id(new.map_id).ok_or(StoreError::MapNotFound(new.map_id))?;
         let id = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
-        let client = self.client().await?;
+        let mut client = self.client().await?;
         let created_ms = now_ms();
         let record = LocalizationRecord {
             id: unsigned("localizations", id, id)?,
@@ -107,21 +107,26 @@ impl PgStore {
             },
         };
         let json = record.document.to_json()?;
-        let stmt = client
+        // One transaction: the result and, for a keyed request, its idempotency record.
+        let tx = client.transaction().await?;
+        let stmt = tx
             .prepare_cached(
                 "INSERT INTO localizations (id, map_id, created_ms, document, picture)
                  VALUES ($1, $2, $3, $4, $5)",
             )
             .await?;
-        match client
+        match tx
             .execute(&stmt, &[&id, &map, &ms(created_ms), &json, &new.picture])
             .await
         {
-            Ok(_) => Ok(record),
-            Err(e) if is_missing_parent(&e) => Err(StoreError::MapNotFound(new.map_id)),
-            Err(e) if is_duplicate(&e) => Err(StoreError::IdTaken(new.id)),
-            Err(e) => Err(e.into()),
+            Ok(_) => {}
+            Err(e) if is_missing_parent(&e) => return Err(StoreError::MapNotFound(new.map_id)),
+            Err(e) if is_duplicate(&e) => return Err(StoreError::IdTaken(new.id)),
+            Err(e) => return Err(e.into()),
         }
+        PgStore::claim_key(&tx, map, new.idempotency.as_ref(), None).await?;
+        tx.commit().await?;
+        Ok(record)
     }
 
     pub(super) async fn localization(&self, id: u64) -> StoreResult<LocalizationRecord> {

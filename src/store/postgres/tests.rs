@@ -231,6 +231,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
             map_id: map.id,
             result: result.clone(),
             picture: None,
+            idempotency: None,
         })
         .await
         .unwrap();
@@ -240,6 +241,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
             map_id: map.id,
             result,
             picture: Some(b"png".to_vec()),
+            idempotency: None,
         })
         .await
         .unwrap();

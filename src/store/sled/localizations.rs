@@ -38,6 +38,7 @@ impl SledStore {
         if let Some(png) = &new.picture {
             batch.insert(&codec::picture_key(id), png.as_slice());
         }
+        self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
         self.db.apply_batch(batch)?;
         self.db.flush()?;
         Ok(record)
@@ -113,6 +114,7 @@ mod tests {
             map_id,
             result: result(k),
             picture: None,
+            idempotency: None,
         })
     }
 
