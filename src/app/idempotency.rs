@@ -1,4 +1,5 @@
-//! Idempotent retries (decision D5): a batch of trip frames or reference images sent with an
+//! Idempotent retries (decision D5): a request that creates or appends (a map, its images,
+//! descriptors, drives, trips and localizations, a trip's frames) sent with an
 //! `Idempotency-Key` is applied once, however often and wherever (any replica, after a crash of
 //! the first) it is retried, and every retry is answered like the first time.
 //!
