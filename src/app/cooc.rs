@@ -198,52 +198,26 @@ impl App {
         drive: DriveInput,
         idempotency: Option<Idempotency>,
     ) -> AppResult<DriveOutcome> {
+        let replay = |record: IdempotencyRecord| async move {
+            let (drives, images) = decode_drive(&record.response)?;
+            Ok(DriveOutcome {
+                drives,
+                images,
+                replayed: true,
+            })
+        };
+        let fuse = |record| self.fuse_drive(id, drive, record);
         let scope = IdempotencyRecord::images_scope(id);
-        let Some(key) = idempotency else {
-            return self.fuse_drive(id, drive, None).await;
-        };
-        if let Some(done) = self.replayed_drive(&key, &scope).await? {
-            return Ok(done);
-        }
-        match self
-            .fuse_drive(id, drive, Some((&key, scope.clone())))
-            .await
-        {
-            // A concurrent request with the same key may have stored first.
-            Err(e @ AppError::MapChanged(_)) => match self.replayed_drive(&key, &scope).await? {
-                Some(done) => Ok(done),
-                None => Err(e),
-            },
-            other => other,
-        }
+        Ok(self.once(idempotency, scope, replay, fuse).await?.0)
     }
 
-    /// The stored answer of a drive added with `key`, if there was one.
-    async fn replayed_drive(
-        &self,
-        key: &Idempotency,
-        scope: &str,
-    ) -> AppResult<Option<DriveOutcome>> {
-        let stored = self.store.idempotency_record(scope, key.key()).await?;
-        let Some(record) = key.replay(stored)? else {
-            return Ok(None);
-        };
-        let (drives, images) = decode_drive(&record.response)?;
-        tracing::info!(%scope, key = %record.key, "idempotent retry answered from the stored drive");
-        Ok(Some(DriveOutcome {
-            drives,
-            images,
-            replayed: true,
-        }))
-    }
-
-    /// Fuses `drive` into the map and stores it, with the idempotency record of `key` (in
-    /// `scope`) in the same write when there is one.
+    /// Fuses `drive` into the map and stores it, with the idempotency `record` (its answer
+    /// filled in) in the same write when there is one.
     async fn fuse_drive(
         &self,
         id: u64,
         drive: DriveInput,
-        key: Option<(&Idempotency, String)>,
+        record: Option<IdempotencyRecord>,
     ) -> AppResult<DriveOutcome> {
         // Re-read: the map may have been built since the caller's check.
         let map = self.map_for_drives(id).await?;
@@ -288,7 +262,10 @@ impl App {
                 Ok((cooc.to_bytes(), cooc.locations().drives().len()))
             })
             .await?;
-        let idempotency = key.map(|(k, scope)| k.record(scope, encode_drive(drives, images)));
+        let idempotency = record.map(|r| IdempotencyRecord {
+            response: encode_drive(drives, images),
+            ..r
+        });
         self.store
             .put_cooc_map(CoocWrite {
                 map: id,

@@ -13,9 +13,12 @@
 //!
 //! Records are kept as long as their map (deleting the map deletes them).
 
+use std::future::Future;
+
 use serde::{Deserialize, Serialize};
 
 use super::error::{AppError, AppResult};
+use super::App;
 use crate::store::IdempotencyRecord;
 use crate::trip::{BatchUpdate, FrameEstimate, TripStatus};
 
@@ -78,6 +81,71 @@ impl Idempotency {
             other => Ok(other),
         }
     }
+}
+
+impl App {
+    /// The record stored under `key` in `scope`, if the key was used; refuses a key used for
+    /// another request ([`AppError::IdempotencyKeyReused`]).
+    pub(super) async fn stored_answer(
+        &self,
+        key: &Idempotency,
+        scope: &str,
+    ) -> AppResult<Option<IdempotencyRecord>> {
+        let stored = self.store.idempotency_record(scope, key.key()).await?;
+        key.replay(stored)
+    }
+
+    /// Runs a request at most once per key of `scope`, answering `(answer, replayed)`. Without a
+    /// key `run(None)` just runs. With one whose record is stored, `replay(record)` answers and
+    /// nothing runs. Otherwise `run` gets the record to store in the same write as its change
+    /// (it may fill in the record's `response`); if a concurrent request with the same key
+    /// stored first, the write fails ([`AppError::MapChanged`]) and that request's record is
+    /// replayed.
+    pub(super) async fn once<T, R, RFut, F, FFut>(
+        &self,
+        key: Option<Idempotency>,
+        scope: String,
+        replay: R,
+        run: F,
+    ) -> AppResult<(T, bool)>
+    where
+        R: Fn(IdempotencyRecord) -> RFut,
+        RFut: Future<Output = AppResult<T>>,
+        F: FnOnce(Option<IdempotencyRecord>) -> FFut,
+        FFut: Future<Output = AppResult<T>>,
+    {
+        let Some(key) = key else {
+            return Ok((run(None).await?, false));
+        };
+        if let Some(record) = self.stored_answer(&key, &scope).await? {
+            tracing::info!(%scope, key = %record.key, "idempotent retry answered from its record");
+            return Ok((replay(record).await?, true));
+        }
+        match run(Some(key.record(scope.clone(), Vec::new()))).await {
+            Err(e @ AppError::MapChanged(_)) => match self.stored_answer(&key, &scope).await? {
+                Some(record) => Ok((replay(record).await?, true)),
+                None => Err(e),
+            },
+            other => other.map(|answer| (answer, false)),
+        }
+    }
+}
+
+/// A creation's stored answer: the id of what it created.
+pub(super) fn id_answer(id: u64) -> Vec<u8> {
+    id.to_le_bytes().to_vec()
+}
+
+/// [`id_answer`] read back.
+pub(super) fn answered_id(record: &IdempotencyRecord) -> AppResult<u64> {
+    let Ok::<[u8; 8], _>(id) = record.response.as_slice().try_into() else {
+        return Err(AppError::Internal(format!(
+            "the stored answer of key `{}` is {} bytes, not an id",
+            record.key,
+            record.response.len()
+        )));
+    };
+    Ok(u64::from_le_bytes(id))
 }
 
 /// What a trip batch answered, as stored for replays.

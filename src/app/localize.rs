@@ -8,7 +8,7 @@
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
-use super::idempotency::Idempotency;
+use super::idempotency::{answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
@@ -77,21 +77,12 @@ impl App {
         input: LocalizeInput,
         idempotency: Option<Idempotency>,
     ) -> AppResult<(LocalizationRecord, bool)> {
-        let Some(key) = idempotency else {
-            return Ok((self.compute_localization(id, input, None).await?, false));
+        let replay = |record: IdempotencyRecord| async move {
+            Ok(self.store.get_localization(answered_id(&record)?).await?)
         };
-        if let Some(done) = self.replayed_localization(id, &key).await? {
-            return Ok((done, true));
-        }
-        let record = key.record(IdempotencyRecord::images_scope(id), Vec::new());
-        match self.compute_localization(id, input, Some(record)).await {
-            // A concurrent request with the same key may have stored first.
-            Err(e @ AppError::MapChanged(_)) => match self.replayed_localization(id, &key).await? {
-                Some(done) => Ok((done, true)),
-                None => Err(e),
-            },
-            other => other.map(|r| (r, false)),
-        }
+        let compute = |record| self.compute_localization(id, input, record);
+        let scope = IdempotencyRecord::images_scope(id);
+        self.once(idempotency, scope, replay, compute).await
     }
 
     /// The stored result of the request with `key` on map `id`, if there was one (a key of
@@ -102,20 +93,13 @@ impl App {
         key: &Idempotency,
     ) -> AppResult<Option<LocalizationRecord>> {
         let scope = IdempotencyRecord::images_scope(id);
-        let stored = self.store.idempotency_record(&scope, key.key()).await?;
-        let Some(record) = key.replay(stored)? else {
+        let Some(record) = self.stored_answer(key, &scope).await? else {
             return Ok(None);
         };
-        let Ok::<[u8; 8], _>(lid) = record.response.as_slice().try_into() else {
-            return Err(AppError::Internal(format!(
-                "the stored result of key `{}` is {} bytes, not 8",
-                record.key,
-                record.response.len()
-            )));
-        };
-        let result = self.store.get_localization(u64::from_le_bytes(lid)).await?;
-        tracing::info!(%scope, key = %record.key, "idempotent retry answered with the stored result");
-        Ok(Some(result))
+        tracing::info!(%scope, key = %record.key, "idempotent retry answered from its record");
+        Ok(Some(
+            self.store.get_localization(answered_id(&record)?).await?,
+        ))
     }
 
     async fn compute_localization(
@@ -269,7 +253,7 @@ impl App {
         let set_id = |n: &mut NewLocalization, id: u64| {
             n.id = id;
             if let Some(r) = n.idempotency.as_mut() {
-                r.response = id.to_le_bytes().to_vec();
+                r.response = id_answer(id);
             }
         };
         let record =

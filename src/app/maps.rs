@@ -8,7 +8,7 @@ use std::ops::Range;
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
-use super::idempotency::Idempotency;
+use super::idempotency::{answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
@@ -115,40 +115,11 @@ impl App {
         spec: NewMapSpec,
         idempotency: Option<Idempotency>,
     ) -> AppResult<(MapRecord, bool)> {
-        let scope = IdempotencyRecord::maps_scope();
-        let Some(key) = idempotency else {
-            return Ok((self.create_new_map(spec, None).await?, false));
-        };
-        if let Some(map) = self.replayed_map(&key, &scope).await? {
-            return Ok((map, true));
-        }
-        let record = key.record(scope.clone(), Vec::new());
-        match self.create_new_map(spec, Some(record)).await {
-            // A concurrent request with the same key may have stored first.
-            Err(e @ AppError::MapChanged(_)) => match self.replayed_map(&key, &scope).await? {
-                Some(map) => Ok((map, true)),
-                None => Err(e),
-            },
-            other => other.map(|map| (map, false)),
-        }
-    }
-
-    /// The map a request with `key` created, if there was one.
-    async fn replayed_map(&self, key: &Idempotency, scope: &str) -> AppResult<Option<MapRecord>> {
-        let stored = self.store.idempotency_record(scope, key.key()).await?;
-        let Some(record) = key.replay(stored)? else {
-            return Ok(None);
-        };
-        let Ok::<[u8; 8], _>(id) = record.response.as_slice().try_into() else {
-            return Err(AppError::Internal(format!(
-                "the stored map of key `{}` is {} bytes, not 8",
-                record.key,
-                record.response.len()
-            )));
-        };
-        let map = self.get_map(u64::from_le_bytes(id)).await?;
-        tracing::info!(key = %record.key, "idempotent retry answered with the map it created");
-        Ok(Some(map))
+        let replay =
+            |record: IdempotencyRecord| async move { self.get_map(answered_id(&record)?).await };
+        let create = |record| self.create_new_map(spec, record);
+        self.once(idempotency, IdempotencyRecord::maps_scope(), replay, create)
+            .await
     }
 
     async fn create_new_map(
@@ -196,7 +167,7 @@ impl App {
         let set_id = |n: &mut NewMap, id: u64| {
             n.id = id;
             if let Some(r) = n.idempotency.as_mut() {
-                r.response = id.to_le_bytes().to_vec();
+                r.response = id_answer(id);
             }
         };
         let map = ids::create_with_new_id(new, set_id, |n| self.store.create_map(n)).await?;
@@ -273,67 +244,37 @@ impl App {
         idempotency: Option<Idempotency>,
     ) -> AppResult<AppendOutcome> {
         let id = map.id;
-        self.append_once(id, idempotency, |record| {
-            self.append_keyed(map, images, metas, record)
-        })
-        .await
+        let append = |record| self.append_keyed(map, images, metas, record);
+        self.append_once(id, idempotency, append).await
     }
 
-    /// Runs `append` once per idempotency key of map `map`'s appends: without a key it just
-    /// runs; with one whose append is stored, the stored answer is replayed; otherwise `append`
-    /// runs with the record to store in the same write, and if a concurrent request with the
-    /// same key stored first, that one is replayed.
-    async fn append_once<F, Fut>(
+    /// Runs `append` once per idempotency key of map `map`'s appends ([`App::once`]); a
+    /// replay answers the indices the first append got.
+    async fn append_once<Fut>(
         &self,
         map: u64,
         idempotency: Option<Idempotency>,
-        append: F,
+        append: impl FnOnce(Option<IdempotencyRecord>) -> Fut,
     ) -> AppResult<AppendOutcome>
     where
-        F: FnOnce(Option<IdempotencyRecord>) -> Fut,
         Fut: std::future::Future<Output = AppResult<AppendOutcome>>,
     {
+        let replay = |record: IdempotencyRecord| async move {
+            let indices = record.indices.ok_or_else(|| {
+                AppError::Internal(format!(
+                    "the stored append of key `{}` has no indices",
+                    record.key
+                ))
+            })?;
+            Ok(AppendOutcome {
+                indices,
+                features_seconds: None,
+                store_seconds: None,
+                replayed: true,
+            })
+        };
         let scope = IdempotencyRecord::images_scope(map);
-        let Some(key) = idempotency else {
-            return append(None).await;
-        };
-        if let Some(done) = self.replayed_append(&key, &scope).await? {
-            return Ok(done);
-        }
-        let record = key.record(scope.clone(), Vec::new());
-        match append(Some(record)).await {
-            // A concurrent request with the same key may have stored first.
-            Err(e @ AppError::MapChanged(_)) => match self.replayed_append(&key, &scope).await? {
-                Some(done) => Ok(done),
-                None => Err(e),
-            },
-            other => other,
-        }
-    }
-
-    /// The stored answer of an append made with `key`, if there was one.
-    async fn replayed_append(
-        &self,
-        key: &Idempotency,
-        scope: &str,
-    ) -> AppResult<Option<AppendOutcome>> {
-        let stored = self.store.idempotency_record(scope, key.key()).await?;
-        let Some(record) = key.replay(stored)? else {
-            return Ok(None);
-        };
-        let indices = record.indices.ok_or_else(|| {
-            AppError::Internal(format!(
-                "the stored append of key `{}` has no indices",
-                record.key
-            ))
-        })?;
-        tracing::info!(%scope, key = %record.key, "idempotent retry answered from the stored append");
-        Ok(Some(AppendOutcome {
-            indices,
-            features_seconds: None,
-            store_seconds: None,
-            replayed: true,
-        }))
+        Ok(self.once(idempotency, scope, replay, append).await?.0)
     }
 
     async fn append_keyed(
@@ -413,10 +354,8 @@ impl App {
         idempotency: Option<Idempotency>,
     ) -> AppResult<AppendOutcome> {
         let batch = ImageBatch::new(map, descriptors, metas)?;
-        self.append_once(map, idempotency, |record| {
-            self.store_batch(batch.with_idempotency(record))
-        })
-        .await
+        let append = |record| self.store_batch(batch.with_idempotency(record));
+        self.append_once(map, idempotency, append).await
     }
 
     /// The JPEG thumbnail of image `index` of map `id` (stored at upload), `None` when the

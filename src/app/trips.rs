@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use super::cooc::RowSource;
 use super::error::{AppError, AppResult};
-use super::idempotency::{self, Idempotency};
+use super::idempotency::{self, answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
@@ -77,40 +77,12 @@ impl App {
         params: TripParams,
         idempotency: Option<Idempotency>,
     ) -> AppResult<(TripRecord, bool)> {
+        let replay = |record: IdempotencyRecord| async move {
+            Ok(self.store.get_trip(answered_id(&record)?).await?)
+        };
+        let open = |record| self.open_new_trip(id, params, record);
         let scope = IdempotencyRecord::images_scope(id);
-        let Some(key) = idempotency else {
-            return Ok((self.open_new_trip(id, params, None).await?, false));
-        };
-        if let Some(trip) = self.replayed_trip(&key, &scope).await? {
-            return Ok((trip, true));
-        }
-        let record = key.record(scope.clone(), Vec::new());
-        match self.open_new_trip(id, params, Some(record)).await {
-            // A concurrent request with the same key may have stored first.
-            Err(e @ AppError::MapChanged(_)) => match self.replayed_trip(&key, &scope).await? {
-                Some(trip) => Ok((trip, true)),
-                None => Err(e),
-            },
-            other => other.map(|trip| (trip, false)),
-        }
-    }
-
-    /// The trip a request with `key` opened, if there was one.
-    async fn replayed_trip(&self, key: &Idempotency, scope: &str) -> AppResult<Option<TripRecord>> {
-        let stored = self.store.idempotency_record(scope, key.key()).await?;
-        let Some(record) = key.replay(stored)? else {
-            return Ok(None);
-        };
-        let Ok::<[u8; 8], _>(id) = record.response.as_slice().try_into() else {
-            return Err(AppError::Internal(format!(
-                "the stored trip of key `{}` is {} bytes, not 8",
-                record.key,
-                record.response.len()
-            )));
-        };
-        let trip = self.store.get_trip(u64::from_le_bytes(id)).await?;
-        tracing::info!(%scope, key = %record.key, "idempotent retry answered with the trip it opened");
-        Ok(Some(trip))
+        self.once(idempotency, scope, replay, open).await
     }
 
     async fn open_new_trip(
@@ -183,7 +155,7 @@ impl App {
         let set_id = |n: &mut NewTrip, id: u64| {
             n.id = id;
             if let Some(r) = n.idempotency.as_mut() {
-                r.response = id.to_le_bytes().to_vec();
+                r.response = id_answer(id);
             }
         };
         let record = ids::create_with_new_id(new, set_id, |n| self.store.create_trip(n)).await?;
