@@ -5,7 +5,10 @@
 //! others, weighted by its signal-to-noise estimate (maximum-ratio combining). Kept here so the
 //! session's table can be reproduced.
 
-use seasonloc::cooc::{source_order, CoocMap, CoocOptions, CoocQueries, SequenceParams};
+use seasonloc::cooc::{
+    check_sources, normalise_sources, source_order, CoocMap, CoocOptions, CoocQueries,
+    SequenceParams,
+};
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
 use seasonloc::similarity::Normalization;
 use seasonloc::{Error, Matrix, Result};
@@ -190,58 +193,6 @@ pub fn pooled_rows(
         }
     }
     Ok(out)
-}
-
-/// Checks that `per_source` are `Q x L` matrices and `present` has `sources x L` flags;
-/// returns `(Q, L)`.
-fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, usize)> {
-    let Some(first) = per_source.first() else {
-        return Err(Error::Empty("no score matrix to fuse".into()));
-    };
-    let (q, l) = (first.rows(), first.cols());
-    if present.len() != per_source.len() * l
-        || per_source.iter().any(|m| m.cols() != l || m.rows() != q)
-    {
-        return Err(Error::Shape(format!(
-            "{} score matrices of {q}x{l} and {} presence flags do not match",
-            per_source.len(),
-            present.len()
-        )));
-    }
-    Ok((q, l))
-}
-
-/// Each source's `s + 1` normalised on its own over its locations (`present`) and all queries,
-/// as `seasonloc::cooc::fused_similarity` normalises them; 0 where the source has no location.
-fn normalise_sources(
-    per_source: &[Matrix],
-    present: &[bool],
-    normalization: Normalization,
-) -> Result<Vec<Matrix>> {
-    let (q, l) = check_sources(per_source, present)?;
-    let mut normalised = Vec::with_capacity(per_source.len());
-    for (d, s) in per_source.iter().enumerate() {
-        let cols: Vec<usize> = (0..l).filter(|&j| present[d * l + j]).collect();
-        let mut full = Matrix::zeros(q, l);
-        if !cols.is_empty() {
-            let mut c = Matrix::zeros(q, cols.len());
-            for i in 0..q {
-                let (src, dst) = (s.row(i), c.row_mut(i));
-                for (o, &j) in dst.iter_mut().zip(&cols) {
-                    *o = src[j] + 1.0;
-                }
-            }
-            let c = normalization.apply(&c)?;
-            for i in 0..q {
-                let (src, dst) = (c.row(i), full.row_mut(i));
-                for (&v, &j) in src.iter().zip(&cols) {
-                    dst[j] = v;
-                }
-            }
-        }
-        normalised.push(full);
-    }
-    Ok(normalised)
 }
 
 /// AP (tolerance 2) of `cooc`, `cooc-seq` and `cooc-flow` on a fused map with the sources

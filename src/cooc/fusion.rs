@@ -102,7 +102,7 @@ pub fn source_order(
 
 /// Checks that `per_source` are `Q x L` matrices and `present` has `sources x L` flags;
 /// returns `(Q, L)`.
-fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, usize)> {
+pub fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, usize)> {
     let Some(first) = per_source.first() else {
         return Err(Error::Empty("no score matrix to fuse".into()));
     };
@@ -155,7 +155,7 @@ pub fn fused_scores(
 /// Each source's [`super::flow_similarity`] normalised on its own over its locations (`present`) and
 /// all queries, as a map of that drive alone would normalise it; `Q x L` each, 0 where the
 /// source has no training set.
-fn normalise_sources(
+pub fn normalise_sources(
     per_source: &[Matrix],
     present: &[bool],
     normalization: crate::similarity::Normalization,

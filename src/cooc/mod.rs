@@ -32,7 +32,9 @@ pub mod sequence;
 pub mod spatial;
 pub mod vocabulary;
 
-pub use fusion::{decisiveness, fused_scores, fused_similarity, source_order};
+pub use fusion::{
+    check_sources, decisiveness, fused_scores, fused_similarity, normalise_sources, source_order,
+};
 pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
 pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
