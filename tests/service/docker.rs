@@ -35,9 +35,22 @@ fn the_build_stage_toolchain_builds_the_locked_dependencies() {
             .all(|l| l.contains("--locked") && !l.contains("||")),
         "the image must build the locked tree, with no fallback"
     );
+    // The build host's packages only: those are the ones a build has downloaded (a fresh
+    // machine has no copy of other platforms' crates, and tests run offline).
+    let rustc = std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
+    let version = std::process::Command::new(rustc)
+        .arg("-vV")
+        .output()
+        .unwrap();
+    let version = String::from_utf8_lossy(&version.stdout);
+    let host = version
+        .lines()
+        .find_map(|l| l.strip_prefix("host: "))
+        .expect("`rustc -vV` names the host");
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = std::process::Command::new(cargo)
         .args(["metadata", "--format-version", "1", "--locked", "--offline"])
+        .args(["--filter-platform", host])
         .current_dir(root)
         .output()
         .unwrap();
