@@ -31,6 +31,69 @@ fn post(c: &Client, path: &str, parts: &[Part], key: &str) -> Response {
         .unwrap()
 }
 
+/// A `POST` of `bytes` as `content_type` with an `Idempotency-Key`, checked against the
+/// document's entry `template`.
+fn post_keyed(
+    c: &Client,
+    path: &str,
+    template: &str,
+    content_type: &str,
+    bytes: &[u8],
+    key: &str,
+) -> Response {
+    let r = c.request_with(
+        "POST",
+        path,
+        &[("Idempotency-Key", key)],
+        Some(content_type),
+        bytes,
+    );
+    check("POST", template, &r);
+    r
+}
+
+/// A JSON `POST` of `value` with an `Idempotency-Key` ([`post_keyed`]).
+fn post_json_keyed(c: &Client, path: &str, template: &str, value: &Value, key: &str) -> Response {
+    let bytes = serde_json::to_vec(value).unwrap();
+    post_keyed(c, path, template, "application/json", &bytes, key)
+}
+
+/// The key was used for another request: 409 `idempotency_key_reused`.
+fn assert_reused(r: &Response, what: &str) {
+    assert_eq!(
+        (r.status, r.code().as_str()),
+        (409, "idempotency_key_reused"),
+        "{what}: {}",
+        body(r)
+    );
+}
+
+/// `send` four times at once: retries of one request racing each other.
+fn four_at_once(send: impl Fn() -> Response + Sync) -> Vec<Response> {
+    std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4).map(|_| s.spawn(&send)).collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    })
+}
+
+/// Four racing retries of one creation ([`four_at_once`]) made one object: every answer is 201
+/// with the same id, and three of them are replays.
+fn created_once(answers: &[Response]) {
+    let ids: std::collections::HashSet<String> = answers
+        .iter()
+        .map(|a| {
+            assert_eq!(a.status, 201, "{}", body(a));
+            a.json()["id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    assert_eq!(ids.len(), 1);
+    let replays = answers
+        .iter()
+        .filter(|a| a.header("idempotent-replayed").is_some())
+        .count();
+    assert_eq!(replays, 3);
+}
+
 /// The answer without its timings (a replay reports none).
 fn without_timings(v: &Value) -> Value {
     let mut v = v.clone();
@@ -79,12 +142,7 @@ fn a_retried_batch_of_frames_is_applied_once_and_answered_the_same() {
     // The key of another batch: refused, nothing applied.
     let reused = post(c, &path, &frames(&route, 15..20), "batch-2");
     check("POST", "/v1/trips/{id}/frames", &reused);
-    assert_eq!(
-        (reused.status, reused.code().as_str()),
-        (409, "idempotency_key_reused"),
-        "{}",
-        body(&reused)
-    );
+    assert_reused(&reused, "reused");
     assert_eq!(
         c.get(&format!("/v1/trips/{trip}")).json()["frame_count"],
         10
@@ -122,10 +180,7 @@ fn a_retried_batch_of_images_is_stored_once() {
     let map_now = c.get(&format!("/v1/maps/{map}")).json();
     assert_eq!(map_now["image_count"], 20);
     let reused = post(c, &path, &refs(&route, 20..30), "upload-a");
-    assert_eq!(
-        (reused.status, reused.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&reused, "reused");
     // Keys are per map: the same key on another map is a new request.
     let other = create_hog_map(c, "other", 8);
     let r = post(
@@ -149,12 +204,7 @@ fn concurrent_retries_of_one_batch_apply_it_once() {
     let trip = r.json()["id"].as_str().unwrap().to_string();
     let path = format!("/v1/trips/{trip}/frames");
     let parts = frames(&route, 0..6);
-    let answers: Vec<Response> = std::thread::scope(|s| {
-        let hs: Vec<_> = (0..4)
-            .map(|_| s.spawn(|| post(c, &path, &parts, "same")))
-            .collect();
-        hs.into_iter().map(|h| h.join().unwrap()).collect()
-    });
+    let answers = four_at_once(|| post(c, &path, &parts, "same"));
     for a in &answers {
         assert_eq!(a.status, 200, "{}", body(a));
         assert_eq!(a.json()["frame_count"], 6);
@@ -173,16 +223,9 @@ fn a_retried_batch_of_descriptors_is_stored_once() {
     let c = &server.client;
     let map = create_vector_map(c, "idem-descriptors", 4);
     let path = format!("/v1/maps/{map}/descriptors");
-    let send = |ct: &str, query: &str, body: &[u8], key: &str| {
-        let r = c.request_with(
-            "POST",
-            &format!("{path}{query}"),
-            &[("Idempotency-Key", key)],
-            Some(ct),
-            body,
-        );
-        check("POST", "/v1/maps/{id}/descriptors", &r);
-        r
+    let send = |ct: &str, query: &str, bytes: &[u8], key: &str| {
+        let t = "/v1/maps/{id}/descriptors";
+        post_keyed(c, &format!("{path}{query}"), t, ct, bytes, key)
     };
     let json_body =
         serde_json::to_vec(&json!({"descriptors": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]}))
@@ -215,11 +258,7 @@ fn a_retried_batch_of_descriptors_is_stored_once() {
         ("application/json", "", &json_body[..]),
     ] {
         let reused = send(ct, query, bytes, "desc-b");
-        assert_eq!(
-            (reused.status, reused.code().as_str()),
-            (409, "idempotency_key_reused"),
-            "{ct} {query}"
-        );
+        assert_reused(&reused, &format!("{ct} {query}"));
     }
     assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 4);
 }
@@ -277,15 +316,9 @@ fn a_retried_drive_is_fused_once() {
     assert_eq!(c_.json()["drives"], 4);
     // The key with another drive, or sent to the map's image appends, is another request.
     let reused = send(&drive_parts(0..10, 23.0), Some("drive-a"));
-    assert_eq!(
-        (reused.status, reused.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&reused, "reused");
     let images = post(c, &format!("/v1/maps/{map}/images"), &a[..10], "drive-a");
-    assert_eq!(
-        (images.status, images.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&images, "images");
     assert_eq!(send(&drive_parts(0..5, 24.0), None).json()["drives"], 5);
 }
 
@@ -298,18 +331,8 @@ fn a_retried_trip_opening_opens_one_trip() {
     let r = c.post_multipart(&format!("/v1/maps/{map}/images"), &refs(&route, 0..20));
     assert_eq!(r.status, 200, "{}", body(&r));
     let path = format!("/v1/maps/{map}/trips");
-    let open = |params: &Value, key: &str| {
-        let bytes = serde_json::to_vec(params).unwrap();
-        let r = c.request_with(
-            "POST",
-            &path,
-            &[("Idempotency-Key", key)],
-            Some("application/json"),
-            &bytes,
-        );
-        check("POST", "/v1/maps/{id}/trips", &r);
-        r
-    };
+    let open =
+        |params: &Value, key: &str| post_json_keyed(c, &path, "/v1/maps/{id}/trips", params, key);
     let params = json!({"lag": 8});
     let first = open(&params, "open-a");
     assert_eq!(first.status, 201, "{}", body(&first));
@@ -329,10 +352,7 @@ fn a_retried_trip_opening_opens_one_trip() {
     assert_eq!(listed["items"].as_array().unwrap().len(), 1, "{listed}");
     // Other parameters, or a key of the map's image appends, are another request.
     let other = open(&json!({"lag": 9}), "open-a");
-    assert_eq!(
-        (other.status, other.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&other, "other");
     post(
         c,
         &format!("/v1/maps/{map}/images"),
@@ -340,31 +360,12 @@ fn a_retried_trip_opening_opens_one_trip() {
         "img-1",
     );
     let shared = open(&params, "img-1");
-    assert_eq!(
-        (shared.status, shared.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&shared, "shared");
     let fresh = open(&params, "open-b");
     assert_eq!(fresh.status, 201);
     assert_ne!(fresh.json()["id"], first.json()["id"]);
     // Concurrent retries of one opening: one trip, the others replay it.
-    let answers: Vec<Response> = std::thread::scope(|s| {
-        let hs: Vec<_> = (0..4).map(|_| s.spawn(|| open(&params, "race"))).collect();
-        hs.into_iter().map(|h| h.join().unwrap()).collect()
-    });
-    let ids: std::collections::HashSet<String> = answers
-        .iter()
-        .map(|a| {
-            assert_eq!(a.status, 201, "{}", body(a));
-            a.json()["id"].as_str().unwrap().to_string()
-        })
-        .collect();
-    assert_eq!(ids.len(), 1);
-    let replays = answers
-        .iter()
-        .filter(|a| a.header("idempotent-replayed").is_some())
-        .count();
-    assert_eq!(replays, 3);
+    created_once(&four_at_once(|| open(&params, "race")));
     let listed = c.get(&format!("/v1/maps/{map}/trips")).json();
     assert_eq!(listed["items"].as_array().unwrap().len(), 3, "{listed}");
 }
@@ -373,18 +374,7 @@ fn a_retried_trip_opening_opens_one_trip() {
 fn a_retried_map_creation_creates_one_map() {
     let server = Server::start();
     let c = &server.client;
-    let create = |spec: &Value, key: &str| {
-        let bytes = serde_json::to_vec(spec).unwrap();
-        let r = c.request_with(
-            "POST",
-            "/v1/maps",
-            &[("Idempotency-Key", key)],
-            Some("application/json"),
-            &bytes,
-        );
-        check("POST", "/v1/maps", &r);
-        r
-    };
+    let create = |spec: &Value, key: &str| post_json_keyed(c, "/v1/maps", "/v1/maps", spec, key);
     let count = || c.get("/v1/maps").json()["maps"].as_array().unwrap().len();
     let spec = json!({"name": "idem-map", "descriptor": {"kind": "hog", "cell_size": 8}});
     let first = create(&spec, "map-a");
@@ -399,23 +389,9 @@ fn a_retried_map_creation_creates_one_map() {
         &json!({"name": "other", "descriptor": {"kind": "hog", "cell_size": 8}}),
         "map-a",
     );
-    assert_eq!(
-        (other.status, other.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
-    // Concurrent retries: one map.
-    let answers: Vec<Response> = std::thread::scope(|s| {
-        let hs: Vec<_> = (0..4).map(|_| s.spawn(|| create(&spec, "race"))).collect();
-        hs.into_iter().map(|h| h.join().unwrap()).collect()
-    });
-    let ids: std::collections::HashSet<String> = answers
-        .iter()
-        .map(|a| {
-            assert_eq!(a.status, 201, "{}", body(a));
-            a.json()["id"].as_str().unwrap().to_string()
-        })
-        .collect();
-    assert_eq!(ids.len(), 1);
+    assert_reused(&other, "other");
+    // Concurrent retries: one map, the others replay it.
+    created_once(&four_at_once(|| create(&spec, "race")));
     assert_eq!(count(), 2);
     // The key lives as long as its map: after a delete it creates a new one.
     let id = first.json()["id"].as_str().unwrap().to_string();
@@ -454,10 +430,7 @@ fn a_retried_localization_is_answered_from_the_store() {
     assert_eq!(again.json(), first.json());
     assert_eq!(count(), 1);
     let other = post(c, &path, &frames(&route, 6..16), "loc-a");
-    assert_eq!(
-        (other.status, other.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&other, "other");
     let append_key = post(
         c,
         &format!("/v1/maps/{map}/images"),
@@ -466,10 +439,7 @@ fn a_retried_localization_is_answered_from_the_store() {
     );
     assert_eq!(append_key.status, 200);
     let shared = post(c, &path, &queries, "img-x");
-    assert_eq!(
-        (shared.status, shared.code().as_str()),
-        (409, "idempotency_key_reused")
-    );
+    assert_reused(&shared, "shared");
     let fresh = post(c, &path, &queries, "loc-b");
     assert_eq!(fresh.header("idempotent-replayed"), None);
     assert_ne!(fresh.json()["id"], first.json()["id"]);
@@ -492,23 +462,15 @@ fn a_retried_localization_of_descriptors_is_answered_from_the_store() {
         &json!({ "descriptors": rows }),
     );
     assert_eq!(r.status, 200, "{}", body(&r));
-    let request = serde_json::to_vec(&json!({"descriptors": rows[3..9]})).unwrap();
-    let send = |bytes: &[u8], key: &str| {
-        let r = c.request_with(
-            "POST",
-            &format!("/v1/maps/{map}/localize"),
-            &[("Idempotency-Key", key)],
-            Some("application/json"),
-            bytes,
-        );
-        check("POST", "/v1/maps/{id}/localize", &r);
-        r
-    };
+    let request = json!({"descriptors": rows[3..9]});
+    let path = format!("/v1/maps/{map}/localize");
+    let send =
+        |value: &Value, key: &str| post_json_keyed(c, &path, "/v1/maps/{id}/localize", value, key);
     let first = send(&request, "json-a");
     assert_eq!(first.status, 200, "{}", body(&first));
     let again = send(&request, "json-a");
     assert_eq!(again.header("idempotent-replayed"), Some("true"));
     assert_eq!(again.json(), first.json());
-    let other = serde_json::to_vec(&json!({"descriptors": rows[2..9]})).unwrap();
+    let other = json!({"descriptors": rows[2..9]});
     assert_eq!(send(&other, "json-a").status, 409);
 }
