@@ -6,10 +6,10 @@
 //! session's table can be reproduced.
 
 use seasonloc::cooc::{
-    check_sources, normalise_sources, source_order, CoocMap, CoocOptions, CoocQueries,
-    SequenceParams,
+    best_per_query, check_sources, normalise_sources, off_peak_noise, row_peak, source_order,
+    CoocMap, CoocOptions, CoocQueries, SequenceParams,
 };
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
+use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
 use seasonloc::similarity::Normalization;
 use seasonloc::{Error, Matrix, Result};
 
@@ -27,26 +27,14 @@ struct RowNoise {
 
 impl RowNoise {
     fn of(row: &[f32], present: &[bool], exclusion: usize) -> Option<RowNoise> {
-        let (peak_at, peak) = row
-            .iter()
-            .zip(present)
-            .enumerate()
-            .filter(|(_, (_, &p))| p)
-            .map(|(j, (&v, _))| (j, v))
-            .fold(None, |best: Option<(usize, f32)>, (j, v)| match best {
-                Some((_, b)) if b >= v => best,
-                _ => Some((j, v)),
-            })?;
-        let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
+        let (peak_at, peak) = row_peak(row, present)?;
+        let (mean, sd) = off_peak_noise(row, present, peak_at, exclusion);
         let mut runner_up: Option<(usize, f64)> = None;
         for (j, (&v, &p)) in row.iter().zip(present).enumerate() {
-            if p && j.abs_diff(peak_at) > exclusion {
-                n += 1;
-                sum += f64::from(v);
-                sq += f64::from(v) * f64::from(v);
-                if runner_up.is_none_or(|(_, r)| f64::from(v) > r) {
-                    runner_up = Some((j, f64::from(v)));
-                }
+            if p && j.abs_diff(peak_at) > exclusion
+                && runner_up.is_none_or(|(_, r)| f64::from(v) > r)
+            {
+                runner_up = Some((j, f64::from(v)));
             }
         }
         let third = runner_up.and_then(|(at, _)| {
@@ -59,12 +47,6 @@ impl RowNoise {
                 .map(|(_, (&v, _))| f64::from(v))
                 .reduce(f64::max)
         });
-        let (mean, sd) = if n == 0 {
-            (0.0, 1.0)
-        } else {
-            let mean = sum / n as f64;
-            (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
-        };
         Some(RowNoise {
             peak: f64::from(peak),
             mean,
@@ -224,21 +206,7 @@ pub fn pooled_aps(
         }
         .expect("pooled rows")
     };
-    let single: Vec<Prediction> = pooled(None, Normalization::default(), 1)
-        .iter_rows()
-        .enumerate()
-        .filter_map(|(i, row)| {
-            let (best, &s) = row
-                .iter()
-                .enumerate()
-                .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
-            (s > 0.0).then_some(Prediction {
-                query: i,
-                reference: best,
-                confidence: f64::from(s),
-            })
-        })
-        .collect();
+    let single = best_per_query(&pooled(None, Normalization::default(), 1));
     let params = options.sequence;
     let seq_input = if params.normalization == Normalization::None {
         pooled(None, Normalization::None, window)

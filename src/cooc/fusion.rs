@@ -19,8 +19,17 @@ use crate::{Error, Matrix, Result};
 /// so raw group sizes are not comparable across sources, but the distance of a peak from the
 /// source's own noise is.
 pub fn decisiveness(row: &[f32], present: &[bool], exclusion: usize) -> f32 {
-    let Some((peak_at, peak)) = row
-        .iter()
+    let Some((peak_at, peak)) = row_peak(row, present) else {
+        return 0.0;
+    };
+    let (mean, sd) = off_peak_noise(row, present, peak_at, exclusion);
+    ((f64::from(peak) - mean) / sd) as f32
+}
+
+/// The row's peak over the source's locations (`present`): `(location, score)`, the first one
+/// on ties; `None` when the source has no location.
+pub fn row_peak(row: &[f32], present: &[bool]) -> Option<(usize, f32)> {
+    row.iter()
         .zip(present)
         .enumerate()
         .filter(|(_, (_, &p))| p)
@@ -29,9 +38,17 @@ pub fn decisiveness(row: &[f32], present: &[bool], exclusion: usize) -> f32 {
             Some((_, b)) if b >= v => best,
             _ => Some((j, v)),
         })
-    else {
-        return 0.0;
-    };
+}
+
+/// The mean and spread of the row's off-peak scores as [`decisiveness`] measures them: the
+/// source's locations (`present`) more than `exclusion` from `peak_at`, the spread floored at
+/// 1; `(0, 1)` without such locations.
+pub fn off_peak_noise(
+    row: &[f32],
+    present: &[bool],
+    peak_at: usize,
+    exclusion: usize,
+) -> (f64, f64) {
     let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
     for (j, (&v, &p)) in row.iter().zip(present).enumerate() {
         if p && j.abs_diff(peak_at) > exclusion {
@@ -40,13 +57,11 @@ pub fn decisiveness(row: &[f32], present: &[bool], exclusion: usize) -> f32 {
             sq += f64::from(v) * f64::from(v);
         }
     }
-    let (mean, sd) = if n == 0 {
-        (0.0, 1.0)
-    } else {
-        let mean = sum / n as f64;
-        (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
-    };
-    ((f64::from(peak) - mean) / sd) as f32
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let mean = sum / n as f64;
+    (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
 }
 
 /// Per query, the sources of a fused map from the most to the least decisive: the mean

@@ -337,21 +337,7 @@ impl<'m> CoocQueries<'m> {
     fn single(&self, exclusion: usize) -> Result<Vec<Prediction>> {
         if self.map.locations().sources() > 1 {
             let scores = self.fused_scores(Normalization::default(), exclusion, 1)?;
-            return Ok(scores
-                .iter_rows()
-                .enumerate()
-                .filter_map(|(i, row)| {
-                    let (best, &s) = row
-                        .iter()
-                        .enumerate()
-                        .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
-                    (s > 0.0).then_some(Prediction {
-                        query: i,
-                        reference: best,
-                        confidence: f64::from(s),
-                    })
-                })
-                .collect());
+            return Ok(best_per_query(&scores));
         }
         Ok(self
             .words
@@ -368,6 +354,27 @@ impl<'m> CoocQueries<'m> {
             })
             .collect())
     }
+}
+
+/// The single-image readout of a `Q x L` score matrix: each query's best location (ties to the
+/// lowest, as the best-first search breaks them) with its score as the confidence; a query
+/// whose best score is not positive has no prediction.
+pub fn best_per_query(scores: &Matrix) -> Vec<Prediction> {
+    scores
+        .iter_rows()
+        .enumerate()
+        .filter_map(|(i, row)| {
+            let (best, &s) = row
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))?;
+            (s > 0.0).then_some(Prediction {
+                query: i,
+                reference: best,
+                confidence: f64::from(s),
+            })
+        })
+        .collect()
 }
 
 /// Localizes the query images (in driving order) on `map` with `method`: the one call for a

@@ -33,9 +33,10 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use fusion::{
-    check_sources, decisiveness, fused_scores, fused_similarity, normalise_sources, source_order,
+    check_sources, decisiveness, fused_scores, fused_similarity, normalise_sources, off_peak_noise,
+    row_peak, source_order,
 };
-pub use localize::{localize, CoocMethod, CoocOptions, CoocQueries};
+pub use localize::{best_per_query, localize, CoocMethod, CoocOptions, CoocQueries};
 pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
 pub use model::{LocationMap, Word};
 pub use recognition::{Recognition, Schedule};
