@@ -39,7 +39,7 @@ mod lanes;
 
 use super::GraphParams;
 use crate::Matrix;
-use lanes::{get, min, Graph, Isa, Lanes, Layout, RowValues, Steps, Work, LANES};
+use lanes::{min, Graph, Isa, Lanes, Layout, RowValues, Steps, Work, LANES};
 
 /// A row kept by one pass for the other.
 struct Stored {
@@ -154,7 +154,7 @@ fn sweep_on<R: Send>(
                 if scored[i] {
                     // The next row's forward step reads `M` (in `fw.m`), not `X`.
                     kept[i] = Some(Stored {
-                        hidden: st.hidden_steps(&fcur.h, true),
+                        hidden: st.hidden_steps(&fcur, true),
                         x: std::mem::replace(&mut fcur.x, fresh()),
                     });
                 }
@@ -173,7 +173,7 @@ fn sweep_on<R: Send>(
                 // Row i+1's values (in `bnext`) have been read for the last time: keep them.
                 if i + 1 < q && scored[i + 1] {
                     kept[i + 1 - mid] = Some(Stored {
-                        hidden: st.hidden_steps(&bnext.h, false),
+                        hidden: st.hidden_steps(&bnext, false),
                         x: std::mem::replace(&mut bnext.x, fresh()),
                     });
                 }
@@ -182,7 +182,7 @@ fn sweep_on<R: Send>(
             // Row `mid` goes on into phase 2 (its values start the backward pass there).
             if mid < q && scored[mid] {
                 kept[0] = Some(Stored {
-                    hidden: st.hidden_steps(&bnext.h, false),
+                    hidden: st.hidden_steps(&bnext, false),
                     x: bnext.x.clone(),
                 });
             }
@@ -191,11 +191,11 @@ fn sweep_on<R: Send>(
     );
 
     // Phase 2: each pass continues into the other half and meets the stored rows there.
-    let combine = |stored: &Stored, own_h: &Lanes| {
+    let combine = |stored: &Stored, own: &RowValues| {
         stored
             .hidden
             .iter()
-            .map(|&(j, v)| v + get(&lay, own_h, j as usize))
+            .map(|&(j, v)| v + own.h_at(&lay, j as usize))
             .fold(f32::INFINITY, min)
     };
     let (mut upper, mut lower) = rayon::join(
@@ -210,7 +210,7 @@ fn sweep_on<R: Send>(
                         lay,
                         fx: &fcur.x,
                         bx: &b.x,
-                        hidden: combine(&b, &fcur.h),
+                        hidden: combine(&b, &fcur),
                     };
                     out.push((i, read(i, &view)));
                 }
@@ -231,7 +231,7 @@ fn sweep_on<R: Send>(
                         lay,
                         fx: &f.x,
                         bx: &bnext.x,
-                        hidden: combine(&f, &bnext.h),
+                        hidden: combine(&f, &bnext),
                     };
                     out.push((i, read(i, &view)));
                 }

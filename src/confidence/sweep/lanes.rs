@@ -7,6 +7,8 @@
 // iterator chains over four or five zipped rows would hide the recurrences.
 #![allow(clippy::needless_range_loop)]
 
+mod fused;
+
 /// Chunks processed together (eight `f32`: one AVX register, two SSE registers). 32 lanes
 /// (four AVX registers, shorter scans) measured slower: the transpose of [`costs`] reads 32
 /// streams of the matrix row at once.
@@ -60,14 +62,27 @@ pub(super) struct Graph {
 }
 
 /// Node costs of one row in the lane layout: `1/ĉ` (`+inf` when `ĉ <= 0` and in the padding).
+/// `avx2`: transpose blocks of eight layout rows in registers (the CPU has AVX2).
 #[inline(always)]
-fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
+fn costs(row: &[f32], lay: &Layout, out: &mut Lanes, avx2: bool) {
     let (n, d) = (lay.n, lay.d);
     // Transpose: row t of the layout takes column l·n + t of every chunk l (`LANES` sequential
     // read streams, one sequential write stream). Rows below `full` have all `LANES` columns.
     let full = d.saturating_sub((LANES - 1) * n).min(n);
     let chunks: [&[f32]; LANES] = std::array::from_fn(|l| &row[(l * n).min(d)..]);
-    for (t, o) in out[..full].iter_mut().enumerate() {
+    // Blocks of `LANES` rows by an in-register transpose where the CPU has one; element by
+    // element (what the loop below does) LLVM made scalar loads and inserts through the stack.
+    let blocks = if avx2 { full / LANES * LANES } else { 0 };
+    #[cfg(target_arch = "x86_64")]
+    for (b, o) in out[..blocks].chunks_exact_mut(LANES).enumerate() {
+        // SAFETY: `avx2` is true only in `avx2::costs`, which runs after
+        // `is_x86_feature_detected!("avx2")` (see `Steps`).
+        #[allow(unsafe_code)]
+        unsafe {
+            avx2::transpose(&chunks, b * LANES, o)
+        };
+    }
+    for (t, o) in out[..full].iter_mut().enumerate().skip(blocks) {
         for l in 0..LANES {
             o[l] = chunks[l][t];
         }
@@ -254,8 +269,13 @@ fn leading_min(g: &Graph, v: &Lanes, scale: f32, out: &mut Lanes) {
 pub(super) struct RowValues {
     /// `X` (forward: `FX`, backward: `BX`).
     pub x: Lanes,
-    /// `H` (forward: `FH`, backward: `BH`).
+    /// `H` (forward: `FH`, backward: `BH`) before its chunk's carry: the value at `[t][l]` is
+    /// `min(h[t][l], carry[l])` (see `fused`: the one-pass steps keep the carry instead of
+    /// applying it; the flat steps apply it and leave `+inf` here).
     pub h: Lanes,
+    /// The running minimum of the hidden values of the chunks before (forward) or after
+    /// (backward) each chunk.
+    pub carry: [f32; LANES],
 }
 
 impl RowValues {
@@ -263,7 +283,18 @@ impl RowValues {
         RowValues {
             x: lay.blank(),
             h: lay.blank(),
+            carry: [f32::INFINITY; LANES],
         }
+    }
+
+    /// `H` at column `j` (`+inf` out of range), its carry applied.
+    #[inline]
+    pub(super) fn h_at(&self, lay: &Layout, j: usize) -> f32 {
+        if j >= lay.d {
+            return f32::INFINITY;
+        }
+        let (t, l) = lay.at(j);
+        min(self.h[t][l], self.carry[l])
     }
 }
 
@@ -272,7 +303,13 @@ pub(super) struct Work {
     pub(super) cost: Lanes,
     pub(super) cost_next: Lanes,
     base: Lanes,
+    /// What the next row step reads of the last row: its `M = min(X, H)` (forward) or, for the
+    /// one-pass backward step, its `A = min(c + BX, W + BH)`; lane `l` is `min(m, carry[l])`.
     m: Lanes,
+    /// The one-pass steps' second `m` (they read one and write the other).
+    m_next: Lanes,
+    /// The lane carries of `m`.
+    carry: [f32; LANES],
 }
 
 impl Work {
@@ -282,6 +319,8 @@ impl Work {
             cost_next: lay.blank(),
             base: lay.blank(),
             m: lay.blank(),
+            m_next: lay.blank(),
+            carry: [f32::INFINITY; LANES],
         }
     }
 }
@@ -291,6 +330,9 @@ impl Graph {
     /// source). Expects `w.cost` to hold row `i`'s costs; leaves `M` of row `i` in `w.m`.
     #[inline(always)]
     fn forward_body(&self, has_prev: bool, w: &mut Work, out: &mut RowValues) {
+        if has_prev && fused::applies(self) {
+            return fused::forward(self, w, out);
+        }
         let n = self.lay.n;
         if has_prev {
             trailing_min(self, &w.m, self.g, &mut w.base);
@@ -344,12 +386,18 @@ impl Graph {
         for ((m, &x), &h) in w.m.as_flattened_mut().iter_mut().zip(x).zip(h) {
             *m = min(x, h);
         }
+        out.carry = [f32::INFINITY; LANES];
+        w.carry = [f32::INFINITY; LANES];
     }
 
     /// Backward row `i` from row `i+1`'s values `next` (`None`: the sink). Expects `w.cost` to
     /// hold row `i`'s costs and `w.cost_next` row `i+1`'s.
     #[inline(always)]
     fn backward_body(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+        let fused = fused::applies(self);
+        if next.is_some() && fused {
+            return fused::backward(self, w, out);
+        }
         let n = self.lay.n;
         match next {
             Some(nx) => {
@@ -405,6 +453,11 @@ impl Graph {
         }
         pad(&self.lay, &mut out.x);
         pad(&self.lay, &mut out.h);
+        out.carry = [f32::INFINITY; LANES];
+        if fused {
+            // The sink row, before one-pass steps: what they read of it.
+            fused::ahead_of(self, w, out);
+        }
     }
 }
 
@@ -437,11 +490,58 @@ impl Isa {
 /// `#[inline(always)]`, so they are compiled again inside these functions).
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{Graph, Lanes, Layout, RowValues, Work};
+    use super::{Graph, Lanes, Layout, RowValues, Work, LANES};
+    use std::arch::x86_64::{
+        __m256, _mm256_loadu_ps, _mm256_permute2f128_ps, _mm256_shuffle_ps, _mm256_storeu_ps,
+        _mm256_unpackhi_ps, _mm256_unpacklo_ps,
+    };
+
+    /// `out[t][l] = chunks[l][t0 + t]` for `t, l < 8`: eight loads, the usual 8x8 transpose
+    /// (unpack, shuffle, lane permute), eight stores.
+    #[target_feature(enable = "avx2")]
+    #[allow(unsafe_code)]
+    pub(super) fn transpose(chunks: &[&[f32]; LANES], t0: usize, out: &mut [[f32; LANES]]) {
+        let load = |l: usize| {
+            let src: &[f32; LANES] = chunks[l][t0..t0 + LANES].try_into().expect("8 values");
+            // SAFETY: `src` is 8 readable `f32` (an unaligned load is allowed).
+            unsafe { _mm256_loadu_ps(src.as_ptr()) }
+        };
+        let r: [__m256; LANES] = std::array::from_fn(load);
+        let a0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let a1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let a2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let a3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let a4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let a5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let a6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let a7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let b0 = _mm256_shuffle_ps::<0x44>(a0, a2);
+        let b1 = _mm256_shuffle_ps::<0xEE>(a0, a2);
+        let b2 = _mm256_shuffle_ps::<0x44>(a1, a3);
+        let b3 = _mm256_shuffle_ps::<0xEE>(a1, a3);
+        let b4 = _mm256_shuffle_ps::<0x44>(a4, a6);
+        let b5 = _mm256_shuffle_ps::<0xEE>(a4, a6);
+        let b6 = _mm256_shuffle_ps::<0x44>(a5, a7);
+        let b7 = _mm256_shuffle_ps::<0xEE>(a5, a7);
+        let rows = [
+            _mm256_permute2f128_ps::<0x20>(b0, b4),
+            _mm256_permute2f128_ps::<0x20>(b1, b5),
+            _mm256_permute2f128_ps::<0x20>(b2, b6),
+            _mm256_permute2f128_ps::<0x20>(b3, b7),
+            _mm256_permute2f128_ps::<0x31>(b0, b4),
+            _mm256_permute2f128_ps::<0x31>(b1, b5),
+            _mm256_permute2f128_ps::<0x31>(b2, b6),
+            _mm256_permute2f128_ps::<0x31>(b3, b7),
+        ];
+        for (o, v) in out[..LANES].iter_mut().zip(rows) {
+            // SAFETY: `o` is 8 writable `f32`.
+            unsafe { _mm256_storeu_ps(o.as_mut_ptr(), v) }
+        }
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn costs(row: &[f32], lay: &Layout, out: &mut Lanes) {
-        super::costs(row, lay, out);
+        super::costs(row, lay, out, true);
     }
 
     #[target_feature(enable = "avx2")]
@@ -457,7 +557,7 @@ mod avx2 {
     #[target_feature(enable = "avx2")]
     pub(super) fn hidden_steps(
         lay: &Layout,
-        h: &Lanes,
+        h: &RowValues,
         forward: bool,
         horizontal: bool,
     ) -> Vec<(u32, f32)> {
@@ -480,7 +580,7 @@ impl Steps {
         match self.isa {
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { avx2::costs(row, &self.g.lay, out) },
-            Isa::Portable => costs(row, &self.g.lay, out),
+            Isa::Portable => costs(row, &self.g.lay, out, false),
         }
     }
 
@@ -500,7 +600,7 @@ impl Steps {
         }
     }
 
-    pub(super) fn hidden_steps(&self, h: &Lanes, forward: bool) -> Vec<(u32, f32)> {
+    pub(super) fn hidden_steps(&self, h: &RowValues, forward: bool) -> Vec<(u32, f32)> {
         let (lay, horizontal) = (&self.g.lay, self.g.horizontal);
         match self.isa {
             #[cfg(target_arch = "x86_64")]
@@ -513,27 +613,38 @@ impl Steps {
 /// The hidden nodes of a stored row, reduced to the columns where the minimum over `j` of
 /// `H_stored[j] + H_other[j]` can be reached (see the module doc): `(column, value)`.
 #[inline(always)]
-fn hidden_steps(lay: &Layout, h: &Lanes, forward: bool, horizontal: bool) -> Vec<(u32, f32)> {
+fn hidden_steps(lay: &Layout, row: &RowValues, forward: bool, horizontal: bool) -> Vec<(u32, f32)> {
     let (n, d) = (lay.n, lay.d);
     // Columns fit in u32: a row of 2^32 columns would not fit in memory as f32 lanes.
-    let entry = |j: usize| (j as u32, get(lay, h, j));
+    let entry = |j: usize| (j as u32, row.h_at(lay, j));
     if !horizontal {
         return (0..d).map(entry).filter(|e| e.1.is_finite()).collect();
     }
     // With horizontal edges `H` is monotone along the row and changes at a few columns only:
-    // find them by comparing each layout row with the next (all chunks at once).
+    // find them by comparing each layout row with the next (all chunks at once: one vector
+    // compare, the lanes looked at only where one differs).
+    let carry = &row.carry;
+    let at = |t: usize| -> [f32; LANES] { std::array::from_fn(|l| min(row.h[t][l], carry[l])) };
     let mut changes: Vec<usize> = Vec::new(); // columns j with H[j] != H[j+1]
+    let mut here = at(0);
     for t in 0..n.saturating_sub(1) {
-        if h[t] != h[t + 1] {
+        let after = at(t + 1);
+        let mut differs = false;
+        for l in 0..LANES {
+            differs |= here[l] != after[l];
+        }
+        if differs {
             for l in 0..LANES {
-                if h[t][l] != h[t + 1][l] {
+                if here[l] != after[l] {
                     changes.push(lay.col(t, l));
                 }
             }
         }
+        here = after;
     }
+    let (last, first) = (at(n - 1), at(0));
     for l in 0..LANES - 1 {
-        if h[n - 1][l] != h[0][l + 1] {
+        if last[l] != first[l + 1] {
             changes.push(lay.col(n - 1, l));
         }
     }
