@@ -14,23 +14,30 @@
 //!   vectorises. Each chunk starts from a `+inf` carry; afterwards chunks are fixed up from the
 //!   true carry of the chunk before, exactly as the solver's kernel does (`solver/kernel.rs`):
 //!   the `X` chain is re-walked only while the carry changes it, the `H` chain (a running
-//!   minimum) takes `min(carry, local)`.
-//! * **AVX2.** The row steps are compiled again for AVX2 and picked at run time ([`Isa`]): a
-//!   lane row is then one register instead of two SSE2 ones. Same operations, same values.
+//!   minimum) takes `min(carry, local)`, applied where a value is read.
+//! * **One pass a row step** (`lanes/fused.rs`, the default graph: horizontal edges, `K <= 8`):
+//!   window minimum, factor, both scans and what the next step reads in one loop over the row.
+//! * **AVX2.** The row steps and the cost transpose are compiled again for AVX2 and picked at
+//!   run time ([`Isa`]): a lane row is then one register instead of two SSE2 ones. Same
+//!   operations, same values.
 //! * **`f32`.** Values are `f32` (node costs `1/ĉ` of the `f32` matrix), half the memory
 //!   traffic and twice the lanes of `f64`. The discount keeps sums short (a route's weight
 //!   `Σ g^|t-i|` is at most `(1+g)/(1-g)`), so rounding stays at a few `f32` ulps of the result;
 //!   the property tests compare with the `f64` brute force at a relative `1e-5`. The solver's
 //!   path and costs stay `f64`: only the confidence, a ranking, is `f32`.
-//! * **Meeting in the middle, nothing recomputed.** Phase 1 runs the forward pass over the top
-//!   half of the rows on one thread while the backward pass runs over the bottom half on the
-//!   other, each keeping its values of the rows to score. Phase 2 continues both passes into
-//!   the other half, where each row's own values meet the stored ones of the other pass. One
-//!   forward and one backward pass in total, on two threads; memory: the `X` values of the
-//!   scored rows (`4·D` bytes a row; 664 MB for every row of a 5,392 x 30,790 matrix) and, for
-//!   the hidden nodes, only the steps of `H` (with horizontal edges `FH_i` is non-increasing
-//!   and `BH_i` non-decreasing in `j`, so `min_j FH_i[j] + BH_i[j]` is reached at a step of the
-//!   stored one). Stored rows are freed as soon as they are scored.
+//! * **Meeting in the middle, checkpoints instead of kept rows.** Phase 1 runs the forward
+//!   pass over the top half of the rows on one thread while the backward pass runs over the
+//!   bottom half on the other. Phase 2 continues both passes into the other half, where each
+//!   row's own values meet the other pass's. Those are not kept from phase 1 (that was `4·D`
+//!   bytes a scored row, 516 MB at 5,392 x 30,790, whose first touches cost more than
+//!   computing them again): each pass keeps a checkpoint of its state every [`SEGMENT`] rows,
+//!   and the other pass computes a segment's rows again from it into buffers that stay in
+//!   cache, with their costs, which it then uses for its own step. One forward and one backward
+//!   pass in total plus one more row step a row, the matrix transposed once a row a pass; memory
+//!   a checkpoint per segment (21 MB a thread at 5,392 x 30,790) and `3·SEGMENT` rows a
+//!   thread. For the hidden nodes only the steps of the other pass's `H` are read (with
+//!   horizontal edges `FH_i` is non-increasing and `BH_i` non-decreasing in `j`, so `min_j
+//!   FH_i[j] + BH_i[j]` is reached at a step of either).
 
 // The readout's lane code indexes several `[f32; LANES]` rows by the same index.
 #![allow(clippy::needless_range_loop)]
@@ -39,13 +46,9 @@ mod lanes;
 
 use super::GraphParams;
 use crate::Matrix;
-use lanes::{min, Graph, Isa, Lanes, Layout, RowValues, Steps, Work, LANES};
+use std::ops::Range;
 
-/// A row kept by one pass for the other.
-struct Stored {
-    x: Lanes,
-    hidden: Vec<(u32, f32)>,
-}
+use lanes::{min, Checkpoint, Graph, Isa, Lanes, Layout, RowValues, Steps, Work, LANES};
 
 /// What a scored row's reader sees: the two passes' `X` values and the best hidden route.
 pub(super) struct RowView<'a> {
@@ -106,12 +109,92 @@ pub(super) fn sweep<R: Send>(
     scored: &[bool],
     read: impl Fn(usize, &RowView<'_>) -> R + Sync,
 ) -> Vec<(usize, R)> {
-    sweep_on(Isa::detect(), chat, graph, discount, scored, read)
+    sweep_on(Isa::detect(), SEGMENT, chat, graph, discount, scored, read)
 }
 
-/// [`sweep`] with the row steps on `isa`.
+/// Rows per segment: each pass checkpoints its state at every segment start of its first
+/// half, and in the second phase the other pass computes one segment again from there into
+/// buffers that stay in cache (`3·SEGMENT` rows a thread; 6 MB at 30,790 columns).
+const SEGMENT: usize = 16;
+
+/// One segment of one pass, computed again: each row's values and costs (the pass that reads
+/// the segment takes its own step's costs from here instead of transposing the row again).
+struct Segment {
+    vals: Vec<RowValues>,
+    costs: Vec<Lanes>,
+}
+
+impl Segment {
+    fn new(lay: &Layout, len: usize) -> Self {
+        Segment {
+            vals: (0..len).map(|_| RowValues::new(lay)).collect(),
+            costs: (0..len).map(|_| vec![[0.0; LANES]; lay.n]).collect(),
+        }
+    }
+}
+
+/// One pass's row steps over a range of rows, in the pass's order (forward: increasing,
+/// backward: decreasing), going on from the state in its [`Work`] (the row before, a
+/// checkpoint, or nothing at the source or the sink).
+struct Pass<'a> {
+    st: &'a Steps,
+    chat: &'a Matrix,
+    forward: bool,
+}
+
+impl Pass<'_> {
+    /// Computes row `i` into `out` with the costs in `w.cost`.
+    fn step(&self, i: usize, w: &mut Work, out: &mut RowValues) {
+        if self.forward {
+            self.st.forward(i > 0, w, out);
+        } else {
+            self.st.backward(i + 1 < self.chat.rows(), w, out);
+        }
+    }
+
+    /// The rows of `rows` in this pass's order, each one's costs transposed.
+    fn run(&self, rows: Range<usize>, w: &mut Work, out: &mut RowValues) {
+        for i in self.order(rows) {
+            self.st.costs(self.chat.row(i), &mut w.cost);
+            self.step(i, w, out);
+        }
+    }
+
+    /// The rows of `rows` into `seg` (values and costs of row `rows.start + t` at `t`).
+    fn run_into(&self, rows: Range<usize>, w: &mut Work, seg: &mut Segment) {
+        let start = rows.start;
+        for i in self.order(rows) {
+            let t = i - start;
+            // The step reads `w.cost`: lend it the segment's cost row (moves, no copy).
+            std::mem::swap(&mut w.cost, &mut seg.costs[t]);
+            self.st.costs(self.chat.row(i), &mut w.cost);
+            self.step(i, w, &mut seg.vals[t]);
+            std::mem::swap(&mut w.cost, &mut seg.costs[t]);
+        }
+    }
+
+    fn order(&self, rows: Range<usize>) -> Box<dyn Iterator<Item = usize>> {
+        if self.forward {
+            Box::new(rows)
+        } else {
+            Box::new(rows.rev())
+        }
+    }
+}
+
+/// [`sweep`] with the row steps on `isa` and segments of `segment` rows.
+///
+/// Phase 1 runs the forward pass over the top half of the rows on one thread and the backward
+/// pass over the bottom half on the other, each keeping a [`Checkpoint`] at the start of every
+/// [`SEGMENT`] of its half that holds a scored row. Phase 2 continues both passes into the
+/// other half, a segment at a time: the other pass's rows of the segment are computed again
+/// from its checkpoint into a [`Segment`] (with their costs, which the continuing pass then
+/// uses), and each scored row is read out where its own values meet them. Against keeping
+/// every scored row of phase 1 (4·D bytes a row, 516 MB at 5,392 x 30,790) this costs one more
+/// row step per row and no more transposes, and the memory is a checkpoint per segment.
 fn sweep_on<R: Send>(
     isa: Isa,
+    segment: usize,
     chat: &Matrix,
     graph: &GraphParams,
     discount: f64,
@@ -133,107 +216,121 @@ fn sweep_on<R: Send>(
         },
         isa,
     };
-    // A fresh row for a pass to write its next `X` into, so that a row to keep is moved, not
-    // copied: zeroed memory straight from the allocator (every value is written before read).
-    let fresh = || vec![[0.0f32; LANES]; lay.n];
+    let forward = Pass {
+        st: &st,
+        chat,
+        forward: true,
+    };
+    let backward = Pass {
+        st: &st,
+        chat,
+        forward: false,
+    };
     let mid = q / 2;
-    // Pass state carried from phase 1 to phase 2.
-    let mut fw = Work::new(&lay);
-    let mut fcur = RowValues::new(&lay);
-    let mut bw = Work::new(&lay);
-    let mut bcur = RowValues::new(&lay);
-    let mut bnext = RowValues::new(&lay);
+    let segments = |rows: Range<usize>| -> Vec<Range<usize>> {
+        let end = rows.end;
+        rows.step_by(segment.max(1))
+            .map(|a| a..(a + segment.max(1)).min(end))
+            .collect()
+    };
+    let (top, bottom) = (segments(0..mid), segments(mid..q));
+    let wanted = |r: &Range<usize>| scored[r.clone()].iter().any(|&s| s);
 
-    // Phase 1: forward over rows 0..mid, backward over rows q-1 down to mid.
-    let (top, bottom) = rayon::join(
+    // Phase 1. A forward checkpoint before segment k is `M` of the row before it; a backward
+    // one before segment k (walked downwards) is `A` of the row after it.
+    let ((mut fw, mut fcur, f_marks), (mut bw, mut bcur, b_marks)) = rayon::join(
         || {
-            let mut kept: Vec<Option<Stored>> = (0..mid).map(|_| None).collect();
-            for i in 0..mid {
-                st.costs(chat.row(i), &mut fw.cost);
-                st.forward(i > 0, &mut fw, &mut fcur);
-                if scored[i] {
-                    // The next row's forward step reads `M` (in `fw.m`), not `X`.
-                    kept[i] = Some(Stored {
-                        hidden: st.hidden_steps(&fcur, true),
-                        x: std::mem::replace(&mut fcur.x, fresh()),
-                    });
+            let (mut w, mut cur) = (Work::new(&lay), RowValues::new(&lay));
+            let mut marks: Vec<Option<Checkpoint>> = top.iter().map(|_| None).collect();
+            for (k, r) in top.iter().enumerate() {
+                if k > 0 && wanted(r) {
+                    marks[k] = Some(w.checkpoint());
                 }
+                forward.run(r.clone(), &mut w, &mut cur);
             }
-            kept
+            (w, cur, marks)
         },
         || {
-            let mut kept: Vec<Option<Stored>> = (mid..q).map(|_| None).collect();
-            for i in (mid..q).rev() {
-                if i + 1 < q {
-                    std::mem::swap(&mut bw.cost, &mut bw.cost_next);
+            let (mut w, mut cur) = (Work::new(&lay), RowValues::new(&lay));
+            let mut marks: Vec<Option<Checkpoint>> = bottom.iter().map(|_| None).collect();
+            for (k, r) in bottom.iter().enumerate().rev() {
+                if r.end < q && wanted(r) {
+                    marks[k] = Some(w.checkpoint());
                 }
-                st.costs(chat.row(i), &mut bw.cost);
-                let next = (i + 1 < q).then_some(&bnext);
-                st.backward(next, &mut bw, &mut bcur);
-                // Row i+1's values (in `bnext`) have been read for the last time: keep them.
-                if i + 1 < q && scored[i + 1] {
-                    kept[i + 1 - mid] = Some(Stored {
-                        hidden: st.hidden_steps(&bnext, false),
-                        x: std::mem::replace(&mut bnext.x, fresh()),
-                    });
-                }
-                std::mem::swap(&mut bcur, &mut bnext);
+                backward.run(r.clone(), &mut w, &mut cur);
             }
-            // Row `mid` goes on into phase 2 (its values start the backward pass there).
-            if mid < q && scored[mid] {
-                kept[0] = Some(Stored {
-                    hidden: st.hidden_steps(&bnext, false),
-                    x: bnext.x.clone(),
-                });
-            }
-            kept
+            (w, cur, marks)
         },
     );
 
-    // Phase 2: each pass continues into the other half and meets the stored rows there.
-    let combine = |stored: &Stored, own: &RowValues| {
-        stored
-            .hidden
+    // Phase 2: each pass continues into the other half, meeting the other pass's rows of each
+    // segment computed again. `min_j FH_i[j] + BH_i[j]` (the best hidden route) is reached at
+    // a step of the other row's `H` (see the module doc).
+    let hidden = |other: &RowValues, other_forward: bool, own: &RowValues| {
+        st.hidden_steps(other, other_forward)
             .iter()
             .map(|&(j, v)| v + own.h_at(&lay, j as usize))
             .fold(f32::INFINITY, min)
     };
     let (mut upper, mut lower) = rayon::join(
         || {
-            let mut bottom = bottom;
+            let (mut again, mut seg) = (Work::new(&lay), Segment::new(&lay, segment.max(1)));
             let mut out = Vec::new();
-            for i in mid..q {
-                st.costs(chat.row(i), &mut fw.cost);
-                st.forward(i > 0, &mut fw, &mut fcur);
-                if let Some(b) = bottom[i - mid].take() {
-                    let view = RowView {
-                        lay,
-                        fx: &fcur.x,
-                        bx: &b.x,
-                        hidden: combine(&b, &fcur),
-                    };
-                    out.push((i, read(i, &view)));
+            for (k, r) in bottom.iter().enumerate() {
+                if !wanted(r) {
+                    forward.run(r.clone(), &mut fw, &mut fcur);
+                    continue;
+                }
+                if let Some(mark) = &b_marks[k] {
+                    again.resume(mark);
+                }
+                backward.run_into(r.clone(), &mut again, &mut seg);
+                for i in r.clone() {
+                    let t = i - r.start;
+                    std::mem::swap(&mut fw.cost, &mut seg.costs[t]);
+                    forward.step(i, &mut fw, &mut fcur);
+                    std::mem::swap(&mut fw.cost, &mut seg.costs[t]);
+                    if scored[i] {
+                        let b = &seg.vals[t];
+                        let view = RowView {
+                            lay,
+                            fx: &fcur.x,
+                            bx: &b.x,
+                            hidden: hidden(b, false, &fcur),
+                        };
+                        out.push((i, read(i, &view)));
+                    }
                 }
             }
             out
         },
         || {
-            let mut top = top;
+            let (mut again, mut seg) = (Work::new(&lay), Segment::new(&lay, segment.max(1)));
             let mut out = Vec::new();
-            for i in (0..mid).rev() {
-                // The first row here continues from row `mid` (`mid < q` always: `q >= 1`).
-                std::mem::swap(&mut bw.cost, &mut bw.cost_next);
-                st.costs(chat.row(i), &mut bw.cost);
-                st.backward(Some(&bnext), &mut bw, &mut bcur);
-                std::mem::swap(&mut bcur, &mut bnext);
-                if let Some(f) = top[i].take() {
-                    let view = RowView {
-                        lay,
-                        fx: &f.x,
-                        bx: &bnext.x,
-                        hidden: combine(&f, &bnext),
-                    };
-                    out.push((i, read(i, &view)));
+            for (k, r) in top.iter().enumerate().rev() {
+                if !wanted(r) {
+                    backward.run(r.clone(), &mut bw, &mut bcur);
+                    continue;
+                }
+                if let Some(mark) = &f_marks[k] {
+                    again.resume(mark);
+                }
+                forward.run_into(r.clone(), &mut again, &mut seg);
+                for i in r.clone().rev() {
+                    let t = i - r.start;
+                    std::mem::swap(&mut bw.cost, &mut seg.costs[t]);
+                    backward.step(i, &mut bw, &mut bcur);
+                    std::mem::swap(&mut bw.cost, &mut seg.costs[t]);
+                    if scored[i] {
+                        let f = &seg.vals[t];
+                        let view = RowView {
+                            lay,
+                            fx: &f.x,
+                            bx: &bcur.x,
+                            hidden: hidden(f, true, &bcur),
+                        };
+                        out.push((i, read(i, &view)));
+                    }
                 }
             }
             out
@@ -252,19 +349,20 @@ mod tests {
     /// Every value a reader can see of every row: `m(x_ij)` of every column, the best route
     /// outside a band and the best hidden route.
     fn everything(isa: Isa, chat: &Matrix, gp: &GraphParams, g: f64) -> Vec<(usize, Vec<u32>)> {
-        everything_of(isa, chat, gp, g, &vec![true; chat.rows()])
+        everything_of(isa, SEGMENT, chat, gp, g, &vec![true; chat.rows()])
     }
 
-    /// [`everything`] of the rows with `scored[i]` only (the others are not kept by either
-    /// pass).
+    /// [`everything`] of the rows with `scored[i]` only (segments without one are not
+    /// computed again), with segments of `segment` rows.
     fn everything_of(
         isa: Isa,
+        segment: usize,
         chat: &Matrix,
         gp: &GraphParams,
         g: f64,
         scored: &[bool],
     ) -> Vec<(usize, Vec<u32>)> {
-        sweep_on(isa, chat, gp, g, scored, |i, view| {
+        sweep_on(isa, segment, chat, gp, g, scored, |i, view| {
             let d = view.lay.d;
             let mut bits: Vec<u32> = (0..d).map(|j| view.through(j).to_bits()).collect();
             bits.push(view.best_outside(i % d, (i + 2) % d).to_bits());
@@ -366,8 +464,8 @@ mod tests {
         /// windows longer than a chunk) against the plain `f32` passes, bit for bit.
         #[test]
         fn the_lanes_match_a_plain_f32_pass_bit_for_bit(
-            q in 1usize..16, d in 1usize..120, k in 0usize..20, horizontal: bool,
-            w in 0.3f64..2.5, g in 0.3f64..0.95, seed: u64, mask: u16,
+            q in 1usize..40, d in 1usize..120, k in 0usize..20, horizontal: bool,
+            w in 0.3f64..2.5, g in 0.3f64..0.95, seed: u64, mask: u64, segment in 1usize..6,
         ) {
             let mut state = seed | 1;
             let chat = super::super::discounted::plain::noise_matrix(q, d, &mut state);
@@ -391,11 +489,16 @@ mod tests {
                 .collect();
             for isa in [Isa::Portable, Isa::detect()] {
                 prop_assert_eq!(&everything(isa, &chat, &gp, g), &plain, "{:?}", isa);
-                // Some rows not scored (not kept, and on either side of the middle row).
+                // Short segments (several a half, checkpoints, a short last one) and some rows
+                // not scored (segments without one skipped, on either side of the middle).
+                let all = vec![true; q];
+                prop_assert_eq!(&everything_of(isa, segment, &chat, &gp, g, &all), &plain, "{:?}", isa);
                 let scored: Vec<bool> = (0..q).map(|i| mask >> i & 1 == 1).collect();
                 let some: Vec<(usize, Vec<u32>)> =
                     plain.iter().filter(|(i, _)| scored[*i]).cloned().collect();
-                prop_assert_eq!(&everything_of(isa, &chat, &gp, g, &scored), &some, "{:?}", isa);
+                prop_assert_eq!(
+                    &everything_of(isa, segment, &chat, &gp, g, &scored), &some, "{:?}", isa
+                );
             }
         }
     }

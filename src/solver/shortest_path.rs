@@ -214,15 +214,21 @@ impl<'a> Dp<'a> {
         let mut prev = vec![0.0; d];
         let mut cur = vec![0.0; d];
         let mut scratch = Scratch::default();
-        for (i, p) in ptr.chunks_exact_mut(d).enumerate() {
-            let before = (i > 0).then_some(&prev[..]);
-            let dest = Dest::Path {
-                m: &mut cur,
-                ptr: p,
-            };
-            self.row_step(i, before, dest, &mut scratch);
-            std::mem::swap(&mut prev, &mut cur);
-        }
+        // The rows run on a pool thread: a wide row's halves are then a local `join` (one job
+        // pushed, stolen by the other thread), where from a thread outside the pool every
+        // row's `join` is injected into the pool while the caller blocks (two hand-offs a
+        // row; the solve alone varied from 0.7 s to 1.2 s on 5,392 x 30,790 that way).
+        rayon::scope(|_| {
+            for (i, p) in ptr.chunks_exact_mut(d).enumerate() {
+                let before = (i > 0).then_some(&prev[..]);
+                let dest = Dest::Path {
+                    m: &mut cur,
+                    ptr: p,
+                };
+                self.row_step(i, before, dest, &mut scratch);
+                std::mem::swap(&mut prev, &mut cur);
+            }
+        });
         // `prev` now holds M of the last row. Sink: smallest column on ties.
         let mut j = 0;
         for (jj, &v) in prev.iter().enumerate().skip(1) {

@@ -301,7 +301,6 @@ impl RowValues {
 /// Work rows of a pass.
 pub(super) struct Work {
     pub(super) cost: Lanes,
-    pub(super) cost_next: Lanes,
     base: Lanes,
     /// What the next row step reads of the last row: its `M = min(X, H)` (forward) or, for the
     /// one-pass backward step, its `A = min(c + BX, W + BH)`; lane `l` is `min(m, carry[l])`.
@@ -312,11 +311,32 @@ pub(super) struct Work {
     carry: [f32; LANES],
 }
 
+/// Where a pass stands after a row: what its next row step reads (`M` forward, `A`
+/// backward, with their carries). A pass restarted from it computes the rows after it again,
+/// bit for bit.
+pub(super) struct Checkpoint {
+    m: Lanes,
+    carry: [f32; LANES],
+}
+
 impl Work {
+    /// The pass's state after its last row.
+    pub(super) fn checkpoint(&self) -> Checkpoint {
+        Checkpoint {
+            m: self.m.clone(),
+            carry: self.carry,
+        }
+    }
+
+    /// Goes on from `c` (a checkpoint of a pass on the same graph).
+    pub(super) fn resume(&mut self, c: &Checkpoint) {
+        self.m.copy_from_slice(&c.m);
+        self.carry = c.carry;
+    }
+
     pub(super) fn new(lay: &Layout) -> Self {
         Work {
             cost: lay.blank(),
-            cost_next: lay.blank(),
             base: lay.blank(),
             m: lay.blank(),
             m_next: lay.blank(),
@@ -390,26 +410,20 @@ impl Graph {
         w.carry = [f32::INFINITY; LANES];
     }
 
-    /// Backward row `i` from row `i+1`'s values `next` (`None`: the sink). Expects `w.cost` to
-    /// hold row `i`'s costs and `w.cost_next` row `i+1`'s.
+    /// Backward row `i` after row `i+1` (`has_next` false: the sink). Expects `w.cost` to hold
+    /// row `i`'s costs and `w.m`, `w.carry` row `i+1`'s `A` (left by the step of row `i+1`);
+    /// leaves row `i`'s in them.
     #[inline(always)]
-    fn backward_body(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
-        let fused = fused::applies(self);
-        if next.is_some() && fused {
+    fn backward_body(&self, has_next: bool, w: &mut Work, out: &mut RowValues) {
+        if has_next && fused::applies(self) {
             return fused::backward(self, w, out);
         }
         let n = self.lay.n;
-        match next {
-            Some(nx) => {
-                let wv = self.w;
-                let (x, h) = (nx.x.as_flattened(), nx.h.as_flattened());
-                let c = w.cost_next.as_flattened();
-                for (((m, &c), &x), &h) in w.m.as_flattened_mut().iter_mut().zip(c).zip(x).zip(h) {
-                    *m = min(c + x, wv + h);
-                }
-                leading_min(self, &w.m, self.g, &mut w.base);
-            }
-            None => w.base.as_flattened_mut().fill(0.0),
+        if has_next {
+            debug_assert!(w.carry.iter().all(|c| c.is_infinite()));
+            leading_min(self, &w.m, self.g, &mut w.base);
+        } else {
+            w.base.as_flattened_mut().fill(0.0);
         }
         pad(&self.lay, &mut w.base);
         let (cost, succ) = (&w.cost, &w.base);
@@ -454,10 +468,16 @@ impl Graph {
         pad(&self.lay, &mut out.x);
         pad(&self.lay, &mut out.h);
         out.carry = [f32::INFINITY; LANES];
-        if fused {
-            // The sink row, before one-pass steps: what they read of it.
-            fused::ahead_of(self, w, out);
+        // What the step of row i-1 reads: `A = min(c + BX, W + BH)`.
+        let (c, x, h) = (
+            w.cost.as_flattened(),
+            out.x.as_flattened(),
+            out.h.as_flattened(),
+        );
+        for (((a, &c), &x), &h) in w.m.as_flattened_mut().iter_mut().zip(c).zip(x).zip(h) {
+            *a = min(c + x, self.w + h);
         }
+        w.carry = [f32::INFINITY; LANES];
     }
 }
 
@@ -550,8 +570,8 @@ mod avx2 {
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) fn backward(g: &Graph, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
-        g.backward_body(next, w, out);
+    pub(super) fn backward(g: &Graph, has_next: bool, w: &mut Work, out: &mut RowValues) {
+        g.backward_body(has_next, w, out);
     }
 
     #[target_feature(enable = "avx2")]
@@ -592,11 +612,11 @@ impl Steps {
         }
     }
 
-    pub(super) fn backward(&self, next: Option<&RowValues>, w: &mut Work, out: &mut RowValues) {
+    pub(super) fn backward(&self, has_next: bool, w: &mut Work, out: &mut RowValues) {
         match self.isa {
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { avx2::backward(&self.g, next, w, out) },
-            Isa::Portable => self.g.backward_body(next, w, out),
+            Isa::Avx2 => unsafe { avx2::backward(&self.g, has_next, w, out) },
+            Isa::Portable => self.g.backward_body(has_next, w, out),
         }
     }
 

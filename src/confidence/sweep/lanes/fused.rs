@@ -67,21 +67,6 @@ pub(super) fn backward(g: &Graph, w: &mut Work, out: &mut RowValues) {
     with_k!(g.k, backward_k(g, w, out))
 }
 
-/// `A = min(c + X, W + H)` of a row whose values are final (no carry): what a backward step
-/// after it reads. Used after the flat sink step.
-#[inline(always)]
-pub(super) fn ahead_of(g: &Graph, w: &mut Work, row: &RowValues) {
-    let (c, x, h) = (
-        w.cost.as_flattened(),
-        row.x.as_flattened(),
-        row.h.as_flattened(),
-    );
-    for (((a, &c), &x), &h) in w.m.as_flattened_mut().iter_mut().zip(c).zip(x).zip(h) {
-        *a = min(c + x, g.w + h);
-    }
-    w.carry = [f32::INFINITY; LANES];
-}
-
 /// `min(a, b)` lane by lane.
 #[inline(always)]
 fn vmin(a: [f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
