@@ -173,6 +173,7 @@ impl Pass<'_> {
         }
     }
 
+    /// `rows` in this pass's order.
     fn order(&self, rows: Range<usize>) -> Box<dyn Iterator<Item = usize>> {
         if self.forward {
             Box::new(rows)
@@ -234,111 +235,130 @@ fn sweep_on<R: Send>(
             .collect()
     };
     let (top, bottom) = (segments(0..mid), segments(mid..q));
-    let wanted = |r: &Range<usize>| scored[r.clone()].iter().any(|&s| s);
 
-    // Phase 1. A forward checkpoint before segment k is `M` of the row before it; a backward
-    // one before segment k (walked downwards) is `A` of the row after it.
+    // Phase 1: the forward pass over the top half, the backward pass over the bottom half.
     let ((mut fw, mut fcur, f_marks), (mut bw, mut bcur, b_marks)) = rayon::join(
-        || {
-            let (mut w, mut cur) = (Work::new(&lay), RowValues::new(&lay));
-            let mut marks: Vec<Option<Checkpoint>> = top.iter().map(|_| None).collect();
-            for (k, r) in top.iter().enumerate() {
-                if k > 0 && wanted(r) {
-                    marks[k] = Some(w.checkpoint());
-                }
-                forward.run(r.clone(), &mut w, &mut cur);
-            }
-            (w, cur, marks)
-        },
-        || {
-            let (mut w, mut cur) = (Work::new(&lay), RowValues::new(&lay));
-            let mut marks: Vec<Option<Checkpoint>> = bottom.iter().map(|_| None).collect();
-            for (k, r) in bottom.iter().enumerate().rev() {
-                if r.end < q && wanted(r) {
-                    marks[k] = Some(w.checkpoint());
-                }
-                backward.run(r.clone(), &mut w, &mut cur);
-            }
-            (w, cur, marks)
-        },
+        || forward.first_half(&top, scored),
+        || backward.first_half(&bottom, scored),
     );
 
     // Phase 2: each pass continues into the other half, meeting the other pass's rows of each
-    // segment computed again. `min_j FH_i[j] + BH_i[j]` (the best hidden route) is reached at
-    // a step of the other row's `H` (see the module doc).
-    let hidden = |other: &RowValues, other_forward: bool, own: &RowValues| {
-        st.hidden_steps(other, other_forward)
-            .iter()
-            .map(|&(j, v)| v + own.h_at(&lay, j as usize))
-            .fold(f32::INFINITY, min)
-    };
+    // segment computed again.
     let (mut upper, mut lower) = rayon::join(
         || {
-            let (mut again, mut seg) = (Work::new(&lay), Segment::new(&lay, segment.max(1)));
-            let mut out = Vec::new();
-            for (k, r) in bottom.iter().enumerate() {
-                if !wanted(r) {
-                    forward.run(r.clone(), &mut fw, &mut fcur);
-                    continue;
-                }
-                if let Some(mark) = &b_marks[k] {
-                    again.resume(mark);
-                }
-                backward.run_into(r.clone(), &mut again, &mut seg);
-                for i in r.clone() {
-                    let t = i - r.start;
-                    std::mem::swap(&mut fw.cost, &mut seg.costs[t]);
-                    forward.step(i, &mut fw, &mut fcur);
-                    std::mem::swap(&mut fw.cost, &mut seg.costs[t]);
-                    if scored[i] {
-                        let b = &seg.vals[t];
-                        let view = RowView {
-                            lay,
-                            fx: &fcur.x,
-                            bx: &b.x,
-                            hidden: hidden(b, false, &fcur),
-                        };
-                        out.push((i, read(i, &view)));
-                    }
-                }
-            }
-            out
+            let half = Half {
+                segments: &bottom,
+                marks: &b_marks,
+            };
+            forward.meet(&backward, half, &mut fw, &mut fcur, scored, &read)
         },
         || {
-            let (mut again, mut seg) = (Work::new(&lay), Segment::new(&lay, segment.max(1)));
-            let mut out = Vec::new();
-            for (k, r) in top.iter().enumerate().rev() {
-                if !wanted(r) {
-                    backward.run(r.clone(), &mut bw, &mut bcur);
-                    continue;
-                }
-                if let Some(mark) = &f_marks[k] {
-                    again.resume(mark);
-                }
-                forward.run_into(r.clone(), &mut again, &mut seg);
-                for i in r.clone().rev() {
-                    let t = i - r.start;
-                    std::mem::swap(&mut bw.cost, &mut seg.costs[t]);
-                    backward.step(i, &mut bw, &mut bcur);
-                    std::mem::swap(&mut bw.cost, &mut seg.costs[t]);
-                    if scored[i] {
-                        let f = &seg.vals[t];
-                        let view = RowView {
-                            lay,
-                            fx: &f.x,
-                            bx: &bcur.x,
-                            hidden: hidden(f, true, &bcur),
-                        };
-                        out.push((i, read(i, &view)));
-                    }
-                }
-            }
-            out
+            let half = Half {
+                segments: &top,
+                marks: &f_marks,
+            };
+            backward.meet(&forward, half, &mut bw, &mut bcur, scored, &read)
         },
     );
     lower.reverse();
     lower.append(&mut upper);
     lower
+}
+
+/// The half of the rows a pass continues into in phase 2: its segments (in row order) and
+/// the other pass's checkpoint before each (`None`: none needed, or no scored row there).
+struct Half<'a> {
+    segments: &'a [Range<usize>],
+    marks: &'a [Option<Checkpoint>],
+}
+
+impl Pass<'_> {
+    /// Phase 1 of this pass: its half of the rows, `segments` (in row order), walked in its
+    /// order. Returns its state after them and, for each segment with a scored row, a
+    /// checkpoint of its state before the segment (forward: `M` of the row before it;
+    /// backward: `A` of the row after it), none at the source or the sink.
+    fn first_half(
+        &self,
+        segments: &[Range<usize>],
+        scored: &[bool],
+    ) -> (Work, RowValues, Vec<Option<Checkpoint>>) {
+        let lay = self.st.g.lay;
+        let (mut w, mut cur) = (Work::new(&lay), RowValues::new(&lay));
+        let mut marks: Vec<Option<Checkpoint>> = segments.iter().map(|_| None).collect();
+        for k in self.order(0..segments.len()) {
+            let r = segments[k].clone();
+            let at_an_end = if self.forward {
+                r.start == 0
+            } else {
+                r.end == self.chat.rows()
+            };
+            if !at_an_end && scored[r.clone()].contains(&true) {
+                marks[k] = Some(w.checkpoint());
+            }
+            self.run(r, &mut w, &mut cur);
+        }
+        (w, cur, marks)
+    }
+
+    /// Phase 2 of this pass: goes on from `w`, `cur` through `half`'s segments in this pass's
+    /// order. A segment with a scored row is first computed again by `other` from its
+    /// checkpoint, with its costs (which this pass's steps then use); every scored row is read
+    /// out where the two passes' values meet. Returns the readings in this pass's order.
+    fn meet<R>(
+        &self,
+        other: &Pass<'_>,
+        half: Half<'_>,
+        w: &mut Work,
+        cur: &mut RowValues,
+        scored: &[bool],
+        read: &impl Fn(usize, &RowView<'_>) -> R,
+    ) -> Vec<(usize, R)> {
+        let lay = self.st.g.lay;
+        let len = half.segments.iter().map(|r| r.len()).max().unwrap_or(1);
+        let (mut again, mut seg) = (Work::new(&lay), Segment::new(&lay, len));
+        let mut out = Vec::new();
+        for k in self.order(0..half.segments.len()) {
+            let r = half.segments[k].clone();
+            if !scored[r.clone()].contains(&true) {
+                self.run(r, w, cur);
+                continue;
+            }
+            if let Some(mark) = &half.marks[k] {
+                again.resume(mark);
+            }
+            other.run_into(r.clone(), &mut again, &mut seg);
+            for i in self.order(r.clone()) {
+                let t = i - r.start;
+                std::mem::swap(&mut w.cost, &mut seg.costs[t]);
+                self.step(i, w, cur);
+                std::mem::swap(&mut w.cost, &mut seg.costs[t]);
+                if scored[i] {
+                    let theirs = &seg.vals[t];
+                    let (fx, bx) = if self.forward {
+                        (&cur.x, &theirs.x)
+                    } else {
+                        (&theirs.x, &cur.x)
+                    };
+                    // `min_j FH_i[j] + BH_i[j]` (the best hidden route) is reached at a step of
+                    // the other row's `H` (see the module doc).
+                    let hidden = self
+                        .st
+                        .hidden_steps(theirs, other.forward)
+                        .iter()
+                        .map(|&(j, v)| v + cur.h_at(&lay, j as usize))
+                        .fold(f32::INFINITY, min);
+                    let view = RowView {
+                        lay,
+                        fx,
+                        bx,
+                        hidden,
+                    };
+                    out.push((i, read(i, &view)));
+                }
+            }
+        }
+        out
+    }
 }
 
 #[cfg(test)]
