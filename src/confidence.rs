@@ -107,6 +107,11 @@ pub struct RowConfidence {
     pub reference: usize,
     /// `outside / inside` (see the module doc); 0 when no local route agrees with the match.
     pub confidence: f64,
+    /// The cheapest local route that is hidden at this row is cheaper than every one through a
+    /// match within `r` of `reference` (`hidden < inside`): the row's own min-marginals put it
+    /// off the map rather than at the place, and a localization leaves it without a prediction
+    /// (ARCHITECTURE.md, "Off the map").
+    pub off_map: bool,
 }
 
 /// Scores every matched row of `hypothesis` on the normalised similarity matrix `chat`.
@@ -153,14 +158,15 @@ pub fn score_hypotheses(
             chat.cols()
         )));
     }
-    let rows = |targets: &[(usize, usize)], ratios: &[f64]| -> Vec<RowConfidence> {
+    let rows = |targets: &[(usize, usize)], read: &[WindowReading]| -> Vec<RowConfidence> {
         targets
             .iter()
-            .zip(ratios)
-            .map(|(&(i, j), &confidence)| RowConfidence {
+            .zip(read)
+            .map(|(&(i, j), r)| RowConfidence {
                 query: i,
                 reference: j,
-                confidence,
+                confidence: r.confidence,
+                off_map: r.off_map,
             })
             .collect()
     };
@@ -184,10 +190,11 @@ pub fn score_hypotheses(
                 targets
                     .iter()
                     .zip(read.by_ref())
-                    .map(|(&(i, _), (j, confidence))| RowConfidence {
+                    .map(|(&(i, _), r)| RowConfidence {
                         query: i,
-                        reference: j,
-                        confidence,
+                        reference: r.at,
+                        confidence: r.confidence,
+                        off_map: r.off_map,
                     })
                     .collect()
             })
@@ -196,11 +203,11 @@ pub fn score_hypotheses(
     Ok(per_hypothesis
         .iter()
         .map(|targets| {
-            let ratios: Vec<f64> = targets
+            let read: Vec<WindowReading> = targets
                 .par_iter()
-                .map(|&(i, j)| local_ratio(chat, graph, params, i, j))
+                .map(|&(i, j)| local_readout(chat, graph, params, i, j))
                 .collect();
-            rows(targets, &ratios)
+            rows(targets, &read)
         })
         .collect())
 }
@@ -214,25 +221,32 @@ fn predicted_at(row: &crate::solver::RowAssignment) -> Option<(usize, usize)> {
     Some((row.query, best.reference))
 }
 
-fn local_ratio(
+fn local_readout(
     chat: &Matrix,
     graph: &GraphParams,
     params: &ConfidenceParams,
     i: usize,
     j_star: usize,
-) -> f64 {
+) -> WindowReading {
     let first = i.saturating_sub(params.half_window);
     let last = (i + params.half_window).min(chat.rows() - 1);
     let rows: Vec<&[f32]> = (first..=last).map(|t| chat.row(t)).collect();
-    window_ratio(&rows, i - first, graph, params.radius, j_star)
+    window_readout(&rows, i - first, graph, params.radius, j_star)
+}
+
+/// What the box window says of one row: the ratio and whether the best window route hidden
+/// at the row beats every one through the band (see [`RowConfidence`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowReading {
+    /// `outside / inside` ([`window_ratio`]).
+    pub confidence: f64,
+    /// `hidden < inside` ([`RowConfidence::off_map`]).
+    pub off_map: bool,
 }
 
 /// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
 /// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end).
 /// Trips use it with the scored row last (a causal window: only frames seen so far).
-///
-/// The forward rows use the solver's row kernel ([`crate::solver`], same operations as the
-/// shortest path); the backward rows are plain right-to-left passes over precomputed costs.
 pub fn window_ratio(
     rows: &[&[f32]],
     scored: usize,
@@ -240,6 +254,20 @@ pub fn window_ratio(
     radius: usize,
     j_star: usize,
 ) -> f64 {
+    window_readout(rows, scored, graph, radius, j_star).confidence
+}
+
+/// [`window_ratio`] and the off-the-map test of the same window ([`WindowReading`]).
+///
+/// The forward rows use the solver's row kernel ([`crate::solver`], same operations as the
+/// shortest path); the backward rows are plain right-to-left passes over precomputed costs.
+pub fn window_readout(
+    rows: &[&[f32]],
+    scored: usize,
+    graph: &GraphParams,
+    radius: usize,
+    j_star: usize,
+) -> WindowReading {
     let d = rows[scored].len();
     let (i, last) = (scored, rows.len() - 1);
     let w = graph.hidden_cost;
@@ -292,8 +320,7 @@ pub fn window_ratio(
 
     let lo = j_star.saturating_sub(radius);
     let hi = (j_star + radius).min(d - 1);
-    let mut inside = f64::INFINITY;
-    let mut outside = f64::INFINITY;
+    let (mut inside, mut outside, mut hidden) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
     for j in 0..d {
         let through_x = fx[j] + bx[j];
         if (lo..=hi).contains(&j) {
@@ -301,12 +328,16 @@ pub fn window_ratio(
         } else {
             outside = outside.min(through_x);
         }
-        outside = outside.min(fh[j] + bh[j]);
+        hidden = hidden.min(fh[j] + bh[j]);
     }
-    if inside.is_finite() {
-        outside / inside
-    } else {
-        0.0
+    let outside = outside.min(hidden);
+    WindowReading {
+        confidence: if inside.is_finite() {
+            outside / inside
+        } else {
+            0.0
+        },
+        off_map: hidden < inside,
     }
 }
 
@@ -324,7 +355,7 @@ mod tests {
         p: &ConfidenceParams,
         i: usize,
         js: usize,
-    ) -> f64 {
+    ) -> Brute {
         let first = i.saturating_sub(p.half_window);
         let last = (i + p.half_window).min(chat.rows() - 1);
         let d = chat.cols();
@@ -395,6 +426,26 @@ mod tests {
         )
     }
 
+    /// What brute-forced routes say of one row: the ratio, the cheapest route hidden at the
+    /// row and the cheapest through the band.
+    #[derive(Clone, Copy, Debug)]
+    pub(super) struct Brute {
+        pub ratio: f64,
+        pub hidden: f64,
+        pub inside: f64,
+    }
+
+    impl Brute {
+        /// The off-the-map test, or `None` when `hidden` and `inside` are within `tol`
+        /// (relative) of each other: the fast passes' rounding may decide it either way.
+        pub fn off_map(&self, tol: f64) -> Option<bool> {
+            let scale = self.hidden.abs().max(self.inside.abs()).max(1.0);
+            let tie = (self.hidden - self.inside).abs() <= tol * scale
+                || (self.hidden.is_infinite() && self.inside.is_infinite());
+            (!tie).then_some(self.hidden < self.inside)
+        }
+    }
+
     /// The min-marginal ratio from brute-forced routes, given as each route's cost and its run
     /// `(first column, last column, hidden)` in the scored row: the cheapest route that leaves
     /// the window `js ± r` (or is hidden there) over the cheapest that enters it; 0 when none
@@ -403,12 +454,13 @@ mod tests {
         routes: impl IntoIterator<Item = (f64, (usize, usize, bool))>,
         js: usize,
         r: usize,
-    ) -> f64 {
+    ) -> Brute {
         let (lo, hi) = (js.saturating_sub(r), js + r);
-        let (mut best_in, mut best_out) = (f64::INFINITY, f64::INFINITY);
+        let (mut best_in, mut best_out, mut hidden_at) =
+            (f64::INFINITY, f64::INFINITY, f64::INFINITY);
         for (cost, (a, b, hidden)) in routes {
             if hidden {
-                best_out = best_out.min(cost);
+                hidden_at = hidden_at.min(cost);
                 continue;
             }
             if (a..=b).any(|j| (lo..=hi).contains(&j)) {
@@ -418,10 +470,15 @@ mod tests {
                 best_out = best_out.min(cost);
             }
         }
-        if best_in.is_finite() {
-            best_out / best_in
-        } else {
-            0.0
+        let best_out = best_out.min(hidden_at);
+        Brute {
+            ratio: if best_in.is_finite() {
+                best_out / best_in
+            } else {
+                0.0
+            },
+            hidden: hidden_at,
+            inside: best_in,
         }
     }
 
@@ -437,9 +494,13 @@ mod tests {
             let p = ConfidenceParams { half_window: hw, radius: r, discount: None };
             for i in 0..q {
                 for js in 0..d {
-                    let fast = local_ratio(&chat, &g, &p, i, js);
+                    let fast = local_readout(&chat, &g, &p, i, js);
                     let slow = brute_force_ratio(&chat, &g, &p, i, js);
-                    prop_assert!((fast - slow).abs() <= 1e-9 * slow.abs().max(1.0), "row {i} col {js}: {fast} vs {slow}");
+                    let (f, b) = (fast.confidence, slow.ratio);
+                    prop_assert!((f - b).abs() <= 1e-9 * b.abs().max(1.0), "row {i} col {js}: {f} vs {b}");
+                    if let Some(off) = slow.off_map(1e-9) {
+                        prop_assert_eq!(fast.off_map, off, "row {} col {}: {:?}", i, js, slow);
+                    }
                 }
             }
         }

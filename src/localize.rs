@@ -121,6 +121,11 @@ fn localize_inspecting<T>(
 ///   timings of one traversal the first hypothesis, the best complete route, is the better
 ///   supported one.
 ///
+/// A row whose own evidence puts it off the map ([`crate::confidence::RowConfidence::off_map`]:
+/// the best local route hidden at the row beats every one through the predicted place) gets no
+/// prediction from that hypothesis; for the first, it counts as unsettled, so a further
+/// hypothesis may place it on the conditions above.
+///
 /// Among several such hypotheses the most confident wins. On a single traversal the further
 /// hypotheses are other timings of the one traversal, so `F = 2` keeps `F = 1`'s predictions;
 /// on a loop the rows of the second pass revisit places the first matched a whole loop
@@ -151,7 +156,9 @@ pub fn solve_with_confidence(
     // Rows whose first prediction the local evidence prefers (ratio above 1): they stand.
     let mut settled = vec![false; chat.rows()];
     for (rank, rows) in scored.into_iter().enumerate() {
-        for row in rows {
+        // A row whose own evidence puts it off the map gets no prediction from that
+        // hypothesis (a further one may still place it).
+        for row in rows.into_iter().filter(|r| !r.off_map) {
             let (Some(slot), Some(done)) = (best.get_mut(row.query), settled.get_mut(row.query))
             else {
                 continue;
@@ -246,6 +253,53 @@ mod tests {
             },
             ..LocalizeOptions::default()
         }
+    }
+
+    #[test]
+    fn a_matched_row_whose_evidence_puts_it_off_the_map_gets_no_prediction() {
+        // Found by a random search of 6 x 6 matrices: the path matches every row but row 1
+        // at reference 1, and row 2's discounted min-marginals prefer a route hidden there.
+        #[rustfmt::skip]
+        let values = vec![
+            0.9, 2.3, 1.5, 0.5, 2.3, 0.1,
+            1.0, 0.3, 2.0, 2.0, 0.1, 2.4,
+            1.6, 1.3, 0.5, 1.0, 0.8, 0.3,
+            0.4, 2.4, 0.1, 0.8, 0.1, 1.5,
+            1.3, 1.3, 0.2, 0.6, 1.6, 1.9,
+            1.5, 2.1, 0.5, 1.3, 0.8, 1.2,
+        ];
+        let chat = Matrix::from_vec(6, 6, values).unwrap();
+        let options = LocalizeOptions {
+            solver: SolverParams {
+                fan_out: 2,
+                hidden_cost: HiddenCost::Fixed(1.0),
+                ..SolverParams::default()
+            },
+            ..LocalizeOptions::default()
+        };
+        let (solution, predictions) = solve_with_confidence(&chat, &options).unwrap();
+        let matched: Vec<usize> = solution.hypotheses[0]
+            .rows
+            .iter()
+            .filter(|r| !r.matches.is_empty())
+            .map(|r| r.query)
+            .collect();
+        assert_eq!(matched, vec![0, 2, 3, 4, 5]);
+        let graph = GraphParams {
+            fan_out: 2,
+            horizontal: true,
+            hidden_cost: 1.0,
+        };
+        let scored =
+            score_hypotheses(&chat, &graph, &solution.hypotheses, &options.confidence, 0).unwrap();
+        let off: Vec<usize> = scored[0]
+            .iter()
+            .filter(|r| r.off_map)
+            .map(|r| r.query)
+            .collect();
+        assert_eq!(off, vec![2]);
+        let predicted: Vec<usize> = predictions.iter().map(|p| p.query).collect();
+        assert_eq!(predicted, vec![0, 3, 4, 5]);
     }
 
     #[test]

@@ -41,9 +41,21 @@ pub(super) struct Readout {
     pub claim: usize,
 }
 
-/// Reads row `i` out for the path's match `j_star`: `(prediction, confidence)`, see
-/// [`Readout`].
-pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> (usize, f64) {
+/// One scored row: the frame it names, its confidence, and whether the evidence puts it off
+/// the map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Reading {
+    /// The frame the prediction names (see [`Readout`]).
+    pub at: usize,
+    /// The ratio at radius `r` around `at`.
+    pub confidence: f64,
+    /// The cheapest route hidden at the row is cheaper than every route through a match within
+    /// `r` of `at`: the row's own min-marginals prefer "off the map" to the place.
+    pub off_map: bool,
+}
+
+/// Reads row `i` out for the path's match `j_star`: see [`Reading`] and [`Readout`].
+pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> Reading {
     let d = view.lay.d;
     // Every band the readout looks at lies within `span` of the match: keep those values,
     // and the best route anywhere else (or hidden).
@@ -52,17 +64,18 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> (usize, f6
     let hi = (j_star + span).min(d - 1);
     let near: Vec<f32> = (lo..=hi).map(|j| view.through(j)).collect();
     let far = view.best_outside(lo, hi).min(view.hidden);
-    pick(
-        &Near {
-            lo,
-            near: &near,
-            far,
-        },
-        ro,
-        j_star,
-    )
+    let row = Near {
+        lo,
+        near: &near,
+        far,
+    };
+    let (at, confidence) = pick(&row, ro, j_star);
+    Reading {
+        at,
+        confidence,
+        off_map: view.hidden < row.inside(at, ro.radius),
+    }
 }
-
 /// The values of one row a readout looks at: `m(x_ij)` of the columns `lo ..` and the best
 /// route through any other column or a hidden node.
 struct Near<'a> {
@@ -81,6 +94,15 @@ fn ratio_of(inside: f32, outside: f32) -> f64 {
 }
 
 impl Near<'_> {
+    /// The cheapest route through a column within `r` of `centre` (`+inf` when none).
+    fn inside(&self, centre: usize, r: usize) -> f32 {
+        let (a, b) = (centre.saturating_sub(r), centre + r);
+        (self.lo..)
+            .zip(self.near)
+            .filter(|(j, _)| (a..=b).contains(j))
+            .fold(f32::INFINITY, |m, (_, &v)| m.min(v))
+    }
+
     /// The ratio with the columns within `r` of `centre` as the band, by one scan.
     fn ratio(&self, centre: usize, r: usize) -> f64 {
         let (a, b) = (centre.saturating_sub(r), centre + r);
@@ -151,8 +173,8 @@ fn pick(row: &Near<'_>, ro: Readout, j_star: usize) -> (usize, f64) {
     (best.0, row.ratio(best.0, ro.radius))
 }
 
-/// The discounted readout of every `(row, path match)` in `targets` on `chat`: `(prediction,
-/// confidence)` (see the module doc and [`Readout`]), in the order given. `discount` is `g`
+/// The discounted readout of every `(row, path match)` in `targets` on `chat` (see the module
+/// doc, [`Readout`] and [`Reading`]), in the order given. `discount` is `g`
 /// in `(0, 1)`; rows and columns must be in the matrix (checked by the caller).
 pub(super) fn discounted_readouts(
     chat: &Matrix,
@@ -160,7 +182,7 @@ pub(super) fn discounted_readouts(
     discount: f64,
     readout: Readout,
     targets: &[(usize, usize)],
-) -> Vec<(usize, f64)> {
+) -> Vec<Reading> {
     let q = chat.rows();
     let mut wanted: Vec<Vec<(usize, usize)>> = vec![Vec::new(); q];
     for (t, &(i, j)) in targets.iter().enumerate() {
@@ -173,7 +195,14 @@ pub(super) fn discounted_readouts(
             .map(|&(t, j)| (t, read(view, readout, j)))
             .collect::<Vec<_>>()
     });
-    let mut result: Vec<(usize, f64)> = targets.iter().map(|&(_, j)| (j, 0.0)).collect();
+    let mut result: Vec<Reading> = targets
+        .iter()
+        .map(|&(_, j)| Reading {
+            at: j,
+            confidence: 0.0,
+            off_map: false,
+        })
+        .collect();
     for (t, r) in rows.into_iter().flat_map(|(_, r)| r) {
         result[t] = r;
     }
@@ -229,7 +258,14 @@ mod tests {
 
     /// Every route from row 0 to the last row by brute force, each node cost weighted by
     /// `g^|t-i|`; the ratio for row `i`, prediction `js`.
-    fn brute_force(chat: &Matrix, gp: &GraphParams, g: f64, r: usize, i: usize, js: usize) -> f64 {
+    fn brute_force(
+        chat: &Matrix,
+        gp: &GraphParams,
+        g: f64,
+        r: usize,
+        i: usize,
+        js: usize,
+    ) -> crate::confidence::tests::Brute {
         let (q, d) = (chat.rows(), chat.cols());
         // Per row: a run [a, b] of one kind (matching or hidden), entered within the fan-out.
         let mut routes: Vec<Vec<(usize, usize, bool)>> = vec![Vec::new()];
@@ -287,32 +323,41 @@ mod tests {
             let targets: Vec<(usize, usize)> =
                 (0..q).flat_map(|i| (0..d).map(move |j| (i, j))).collect();
             // Brute force for every row and column, at radius r and at radius 1.
-            let at_r: Vec<Vec<f64>> = (0..q)
+            let at_r: Vec<Vec<_>> = (0..q)
                 .map(|i| (0..d).map(|c| brute_force(&chat, &gp, g, r, i, c)).collect())
                 .collect();
             let at_1: Vec<Vec<f64>> = (0..q)
-                .map(|i| (0..d).map(|c| brute_force(&chat, &gp, g, 1, i, c)).collect())
+                .map(|i| (0..d).map(|c| brute_force(&chat, &gp, g, 1, i, c).ratio).collect())
                 .collect();
             let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * b.abs().max(1.0);
-            // The ratio at the path's match (claim 0) ...
+            // The ratio at the path's match (claim 0) and the off-the-map test there ...
             let ro = Readout { radius: r, claim: 0 };
             let fast = discounted_readouts(&chat, &gp, g, ro, &targets);
-            for (&(i, js), &(at, f)) in targets.iter().zip(&fast) {
-                prop_assert_eq!(at, js);
-                prop_assert!(close(f, at_r[i][js]), "row {i} col {js}: {f} vs {}", at_r[i][js]);
+            for (&(i, js), f) in targets.iter().zip(&fast) {
+                let slow = at_r[i][js];
+                prop_assert_eq!(f.at, js);
+                prop_assert!(close(f.confidence, slow.ratio), "row {i} col {js}: {} vs {}", f.confidence, slow.ratio);
+                if let Some(off) = slow.off_map(1e-5) {
+                    prop_assert_eq!(f.off_map, off, "row {} col {}: {:?}", i, js, slow);
+                }
             }
             // ... and the frame a claim of ±1 pins: the best-supported ±1 neighbourhood
             // within one frame of the match (up to rounding), scored at radius r.
             let ro = Readout { radius: r, claim: 1 };
             let pinned = discounted_readouts(&chat, &gp, g, ro, &targets);
-            for (&(i, js), &(at, f)) in targets.iter().zip(&pinned) {
+            for (&(i, js), f) in targets.iter().zip(&pinned) {
+                let at = f.at;
                 prop_assert!(at.abs_diff(js) <= 1 && at < d, "row {i}: {at} from {js}");
                 let best = (js.saturating_sub(1)..=(js + 1).min(d - 1))
                     .map(|c| at_1[i][c])
                     .fold(f64::NEG_INFINITY, f64::max);
                 prop_assert!(at_1[i][at] >= best - 1e-5 * best.abs().max(1.0),
                     "row {i} col {js}: pinned {at} ({}) but the best is {best}", at_1[i][at]);
-                prop_assert!(close(f, at_r[i][at]), "row {i} col {at}: {f} vs {}", at_r[i][at]);
+                let slow = at_r[i][at];
+                prop_assert!(close(f.confidence, slow.ratio), "row {i} col {at}: {} vs {}", f.confidence, slow.ratio);
+                if let Some(off) = slow.off_map(1e-5) {
+                    prop_assert_eq!(f.off_map, off, "row {} col {}: {:?}", i, at, slow);
+                }
             }
         }
     }
@@ -335,7 +380,8 @@ mod tests {
             let ro = Readout { radius: r, claim: 0 };
             let fast = discounted_readouts(&chat, &gp, g, ro, &targets);
             let plain = plain::discounted_ratios(&chat, &gp, g, r, &targets);
-            for ((&(i, j), (_, f)), p) in targets.iter().zip(&fast).zip(&plain) {
+            for ((&(i, j), r), p) in targets.iter().zip(&fast).zip(&plain) {
+                let f = r.confidence;
                 prop_assert!((f - p).abs() <= 1e-5 * p.abs().max(1.0),
                     "row {i} col {j}: {f} vs {p}");
             }

@@ -197,16 +197,18 @@ fn nordland_variable_speed_every_second_and_third_frame_and_stops() {
 }
 
 #[test]
-#[ignore = "issue 14 open: with the auto hidden cost the detour frames are matched, not hidden \
-            (measured: 0 of 15 generated, 0 of 50 Nordland detour rows hidden)"]
+#[ignore = "issue 14 open: with the auto hidden cost the path matches the detour frames; the \
+            off-the-map readout hides 2 of 15 generated and 32 of 50 Nordland detour rows \
+            (90 % and 70 % asked)"]
 fn a_detour_off_the_map_is_hidden() {
     let data = Data::generated();
     check(&data, &routes::detour_case(&data), 1);
 }
 
 #[test]
-#[ignore = "issue 14 open: with the auto hidden cost the detour frames are matched, not hidden \
-            (measured: 0 of 15 generated, 0 of 50 Nordland detour rows hidden)"]
+#[ignore = "issue 14 open: with the auto hidden cost the path matches the detour frames; the \
+            off-the-map readout hides 2 of 15 generated and 32 of 50 Nordland detour rows \
+            (90 % and 70 % asked)"]
 fn nordland_detour_off_the_map_is_hidden() {
     if let Some(data) = Data::nordland() {
         check(&data, &routes::detour_case(&data), 1);
