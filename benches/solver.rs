@@ -216,7 +216,6 @@ fn medium(c: &mut Criterion) {
     g.finish();
 }
 
-/// One timed run (wall and CPU seconds) of `f`, printed with `what`.
 /// `rounds` rounds of the solve alone then the solve with the discounted confidence (what
 /// `seasonloc solve` does), each timed; prints every round and the medians.
 fn interleaved_ratio(chat: &Matrix, rounds: usize) {
@@ -253,6 +252,7 @@ fn interleaved_ratio(chat: &Matrix, rounds: usize) {
     );
 }
 
+/// One timed run (wall and CPU seconds) of `f`, printed with `what`.
 fn once<T>(what: &str, f: impl FnOnce() -> T) -> T {
     let (cpu0, t0) = (cpu_seconds(), std::time::Instant::now());
     let out = f();
