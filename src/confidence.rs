@@ -318,6 +318,21 @@ pub fn window_readout(
         }
     }
 
+    band_reading((&fx, &fh), (&bx, &bh), j_star, radius)
+}
+
+/// The reading of one row from its forward values `fx`, `fh` (cheapest route ending at each
+/// matching / hidden node) and backward values `bx`, `bh` (cheapest continuation after it),
+/// with the columns within `radius` of `j_star` as the band: the ratio and the off-the-map
+/// test ([`WindowReading`]). The box window and the trips' causal discounted ratio
+/// (`trip/confidence.rs`) both read their rows with it.
+pub(crate) fn band_reading(
+    (fx, fh): (&[f64], &[f64]),
+    (bx, bh): (&[f64], &[f64]),
+    j_star: usize,
+    radius: usize,
+) -> WindowReading {
+    let d = fx.len();
     let lo = j_star.saturating_sub(radius);
     let hi = (j_star + radius).min(d - 1);
     let (mut inside, mut outside, mut hidden) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);

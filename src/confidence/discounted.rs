@@ -73,7 +73,7 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> Reading {
     Reading {
         at,
         confidence,
-        off_map: view.hidden < row.inside(at, ro.radius),
+        off_map: view.hidden < row.band(at, ro.radius).0,
     }
 }
 /// The values of one row a readout looks at: `m(x_ij)` of the columns `lo ..` and the best
@@ -94,17 +94,9 @@ fn ratio_of(inside: f32, outside: f32) -> f64 {
 }
 
 impl Near<'_> {
-    /// The cheapest route through a column within `r` of `centre` (`+inf` when none).
-    fn inside(&self, centre: usize, r: usize) -> f32 {
-        let (a, b) = (centre.saturating_sub(r), centre + r);
-        (self.lo..)
-            .zip(self.near)
-            .filter(|(j, _)| (a..=b).contains(j))
-            .fold(f32::INFINITY, |m, (_, &v)| m.min(v))
-    }
-
-    /// The ratio with the columns within `r` of `centre` as the band, by one scan.
-    fn ratio(&self, centre: usize, r: usize) -> f64 {
+    /// The cheapest route through a column within `r` of `centre` and the cheapest anywhere
+    /// else or hidden, `(inside, outside)` (`+inf` when none), by one scan.
+    fn band(&self, centre: usize, r: usize) -> (f32, f32) {
         let (a, b) = (centre.saturating_sub(r), centre + r);
         let (mut inside, mut outside) = (f32::INFINITY, self.far);
         for (j, &v) in (self.lo..).zip(self.near) {
@@ -114,6 +106,12 @@ impl Near<'_> {
                 outside = outside.min(v);
             }
         }
+        (inside, outside)
+    }
+
+    /// The ratio with the columns within `r` of `centre` as the band.
+    fn ratio(&self, centre: usize, r: usize) -> f64 {
+        let (inside, outside) = self.band(centre, r);
         ratio_of(inside, outside)
     }
 }

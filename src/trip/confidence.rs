@@ -28,7 +28,7 @@
 
 use std::cell::RefCell;
 
-use crate::confidence::GraphParams;
+use crate::confidence::{band_reading, GraphParams};
 use crate::solver::{forward_values_row, match_cost, RowScratch};
 use crate::window::leading_min_in_place;
 
@@ -142,27 +142,10 @@ impl Discount {
         }
     }
 
-    /// The ratio of a row from its forward and backward values, for the prediction `j_star`.
-    fn ratio(&self, (fx, fh): (&[f64], &[f64]), (bx, bh): (&[f64], &[f64]), j_star: usize) -> f64 {
-        let d = fx.len();
-        let lo = j_star.saturating_sub(self.radius);
-        let hi = (j_star + self.radius).min(d - 1);
-        let mut inside = f64::INFINITY;
-        let mut outside = f64::INFINITY;
-        for j in 0..d {
-            let through = fx[j] + bx[j];
-            if (lo..=hi).contains(&j) {
-                inside = inside.min(through);
-            } else {
-                outside = outside.min(through);
-            }
-            outside = outside.min(fh[j] + bh[j]);
-        }
-        if inside.is_finite() {
-            outside / inside
-        } else {
-            0.0
-        }
+    /// The ratio of a row from its forward and backward values, for the prediction `j_star`
+    /// (read as offline: [`band_reading`]).
+    fn ratio(&self, f: (&[f64], &[f64]), b: (&[f64], &[f64]), j_star: usize) -> f64 {
+        band_reading(f, b, j_star, self.radius).confidence
     }
 
     /// The forward pass over `rows` from `before` into `buf` (rows `0..rows.len()`).
