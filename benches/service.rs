@@ -1,12 +1,15 @@
 //! Load benchmark of the HTTP path: images per second ingested and localized through the
-//! running service with 8 concurrent clients, against the library doing the same work in
-//! process (decode + HOG + localize on the same images, same CPU pool size).
+//! running service with 8 concurrent clients, against the same requests made in process to the
+//! use-case layer ([`seasonloc::app::App`] on its own sled store, 8 concurrent tasks, same CPU
+//! pool size), and against the algorithms alone (decode + HOG + localize, batch after batch).
 //!
 //! Run: `cargo bench --bench service` (`SEASONLOC_BENCH_ROUNDS` scales the work). Uses the
 //! Nordland thumbnails from `../shared/data` when present, generated 64x32 frames otherwise.
-//! Prints a markdown table; the overhead column is `library rate / HTTP rate - 1`. The HTTP
-//! rates include everything the service does per request (multipart parsing, the store's
-//! flushed write, storing the localization result).
+//! Prints a markdown table. The HTTP clients keep their connection open across requests, as a fleet's
+//! client does. The HTTP overhead is `use-case rate / HTTP rate - 1`: both do
+//! everything a request asks for (reference thumbnails, the store's flushed write, storing the
+//! localization result), so the difference is HTTP itself (connections, multipart parsing,
+//! routing, admission, JSON). The algorithms-alone column shows what the use cases add.
 
 #[path = "../tests/service/http.rs"]
 #[allow(dead_code)]
@@ -16,8 +19,13 @@ use std::io::Cursor;
 use std::path::Path;
 use std::time::Instant;
 
+use std::sync::Arc;
+
 use http::{Client, Part};
-use seasonloc::config::ServeArgs;
+use seasonloc::app::{
+    App, AppConfig, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries,
+};
+use seasonloc::config::{ServeArgs, Settings};
 use seasonloc::features::hog::{HogOptions, HogSpec};
 use seasonloc::features::{decode_image, extract_batch};
 use seasonloc::localize::{localize, LocalizeOptions};
@@ -26,6 +34,15 @@ use seasonloc::solver::{HiddenCost, SolverParams};
 const CLIENTS: usize = 8;
 const BATCH: usize = 50;
 const CELL: u32 = 8;
+/// Requests of the one-at-a-time latency measurement.
+const LATENCY_REQUESTS: usize = 64;
+
+/// The median of `times` in milliseconds.
+fn median_ms(times: impl Iterator<Item = std::time::Duration>) -> f64 {
+    let mut ms: Vec<f64> = times.map(|t| t.as_secs_f64() * 1e3).collect();
+    ms.sort_by(f64::total_cmp);
+    ms[ms.len() / 2]
+}
 
 fn images() -> (Vec<Vec<u8>>, Vec<Vec<u8>>, &'static str) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -91,14 +108,7 @@ fn start_server(
     tempfile::TempDir,
 ) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let settings = ServeArgs {
-        data_dir: dir.path().to_path_buf(),
-        worker_threads: threads,
-        localize_queue: 64,
-        ..ServeArgs::default()
-    }
-    .validate()
-    .expect("settings");
+    let settings = settings(dir.path(), threads);
     let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
     listener.set_nonblocking(true).expect("nonblocking");
     let addr = listener.local_addr().expect("addr");
@@ -119,6 +129,140 @@ fn start_server(
         });
     });
     (Client::new(addr), tx, handle, dir)
+}
+
+/// One HTTP/1.1 connection kept open across requests, as a fleet's client keeps it (the
+/// test client opens one per request): a request is written whole, its answer read by its
+/// `Content-Length`.
+struct KeepAlive {
+    stream: std::net::TcpStream,
+    host: String,
+}
+
+impl KeepAlive {
+    fn connect(addr: std::net::SocketAddr) -> Self {
+        let stream = std::net::TcpStream::connect(addr).expect("connect");
+        stream.set_nodelay(true).expect("nodelay");
+        KeepAlive {
+            stream,
+            host: addr.to_string(),
+        }
+    }
+
+    /// POSTs `body` to `path`; the status and the body of the answer.
+    fn post(&mut self, path: &str, content_type: &str, body: &[u8]) -> (u16, Vec<u8>) {
+        use std::io::{BufRead, Read, Write};
+        let head = format!(
+            "POST {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
+            self.host,
+            body.len()
+        );
+        self.stream.write_all(head.as_bytes()).expect("write");
+        self.stream.write_all(body).expect("write");
+        let mut reader = std::io::BufReader::new(&self.stream);
+        let mut line = String::new();
+        reader.read_line(&mut line).expect("status line");
+        let status: u16 = line
+            .split(' ')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .expect("a status");
+        let mut len = 0;
+        loop {
+            line.clear();
+            reader.read_line(&mut line).expect("header");
+            let l = line.trim_end();
+            if l.is_empty() {
+                break;
+            }
+            if let Some((k, v)) = l.split_once(':') {
+                if k.eq_ignore_ascii_case("content-length") {
+                    len = v.trim().parse().expect("a length");
+                }
+            }
+        }
+        let mut answer = vec![0; len];
+        reader.read_exact(&mut answer).expect("body");
+        assert!(reader.buffer().is_empty(), "nothing after the answer");
+        (status, answer)
+    }
+}
+
+/// The service's settings with its data in `dir` and `threads` CPU threads.
+fn settings(dir: &Path, threads: usize) -> Settings {
+    ServeArgs {
+        data_dir: dir.to_path_buf(),
+        worker_threads: threads,
+        localize_queue: 64,
+        ..ServeArgs::default()
+    }
+    .validate()
+    .expect("settings")
+}
+
+/// The use-case layer as the service builds it from the same settings, on a sled store in
+/// `dir`.
+fn use_cases(dir: &Path, threads: usize) -> App {
+    let s = settings(dir, threads);
+    let store = seasonloc::store::SledStore::open(&s.data_dir).expect("store");
+    App::new(
+        Arc::new(store),
+        AppConfig {
+            worker_threads: s.worker_threads,
+            max_image_pixels: s.max_image_pixels,
+            default_cnn_model: None,
+            max_descriptor_len: s.max_descriptor_len,
+            models: seasonloc::app::ModelPolicy {
+                dir: None,
+                max_bytes: s.max_model_bytes,
+            },
+        },
+    )
+    .expect("use cases")
+}
+
+/// The parts of a batch as the API hands them to the use cases.
+fn inputs(images: &[Vec<u8>]) -> Vec<ImageInput> {
+    images
+        .iter()
+        .enumerate()
+        .map(|(i, b)| ImageInput {
+            name: format!("image[{i}] (\"{i}.png\")"),
+            bytes: bytes::Bytes::from(b.clone()),
+        })
+        .collect()
+}
+
+/// Runs `jobs` on `clients` concurrent tasks of a 2-worker runtime (as the server's), each
+/// task taking every `clients`-th job in turn; returns the seconds it took.
+fn concurrently<F, Fut>(clients: usize, jobs: usize, job: F) -> f64
+where
+    F: Fn(usize, usize) -> Fut + Send + Sync + 'static,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let job = Arc::new(job);
+    rt.block_on(async move {
+        let t = Instant::now();
+        let tasks: Vec<_> = (0..clients)
+            .map(|k| {
+                let job = Arc::clone(&job);
+                tokio::spawn(async move {
+                    for j in (k..jobs).step_by(clients) {
+                        job(k, j).await;
+                    }
+                })
+            })
+            .collect();
+        for t in tasks {
+            t.await.expect("task");
+        }
+        t.elapsed().as_secs_f64()
+    })
 }
 
 fn parts(images: &[Vec<u8>]) -> Vec<Part> {
@@ -209,6 +353,82 @@ fn main() {
     }
     let lib_localize = n as f64 / t.elapsed().as_secs_f64();
 
+    // Use cases: the same requests in process, 8 concurrent tasks, each appending to its own
+    // map, then localizing against a map holding the references once.
+    let uc_dir = tempfile::tempdir().expect("tempdir");
+    let app = Arc::new(use_cases(uc_dir.path(), threads));
+    let hog = || NewMapSpec {
+        name: "m".into(),
+        descriptor: DescriptorSpec::Settings(seasonloc::store::DescriptorSettings::Hog {
+            cell_size: CELL,
+            resize: None,
+        }),
+    };
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let uc_maps: Vec<_> = (0..=CLIENTS)
+        .map(|_| rt.block_on(app.create_map(hog())).expect("map"))
+        .collect();
+    let uc_ingest: Arc<Vec<Vec<ImageInput>>> =
+        Arc::new(ingest_batches.iter().map(|b| inputs(b)).collect());
+    let uc_target = uc_maps[CLIENTS].clone();
+    for b in uc_ingest.iter() {
+        let metas = vec![seasonloc::store::ImageMeta::default(); b.len()];
+        rt.block_on(app.append_images(uc_target.clone(), b.clone(), metas))
+            .expect("append");
+    }
+    drop(rt);
+    let uc_maps = Arc::new(uc_maps);
+    let secs = {
+        let (app, maps, batches) = (
+            Arc::clone(&app),
+            Arc::clone(&uc_maps),
+            Arc::clone(&uc_ingest),
+        );
+        concurrently(CLIENTS, rounds * batches.len(), move |k, j| {
+            let (app, maps, batches) = (Arc::clone(&app), Arc::clone(&maps), Arc::clone(&batches));
+            async move {
+                let b = batches[j % batches.len()].clone();
+                let metas = vec![seasonloc::store::ImageMeta::default(); b.len()];
+                // Fetched per request, as the API does (the map's image count moves).
+                let map = app.map_for_images(maps[k].id).await.expect("map");
+                app.append_images(map, b, metas).await.expect("append");
+            }
+        })
+    };
+    let uc_ingest_rate = (rounds * refs.len()) as f64 / secs;
+    let uc_queries: Arc<Vec<Vec<ImageInput>>> =
+        Arc::new(query_batches.iter().map(|b| inputs(b)).collect());
+    let secs = {
+        let (app, target, batches) = (Arc::clone(&app), uc_target.id, Arc::clone(&uc_queries));
+        concurrently(CLIENTS, rounds * batches.len(), move |_, j| {
+            let (app, batches) = (Arc::clone(&app), Arc::clone(&batches));
+            async move {
+                let input = LocalizeInput {
+                    queries: Queries::Images(batches[j % batches.len()].clone()),
+                    options: options(),
+                    method: None,
+                };
+                app.localize(target, input).await.expect("localize");
+            }
+        })
+    };
+    let uc_localize_rate = (rounds * queries.len()) as f64 / secs;
+    // One request at a time: the latency of each, nothing else running.
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let uc_latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
+        let input = LocalizeInput {
+            queries: Queries::Images(uc_queries[j % uc_queries.len()].clone()),
+            options: options(),
+            method: None,
+        };
+        let t = Instant::now();
+        rt.block_on(app.localize(uc_target.id, input))
+            .expect("localize");
+        t.elapsed()
+    }));
+    drop(rt);
+    drop(app);
+
     // HTTP: 8 clients, each uploading batches to its own map, then localizing batches.
     let (client, stop, handle, _dir) = start_server(threads);
     let maps: Vec<String> = (0..CLIENTS)
@@ -229,14 +449,11 @@ fn main() {
         for k in 0..CLIENTS {
             let (jobs, bodies, maps, ct) = (&jobs, &bodies, &maps, &ct);
             s.spawn(move || {
+                let mut conn = KeepAlive::connect(client.addr);
+                let path = format!("/v1/maps/{}/images", maps[k]);
                 for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let r = client.request(
-                        "POST",
-                        &format!("/v1/maps/{}/images", maps[k]),
-                        Some(ct),
-                        &bodies[j % bodies.len()],
-                    );
-                    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+                    let (status, body) = conn.post(&path, ct, &bodies[j % bodies.len()]);
+                    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
                 }
             });
         }
@@ -275,42 +492,64 @@ fn main() {
         for k in 0..CLIENTS {
             let (jobs, qbodies, target, ct) = (&jobs, &qbodies, &target, &ct);
             s.spawn(move || {
+                let mut conn = KeepAlive::connect(client.addr);
+                let path = format!("/v1/maps/{target}/localize");
                 for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let r = client.request(
-                        "POST",
-                        &format!("/v1/maps/{target}/localize"),
-                        Some(ct),
-                        &qbodies[j % qbodies.len()],
-                    );
-                    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+                    let (status, body) = conn.post(&path, ct, &qbodies[j % qbodies.len()]);
+                    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
                 }
             });
         }
     });
     let http_localize = (rounds * queries.len()) as f64 / t.elapsed().as_secs_f64();
+    let mut conn = KeepAlive::connect(client.addr);
+    let path = format!("/v1/maps/{target}/localize");
+    let http_latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
+        let t = Instant::now();
+        let (status, body) = conn.post(&path, &ct, &qbodies[j % qbodies.len()]);
+        assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+        t.elapsed()
+    }));
+    // The same through a new connection per request (`Connection: close`).
+    let http_latency_close = median_ms((0..LATENCY_REQUESTS).map(|j| {
+        let t = Instant::now();
+        let r = client.request("POST", &path, Some(&ct), &qbodies[j % qbodies.len()]);
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        t.elapsed()
+    }));
     let _ = stop.send(());
     handle.join().expect("server thread");
 
     println!("service benchmark: {source}, {} references, {} queries, batches of {BATCH}, {rounds} rounds, {CLIENTS} HTTP clients, {threads} CPU threads, HOG {CELL} px", refs.len(), queries.len());
     println!();
-    println!("| path | library (images/s) | HTTP, {CLIENTS} clients (images/s) | HTTP overhead |");
-    println!("| --- | --- | --- | --- |");
-    for (what, lib, web) in [
-        ("ingest: decode + HOG", lib_ingest, http_ingest),
+    println!("| path | algorithms alone (images/s) | use cases, {CLIENTS} tasks (images/s) | HTTP, {CLIENTS} clients (images/s) | HTTP overhead over the use cases |");
+    println!("| --- | --- | --- | --- | --- |");
+    for (what, lib, uc, web) in [
         (
-            "ingest: decode + HOG + flushed store append",
+            "ingest (algorithms alone: decode + HOG + flushed store append)",
             lib_store_ingest,
+            uc_ingest_rate,
             http_ingest,
         ),
         (
-            "localize: decode + HOG + similarity + solve",
+            "localize (algorithms alone: decode + HOG + similarity + solve + confidences)",
             lib_localize,
+            uc_localize_rate,
             http_localize,
         ),
     ] {
         println!(
-            "| {what} | {lib:.0} | {web:.0} | {:+.1} % |",
-            (lib / web - 1.0) * 100.0
+            "| {what} | {lib:.0} | {uc:.0} | {web:.0} | {:+.1} % |",
+            (uc / web - 1.0) * 100.0
         );
     }
+    println!();
+    println!("decode + HOG alone, no store: {lib_ingest:.0} images/s");
+    println!(
+        "one localize of {BATCH} images at a time, median of {LATENCY_REQUESTS}: use cases \
+         {uc_latency:.2} ms, HTTP {http_latency:.2} ms ({:+.1} %), HTTP with a new connection \
+         per request {http_latency_close:.2} ms ({:+.1} %)",
+        (http_latency / uc_latency - 1.0) * 100.0,
+        (http_latency_close / uc_latency - 1.0) * 100.0
+    );
 }

@@ -1,7 +1,8 @@
 //! Admission of `/localize` requests: a bounded queue in front of the CPU pool, first come
 //! first served, with a bounded wait.
 //!
-//! Two steps, so that a slow upload never holds a CPU turn:
+//! Two steps, so that a slow upload never holds a CPU turn (and the turn ends with the
+//! computation, before the result is stored, so that a slow disk never holds one either):
 //!
 //! 1. [`Admission::reserve`], before the body is read: at most `queue` localizations are in
 //!    the queue at once (reading their body, waiting, or computing); one more is refused at
@@ -198,8 +199,10 @@ impl Reservation {
 }
 
 impl Turn {
-    /// Ends the turn of a localization that ran to its end, recording how long it took (a
-    /// turn dropped without this, e.g. a failed or cancelled request, is not counted).
+    /// Ends the turn of a localization whose computation ran to its end, recording how long
+    /// it took (a turn dropped without this, e.g. a failed or cancelled request, is not
+    /// counted). Called when the result is computed, before it is stored
+    /// ([`crate::app::App::localize_once_then`]): a turn is CPU time.
     pub fn finish(self) {
         self.admission.record(self.started.elapsed().as_secs_f64());
     }

@@ -77,10 +77,24 @@ impl App {
         input: LocalizeInput,
         idempotency: Option<Idempotency>,
     ) -> AppResult<(LocalizationRecord, bool)> {
+        self.localize_once_then(id, input, idempotency, || {}).await
+    }
+
+    /// [`App::localize_once`] that calls `cpu_done` as soon as the result is computed, before
+    /// it is stored (not at all for a replay or when the computation fails): a front end that
+    /// bounds how many requests compute at once lets the next one in there, instead of holding
+    /// a CPU turn through the store's flushed write.
+    pub async fn localize_once_then(
+        &self,
+        id: u64,
+        input: LocalizeInput,
+        idempotency: Option<Idempotency>,
+        cpu_done: impl FnOnce() + Send,
+    ) -> AppResult<(LocalizationRecord, bool)> {
         let replay = |record: IdempotencyRecord| async move {
             Ok(self.store.get_localization(answered_id(&record)?).await?)
         };
-        let compute = |record| self.compute_localization(id, input, record);
+        let compute = |record| self.compute_localization(id, input, record, cpu_done);
         let scope = IdempotencyRecord::images_scope(id);
         self.once(idempotency, scope, replay, compute).await
     }
@@ -107,6 +121,7 @@ impl App {
         id: u64,
         input: LocalizeInput,
         idempotency: Option<IdempotencyRecord>,
+        cpu_done: impl FnOnce() + Send,
     ) -> AppResult<LocalizationRecord> {
         let LocalizeInput {
             queries,
@@ -210,6 +225,7 @@ impl App {
                     )
                 }
             };
+        cpu_done();
         // Bounded hidden costs keep every cost finite; a non-finite one would be stored and
         // sent as `null`, against the schema, so it is a bug, never a result.
         let total_cost = result.solution.total_cost();

@@ -4,7 +4,7 @@
 //! versions, and batches of one trip apply one at a time wherever they arrive.
 
 use std::io::Cursor;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use async_trait::async_trait;
@@ -101,6 +101,7 @@ macro_rules! on_both_engines {
 }
 
 on_both_engines!(
+    the_cpu_is_released_before_a_localization_is_stored,
     an_append_on_one_replica_is_seen_by_the_next_localize_on_another,
     a_trip_alternating_between_replicas_equals_one_replica,
     concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other,
@@ -151,6 +152,51 @@ fn queries(range: std::ops::Range<u32>) -> LocalizeInput {
         options: LocalizeOptions::default(),
         method: None,
     }
+}
+
+/// `cpu_done` (the API ends the request's CPU turn there) is called once the result is
+/// computed and before it is stored; never for a failed computation or a replay.
+async fn the_cpu_is_released_before_a_localization_is_stored(engine: Engine) {
+    let Some((plain, _dir)) = fresh(engine).await else {
+        return;
+    };
+    let probed = Arc::new(Probed::new(plain, None));
+    let app = app(Arc::clone(&probed) as Arc<dyn Store>);
+    let map = hog_map(&app, 0..20).await;
+    let hook = |flag: &Arc<AtomicBool>| {
+        let flag = Arc::clone(flag);
+        move || flag.store(true, Ordering::SeqCst)
+    };
+    let key = || Some(Idempotency::new("k-1", b"the same request".to_vec()).unwrap());
+    let (first, replayed) = app
+        .localize_once_then(map.id, queries(5..15), key(), hook(&probed.computed))
+        .await
+        .unwrap();
+    assert!(!replayed);
+    assert_eq!(*probed.computed_when_stored.lock().unwrap(), [true]);
+    // A replay computes nothing.
+    let again = Arc::new(AtomicBool::new(false));
+    let (second, replayed) = app
+        .localize_once_then(map.id, queries(5..15), key(), hook(&again))
+        .await
+        .unwrap();
+    assert!(replayed);
+    assert_eq!(second.id, first.id);
+    assert!(!again.load(Ordering::SeqCst));
+    // Nor does a computation that fails (descriptors of another length than the map's).
+    let failed = Arc::new(AtomicBool::new(false));
+    let wrong = LocalizeInput {
+        queries: Queries::Descriptors(Matrix::zeros(2, 3)),
+        options: LocalizeOptions::default(),
+        method: None,
+    };
+    let e = app
+        .localize_once_then(map.id, wrong, None, hook(&failed))
+        .await
+        .unwrap_err();
+    assert!(matches!(e, AppError::DescriptorLength(_)), "{e}");
+    assert!(!failed.load(Ordering::SeqCst));
+    assert_eq!(probed.computed_when_stored.lock().unwrap().len(), 1);
 }
 
 async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine: Engine) {
@@ -223,17 +269,32 @@ async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) 
     );
 }
 
-/// The real store, except that the first two reads of a trip's record (the first read of a
-/// batch) wait for each other: two replicas then compute their batches from the same state,
-/// and one of the conditional writes must lose.
-struct BothReadFirst {
+/// The real store with two probes. With `barrier`, the first two reads of a trip's record
+/// (the first read of a batch) wait for each other: two replicas then compute their batches
+/// from the same state, and one of the conditional writes must lose. `computed`, set by a
+/// test's `cpu_done` hook, is read when a localization is stored (`computed_when_stored`).
+struct Probed {
     inner: Arc<dyn Store>,
     reads: AtomicUsize,
-    barrier: tokio::sync::Barrier,
+    barrier: Option<tokio::sync::Barrier>,
+    computed: Arc<AtomicBool>,
+    computed_when_stored: std::sync::Mutex<Vec<bool>>,
+}
+
+impl Probed {
+    fn new(inner: Arc<dyn Store>, barrier: Option<tokio::sync::Barrier>) -> Self {
+        Probed {
+            inner,
+            reads: AtomicUsize::new(0),
+            barrier,
+            computed: Arc::default(),
+            computed_when_stored: std::sync::Mutex::default(),
+        }
+    }
 }
 
 #[async_trait]
-impl Store for BothReadFirst {
+impl Store for Probed {
     fn location(&self) -> String {
         self.inner.location()
     }
@@ -275,6 +336,8 @@ impl Store for BothReadFirst {
         self.inner.put_cooc_map(write).await
     }
     async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
+        let computed = self.computed.load(Ordering::SeqCst);
+        self.computed_when_stored.lock().unwrap().push(computed);
         self.inner.create_localization(new).await
     }
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
@@ -292,8 +355,10 @@ impl Store for BothReadFirst {
     }
     async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
         let record = self.inner.get_trip(id).await;
-        if self.reads.fetch_add(1, Ordering::SeqCst) < 2 {
-            self.barrier.wait().await;
+        if let Some(barrier) = &self.barrier {
+            if self.reads.fetch_add(1, Ordering::SeqCst) < 2 {
+                barrier.wait().await;
+            }
         }
         record
     }
@@ -331,11 +396,10 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     let Some((plain, _dir)) = fresh(engine).await else {
         return;
     };
-    let gated: Arc<dyn Store> = Arc::new(BothReadFirst {
-        inner: Arc::clone(&plain),
-        reads: AtomicUsize::new(0),
-        barrier: tokio::sync::Barrier::new(2),
-    });
+    let gated: Arc<dyn Store> = Arc::new(Probed::new(
+        Arc::clone(&plain),
+        Some(tokio::sync::Barrier::new(2)),
+    ));
     let (a, b) = (app(Arc::clone(&gated)), app(Arc::clone(&gated)));
     let map = hog_map(&app(Arc::clone(&plain)), 0..30).await;
     let trip = a.open_trip(map.id, TripParams::default()).await.unwrap();

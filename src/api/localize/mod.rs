@@ -103,8 +103,12 @@ async fn run(
         }
     }
     let turn = reservation.turn().await.map_err(|r| refused(&state, r))?;
-    let (record, replayed) = state.app.localize_once(map, input, key).await?;
-    turn.finish();
+    // The turn ends with the computation: storing the result (a flushed write) and answering
+    // wait on the disk and the network, not on a CPU.
+    let (record, replayed) = state
+        .app
+        .localize_once_then(map, input, key, move || turn.finish())
+        .await?;
     if replayed {
         return json_document(&record, true);
     }
