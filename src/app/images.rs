@@ -94,7 +94,21 @@ pub fn describe_with_thumbnails(
     let descriptors = if extractor.pixels() == features::Pixels::Colour {
         features::extract_batch(extractor, &images)?
     } else {
-        let own = decode_all(parts, max_pixels, extractor.pixels())?;
+        // The extractor's own pixels from the colour decode where they are the same image
+        // (PNG), decoded again where not (a camera JPEG's Y plane).
+        let own = parts
+            .par_iter()
+            .zip(&images)
+            .map(|(p, colour)| {
+                match features::from_colour_decode(&p.bytes, colour, extractor.pixels()) {
+                    Some(image) => Ok(image),
+                    None => {
+                        features::decode_image_as(&p.name, &p.bytes, max_pixels, extractor.pixels())
+                            .map_err(AppError::from)
+                    }
+                }
+            })
+            .collect::<AppResult<Vec<_>>>()?;
         features::extract_batch(extractor, &own)?
     };
     let thumbnails = images

@@ -64,6 +64,24 @@ pub fn decode_image_as(
     })
 }
 
+/// [`decode_image_as`]`(bytes, pixels)` from the [`Pixels::Colour`] decode of the same bytes,
+/// without decoding them again, where that gives the same image: for PNG (its gray is the
+/// colour image converted) and for [`Pixels::Colour`]. `None` for a JPEG read as gray, whose
+/// Y plane is decoded directly and differs from converting its colour decode.
+pub fn from_colour_decode(
+    bytes: &[u8],
+    colour: &DynamicImage,
+    pixels: Pixels,
+) -> Option<DynamicImage> {
+    match (pixels, image::guess_format(bytes)) {
+        (Pixels::Colour, _) => Some(colour.clone()),
+        (Pixels::Gray, Ok(ImageFormat::Png)) => {
+            Some(DynamicImage::ImageLuma8(to_gray(colour).into_owned()))
+        }
+        (Pixels::Gray, _) => None,
+    }
+}
+
 /// The decoded gray image of JPEG/PNG bytes ([`Pixels::Gray`]): the input of co-occurrence
 /// extraction.
 pub fn decode_gray(name: &str, bytes: &[u8], max_pixels: u64) -> Result<GrayImage> {
@@ -318,6 +336,52 @@ mod tests {
             .decode()
             .unwrap();
         ycbcr.chunks_exact(3).map(|p| p[0]).collect()
+    }
+
+    #[test]
+    fn a_pngs_gray_from_its_colour_decode_is_its_gray_decode() {
+        let (w, h) = (37, 23);
+        let px = |x: u32, y: u32, k: u32| ((x * 7 + y * 13 + k * 61) % 256) as u8;
+        let pngs: Vec<DynamicImage> = vec![
+            DynamicImage::ImageRgb8(image::RgbImage::from_fn(w, h, |x, y| {
+                image::Rgb([px(x, y, 0), px(x, y, 1), px(x, y, 2)])
+            })),
+            DynamicImage::ImageRgba8(image::RgbaImage::from_fn(w, h, |x, y| {
+                image::Rgba([px(x, y, 0), px(x, y, 1), px(x, y, 2), px(x, y, 3)])
+            })),
+            DynamicImage::ImageLuma8(image::GrayImage::from_fn(w, h, |x, y| {
+                image::Luma([px(x, y, 0)])
+            })),
+            DynamicImage::ImageLumaA8(image::GrayAlphaImage::from_fn(w, h, |x, y| {
+                image::LumaA([px(x, y, 0), px(x, y, 1)])
+            })),
+            DynamicImage::ImageRgb16(image::ImageBuffer::from_fn(w, h, |x, y| {
+                image::Rgb([
+                    257 * u16::from(px(x, y, 0)),
+                    3 * u16::from(px(x, y, 1)),
+                    65535,
+                ])
+            })),
+        ];
+        for img in pngs {
+            let mut bytes = Vec::new();
+            img.write_to(&mut Cursor::new(&mut bytes), ImageFormat::Png)
+                .unwrap();
+            let colour = decode_image("x.png", &bytes, 10_000).unwrap();
+            for pixels in [Pixels::Gray, Pixels::Colour] {
+                let direct = decode_image_as("x.png", &bytes, 10_000, pixels).unwrap();
+                let reused = from_colour_decode(&bytes, &colour, pixels).unwrap();
+                assert_eq!(reused, direct, "{:?} {pixels:?}", img.color());
+            }
+        }
+        // A colour JPEG read as gray is decoded again (its Y plane).
+        let (_, jpeg, _) = sampled_jpegs()[0];
+        let colour = decode_image("y.jpg", jpeg, 10_000).unwrap();
+        assert_eq!(from_colour_decode(jpeg, &colour, Pixels::Gray), None);
+        assert_eq!(
+            from_colour_decode(jpeg, &colour, Pixels::Colour),
+            Some(colour)
+        );
     }
 
     #[test]
