@@ -188,6 +188,27 @@ impl KeepAlive {
     }
 }
 
+/// CPU seconds the calling thread has used (user + system, Linux `/proc`; 0 elsewhere).
+fn thread_cpu_secs() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else {
+        return 0.0;
+    };
+    // Fields after the command name (which ends with the last ')'): utime and stime are the
+    // 12th and 13th, in clock ticks of 1/100 s.
+    let fields: Vec<&str> = stat
+        .rsplit_once(')')
+        .map_or("", |(_, rest)| rest)
+        .split_whitespace()
+        .collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (ticks(11) + ticks(12)) / 100.0
+}
+
 /// The service's settings with its data in `dir` and `threads` CPU threads.
 fn settings(dir: &Path, threads: usize) -> Settings {
     ServeArgs {
@@ -487,21 +508,28 @@ fn main() {
         })
         .collect();
     let jobs: Vec<usize> = (0..rounds * qbodies.len()).collect();
+    // CPU seconds the 8 HTTP clients use themselves (they share the server's cores).
+    let client_cpu = std::sync::Mutex::new(0.0f64);
     let t = Instant::now();
     std::thread::scope(|s| {
         for k in 0..CLIENTS {
             let (jobs, qbodies, target, ct) = (&jobs, &qbodies, &target, &ct);
+            let client_cpu = &client_cpu;
             s.spawn(move || {
+                let cpu = thread_cpu_secs();
                 let mut conn = KeepAlive::connect(client.addr);
                 let path = format!("/v1/maps/{target}/localize");
                 for j in jobs.iter().skip(k).step_by(CLIENTS) {
                     let (status, body) = conn.post(&path, ct, &qbodies[j % qbodies.len()]);
                     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
                 }
+                *client_cpu.lock().expect("a sum") += thread_cpu_secs() - cpu;
             });
         }
     });
-    let http_localize = (rounds * queries.len()) as f64 / t.elapsed().as_secs_f64();
+    let localize_secs = t.elapsed().as_secs_f64();
+    let http_localize = (rounds * queries.len()) as f64 / localize_secs;
+    let client_cpu = *client_cpu.lock().expect("a sum");
     let mut conn = KeepAlive::connect(client.addr);
     let path = format!("/v1/maps/{target}/localize");
     let http_latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
@@ -545,6 +573,11 @@ fn main() {
     }
     println!();
     println!("decode + HOG alone, no store: {lib_ingest:.0} images/s");
+    println!(
+        "HTTP localize: the clients used {client_cpu:.2} s of CPU in {localize_secs:.2} s on \
+         {threads} threads ({:.1} % of the machine)",
+        100.0 * client_cpu / (localize_secs * threads as f64)
+    );
     println!(
         "one localize of {BATCH} images at a time, median of {LATENCY_REQUESTS}: use cases \
          {uc_latency:.2} ms, HTTP {http_latency:.2} ms ({:+.1} %), HTTP with a new connection \
