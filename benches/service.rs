@@ -294,49 +294,65 @@ fn parts(images: &[Vec<u8>]) -> Vec<Part> {
         .collect()
 }
 
-fn main() {
-    // `cargo bench` passes `--bench`; any filter argument is ignored.
-    let rounds: usize = std::env::var("SEASONLOC_BENCH_ROUNDS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(2);
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let (refs, queries, source) = images();
+/// The workload: reference and query images in batches, `rounds` passes, `threads` CPUs.
+struct Workload {
+    refs: Vec<Vec<u8>>,
+    queries: Vec<Vec<u8>>,
+    rounds: usize,
+    threads: usize,
+}
+
+impl Workload {
+    fn ingest_batches(&self) -> Vec<&[Vec<u8>]> {
+        self.refs.chunks(BATCH).collect()
+    }
+
+    fn query_batches(&self) -> Vec<&[Vec<u8>]> {
+        self.queries.chunks(BATCH).collect()
+    }
+
+    /// Images per second when `rounds` passes over `images` took `secs`.
+    fn rate(&self, images: &[Vec<u8>], secs: f64) -> f64 {
+        (self.rounds * images.len()) as f64 / secs
+    }
+}
+
+/// Images per second of one column.
+struct Rates {
+    ingest: f64,
+    localize: f64,
+}
+
+/// The algorithms alone, batch after batch on a rayon pool: ingest without and with the
+/// store's flushed append, and localize.
+fn algorithms_alone(w: &Workload) -> (f64, Rates) {
     let spec = HogSpec::new(HogOptions {
         cell_size: CELL,
         resize: None,
     })
     .expect("hog");
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
+        .num_threads(w.threads)
         .build()
         .expect("pool");
-
-    // Library: the same batches, one after another, each extracted in parallel.
-    let ingest_batches: Vec<&[Vec<u8>]> = refs.chunks(BATCH).collect();
     let extract = |set: &[Vec<u8>]| {
         let imgs: Vec<_> = set
             .iter()
             .map(|b| decode_image("x", b, u64::MAX).expect("decode"))
             .collect();
-        extract_batch(&spec, &imgs).expect("extract")
+        pool.install(|| extract_batch(&spec, &imgs).expect("extract"))
     };
     let t = Instant::now();
-    let mut n = 0;
-    for _ in 0..rounds {
-        for b in &ingest_batches {
-            let m = pool.install(|| extract(b));
-            n += m.rows();
+    for _ in 0..w.rounds {
+        for b in w.ingest_batches() {
+            extract(b);
         }
     }
-    let lib_ingest = n as f64 / t.elapsed().as_secs_f64();
-    // The same plus the store's atomic, flushed append of each batch: what the service does
-    // besides HTTP.
+    let no_store = w.rate(&w.refs, t.elapsed().as_secs_f64());
     let store_dir = tempfile::tempdir().expect("tempdir");
     let store = seasonloc::store::SledStore::open(store_dir.path()).expect("store");
     let t = Instant::now();
-    let mut n = 0;
-    for _ in 0..rounds {
+    for _ in 0..w.rounds {
         let map = store
             .create_map(seasonloc::store::NewMap {
                 id: seasonloc::app::new_id().expect("an id"),
@@ -348,36 +364,35 @@ fn main() {
                 idempotency: None,
             })
             .expect("map");
-        for b in &ingest_batches {
-            let m = pool.install(|| extract(b));
-            let rows = m.rows();
-            let metas = vec![seasonloc::store::ImageMeta::default(); rows];
+        for b in w.ingest_batches() {
+            let m = extract(b);
+            let metas = vec![seasonloc::store::ImageMeta::default(); m.rows()];
             let batch =
                 seasonloc::store::ImageBatch::new(map.id, m, metas).expect("one meta per row");
             store.append_images(&batch).expect("append");
-            n += rows;
         }
     }
-    let lib_store_ingest = n as f64 / t.elapsed().as_secs_f64();
-    drop(store);
-    let reference = pool.install(|| extract(&refs));
-    let query_batches: Vec<&[Vec<u8>]> = queries.chunks(BATCH).collect();
+    let ingest = w.rate(&w.refs, t.elapsed().as_secs_f64());
+    let reference = extract(&w.refs);
     let t = Instant::now();
-    let mut n = 0;
-    for _ in 0..rounds {
-        for b in &query_batches {
-            let q = pool.install(|| extract(b));
+    for _ in 0..w.rounds {
+        for b in w.query_batches() {
+            let q = extract(b);
             pool.install(|| localize(&q, &reference, &options()))
                 .expect("localize");
-            n += q.rows();
         }
     }
-    let lib_localize = n as f64 / t.elapsed().as_secs_f64();
+    let localize = w.rate(&w.queries, t.elapsed().as_secs_f64());
+    (no_store, Rates { ingest, localize })
+}
 
-    // Use cases: the same requests in process, 8 concurrent tasks, each appending to its own
-    // map, then localizing against a map holding the references once.
-    let uc_dir = tempfile::tempdir().expect("tempdir");
-    let app = Arc::new(use_cases(uc_dir.path(), threads));
+/// The use cases in process: `CLIENTS` concurrent tasks, each appending to its own map, then
+/// localizing against a map holding the references once; and the median latency of one
+/// localize at a time.
+fn use_case_rates(w: &Workload) -> (Rates, f64) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let app = Arc::new(use_cases(dir.path(), w.threads));
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
     let hog = || NewMapSpec {
         name: "m".into(),
         descriptor: DescriptorSpec::Settings(seasonloc::store::DescriptorSettings::Hog {
@@ -385,116 +400,124 @@ fn main() {
             resize: None,
         }),
     };
-    let rt = tokio::runtime::Runtime::new().expect("runtime");
-    let uc_maps: Vec<_> = (0..=CLIENTS)
-        .map(|_| rt.block_on(app.create_map(hog())).expect("map"))
-        .collect();
-    let uc_ingest: Arc<Vec<Vec<ImageInput>>> =
-        Arc::new(ingest_batches.iter().map(|b| inputs(b)).collect());
-    let uc_target = uc_maps[CLIENTS].clone();
-    for b in uc_ingest.iter() {
-        let metas = vec![seasonloc::store::ImageMeta::default(); b.len()];
-        rt.block_on(app.append_images(uc_target.clone(), b.clone(), metas))
+    let maps: Arc<Vec<u64>> = Arc::new(
+        (0..=CLIENTS)
+            .map(|_| rt.block_on(app.create_map(hog())).expect("map").id)
+            .collect(),
+    );
+    // Fetched per request, as the API does (the map's image count moves).
+    let append = |app: Arc<App>, map: u64, batch: Vec<ImageInput>| async move {
+        let metas = vec![seasonloc::store::ImageMeta::default(); batch.len()];
+        let target = app.map_for_images(map).await.expect("map");
+        app.append_images(target, batch, metas)
+            .await
             .expect("append");
+    };
+    let batches: Arc<Vec<Vec<ImageInput>>> =
+        Arc::new(w.ingest_batches().into_iter().map(inputs).collect());
+    let target = maps[CLIENTS];
+    for b in batches.iter() {
+        rt.block_on(append(Arc::clone(&app), target, b.clone()));
     }
-    drop(rt);
-    let uc_maps = Arc::new(uc_maps);
     let secs = {
-        let (app, maps, batches) = (
-            Arc::clone(&app),
-            Arc::clone(&uc_maps),
-            Arc::clone(&uc_ingest),
-        );
-        concurrently(CLIENTS, rounds * batches.len(), move |k, j| {
-            let (app, maps, batches) = (Arc::clone(&app), Arc::clone(&maps), Arc::clone(&batches));
-            async move {
-                let b = batches[j % batches.len()].clone();
-                let metas = vec![seasonloc::store::ImageMeta::default(); b.len()];
-                // Fetched per request, as the API does (the map's image count moves).
-                let map = app.map_for_images(maps[k].id).await.expect("map");
-                app.append_images(map, b, metas).await.expect("append");
-            }
+        let (app, maps, batches) = (Arc::clone(&app), Arc::clone(&maps), Arc::clone(&batches));
+        concurrently(CLIENTS, w.rounds * batches.len(), move |k, j| {
+            append(
+                Arc::clone(&app),
+                maps[k],
+                batches[j % batches.len()].clone(),
+            )
         })
     };
-    let uc_ingest_rate = (rounds * refs.len()) as f64 / secs;
-    let uc_queries: Arc<Vec<Vec<ImageInput>>> =
-        Arc::new(query_batches.iter().map(|b| inputs(b)).collect());
+    let ingest = w.rate(&w.refs, secs);
+    let queries: Arc<Vec<Vec<ImageInput>>> =
+        Arc::new(w.query_batches().into_iter().map(inputs).collect());
+    let request = move |j: usize| LocalizeInput {
+        queries: Queries::Images(queries[j % queries.len()].clone()),
+        options: options(),
+        method: None,
+    };
+    let batches = w.query_batches().len();
     let secs = {
-        let (app, target, batches) = (Arc::clone(&app), uc_target.id, Arc::clone(&uc_queries));
-        concurrently(CLIENTS, rounds * batches.len(), move |_, j| {
-            let (app, batches) = (Arc::clone(&app), Arc::clone(&batches));
+        let (app, request) = (Arc::clone(&app), request.clone());
+        concurrently(CLIENTS, w.rounds * batches, move |_, j| {
+            let (app, input) = (Arc::clone(&app), request(j));
             async move {
-                let input = LocalizeInput {
-                    queries: Queries::Images(batches[j % batches.len()].clone()),
-                    options: options(),
-                    method: None,
-                };
                 app.localize(target, input).await.expect("localize");
             }
         })
     };
-    let uc_localize_rate = (rounds * queries.len()) as f64 / secs;
-    // One request at a time: the latency of each, nothing else running.
-    let rt = tokio::runtime::Runtime::new().expect("runtime");
-    let uc_latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
-        let input = LocalizeInput {
-            queries: Queries::Images(uc_queries[j % uc_queries.len()].clone()),
-            options: options(),
-            method: None,
-        };
+    let localize = w.rate(&w.queries, secs);
+    let latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
+        let input = request(j);
         let t = Instant::now();
-        rt.block_on(app.localize(uc_target.id, input))
-            .expect("localize");
+        rt.block_on(app.localize(target, input)).expect("localize");
         t.elapsed()
     }));
-    drop(rt);
-    drop(app);
+    (Rates { ingest, localize }, latency)
+}
 
-    // HTTP: 8 clients, each uploading batches to its own map, then localizing batches.
-    let (client, stop, handle, _dir) = start_server(threads);
-    let maps: Vec<String> = (0..CLIENTS)
-        .map(|k| {
-            let r = client.post_json("/v1/maps", &serde_json::json!({"name": format!("m{k}"), "descriptor": {"kind": "hog", "cell_size": CELL}}));
-            r.json()["id"].as_str().expect("id").to_string()
-        })
-        .collect();
-    let bodies: Vec<Vec<u8>> = ingest_batches
+/// What the HTTP run measured besides its rates.
+struct HttpRun {
+    rates: Rates,
+    /// Median latency of one localize at a time, on a kept connection and on a new one.
+    latency: f64,
+    latency_close: f64,
+    /// CPU seconds the clients used during the localize phase, and its length.
+    client_cpu: f64,
+    localize_secs: f64,
+}
+
+/// The running service: `CLIENTS` client threads on kept connections, each uploading batches
+/// to its own map, then localizing batches; then one localize at a time.
+fn over_http(w: &Workload) -> HttpRun {
+    let (client, stop, handle, _dir) = start_server(w.threads);
+    let new_map = |name: &str| -> String {
+        let r = client.post_json(
+            "/v1/maps",
+            &serde_json::json!({"name": name, "descriptor": {"kind": "hog", "cell_size": CELL}}),
+        );
+        r.json()["id"].as_str().expect("id").to_string()
+    };
+    let maps: Vec<String> = (0..CLIENTS).map(|k| new_map(&format!("m{k}"))).collect();
+    let bodies: Vec<Vec<u8>> = w
+        .ingest_batches()
         .iter()
         .map(|b| http::multipart_body(&parts(b)))
         .collect();
     let ct = format!("multipart/form-data; boundary={}", http::BOUNDARY);
+    // Each client posts every `CLIENTS`-th batch of `rounds` passes to `path(k)`; the CPU
+    // seconds the clients used.
+    let run = |path: &dyn Fn(usize) -> String, bodies: &[Vec<u8>]| -> f64 {
+        let cpu = std::sync::Mutex::new(0.0f64);
+        std::thread::scope(|s| {
+            for k in 0..CLIENTS {
+                let (path, cpu, ct) = (path(k), &cpu, &ct);
+                s.spawn(move || {
+                    let start = thread_cpu_secs();
+                    let mut conn = KeepAlive::connect(client.addr);
+                    for j in (k..w.rounds * bodies.len()).step_by(CLIENTS) {
+                        let (status, body) = conn.post(&path, ct, &bodies[j % bodies.len()]);
+                        assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+                    }
+                    *cpu.lock().expect("a sum") += thread_cpu_secs() - start;
+                });
+            }
+        });
+        cpu.into_inner().expect("a sum")
+    };
     let t = Instant::now();
-    // The batches of `rounds` passes over the references, spread over the clients.
-    let jobs: Vec<usize> = (0..rounds * bodies.len()).collect();
-    std::thread::scope(|s| {
-        for k in 0..CLIENTS {
-            let (jobs, bodies, maps, ct) = (&jobs, &bodies, &maps, &ct);
-            s.spawn(move || {
-                let mut conn = KeepAlive::connect(client.addr);
-                let path = format!("/v1/maps/{}/images", maps[k]);
-                for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let (status, body) = conn.post(&path, ct, &bodies[j % bodies.len()]);
-                    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
-                }
-            });
-        }
-    });
-    let http_ingest = (rounds * refs.len()) as f64 / t.elapsed().as_secs_f64();
+    run(&|k| format!("/v1/maps/{}/images", maps[k]), &bodies);
+    let ingest = w.rate(&w.refs, t.elapsed().as_secs_f64());
     // A map holding the references exactly once, to localize against.
-    let target = client.post_json("/v1/maps", &serde_json::json!({"name": "target", "descriptor": {"kind": "hog", "cell_size": CELL}})).json()["id"]
-        .as_str()
-        .expect("id")
-        .to_string();
+    let target = new_map("target");
     for b in &bodies {
-        assert_eq!(
-            client
-                .request("POST", &format!("/v1/maps/{target}/images"), Some(&ct), b)
-                .status,
-            200
-        );
+        let r = client.request("POST", &format!("/v1/maps/{target}/images"), Some(&ct), b);
+        assert_eq!(r.status, 200);
     }
     let params = Part::json("params", &serde_json::json!({"hidden_cost": 1.3}));
-    let qbodies: Vec<Vec<u8>> = query_batches
+    let qbodies: Vec<Vec<u8>> = w
+        .query_batches()
         .iter()
         .map(|b| {
             let mut p = parts(b);
@@ -507,39 +530,20 @@ fn main() {
             http::multipart_body(&p)
         })
         .collect();
-    let jobs: Vec<usize> = (0..rounds * qbodies.len()).collect();
-    // CPU seconds the 8 HTTP clients use themselves (they share the server's cores).
-    let client_cpu = std::sync::Mutex::new(0.0f64);
-    let t = Instant::now();
-    std::thread::scope(|s| {
-        for k in 0..CLIENTS {
-            let (jobs, qbodies, target, ct) = (&jobs, &qbodies, &target, &ct);
-            let client_cpu = &client_cpu;
-            s.spawn(move || {
-                let cpu = thread_cpu_secs();
-                let mut conn = KeepAlive::connect(client.addr);
-                let path = format!("/v1/maps/{target}/localize");
-                for j in jobs.iter().skip(k).step_by(CLIENTS) {
-                    let (status, body) = conn.post(&path, ct, &qbodies[j % qbodies.len()]);
-                    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
-                }
-                *client_cpu.lock().expect("a sum") += thread_cpu_secs() - cpu;
-            });
-        }
-    });
-    let localize_secs = t.elapsed().as_secs_f64();
-    let http_localize = (rounds * queries.len()) as f64 / localize_secs;
-    let client_cpu = *client_cpu.lock().expect("a sum");
-    let mut conn = KeepAlive::connect(client.addr);
     let path = format!("/v1/maps/{target}/localize");
-    let http_latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
+    let t = Instant::now();
+    let client_cpu = run(&|_| path.clone(), &qbodies);
+    let localize_secs = t.elapsed().as_secs_f64();
+    let localize = w.rate(&w.queries, localize_secs);
+    let mut conn = KeepAlive::connect(client.addr);
+    let latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
         let t = Instant::now();
         let (status, body) = conn.post(&path, &ct, &qbodies[j % qbodies.len()]);
         assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
         t.elapsed()
     }));
     // The same through a new connection per request (`Connection: close`).
-    let http_latency_close = median_ms((0..LATENCY_REQUESTS).map(|j| {
+    let latency_close = median_ms((0..LATENCY_REQUESTS).map(|j| {
         let t = Instant::now();
         let r = client.request("POST", &path, Some(&ct), &qbodies[j % qbodies.len()]);
         assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
@@ -547,23 +551,49 @@ fn main() {
     }));
     let _ = stop.send(());
     handle.join().expect("server thread");
+    HttpRun {
+        rates: Rates { ingest, localize },
+        latency,
+        latency_close,
+        client_cpu,
+        localize_secs,
+    }
+}
 
-    println!("service benchmark: {source}, {} references, {} queries, batches of {BATCH}, {rounds} rounds, {CLIENTS} HTTP clients, {threads} CPU threads, HOG {CELL} px", refs.len(), queries.len());
+fn main() {
+    // `cargo bench` passes `--bench`; any filter argument is ignored.
+    let rounds: usize = std::env::var("SEASONLOC_BENCH_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let (refs, queries, source) = images();
+    let w = Workload {
+        refs,
+        queries,
+        rounds,
+        threads,
+    };
+    let (no_store, lib) = algorithms_alone(&w);
+    let (uc, uc_latency) = use_case_rates(&w);
+    let web = over_http(&w);
+
+    println!("service benchmark: {source}, {} references, {} queries, batches of {BATCH}, {rounds} rounds, {CLIENTS} HTTP clients, {threads} CPU threads, HOG {CELL} px", w.refs.len(), w.queries.len());
     println!();
     println!("| path | algorithms alone (images/s) | use cases, {CLIENTS} tasks (images/s) | HTTP, {CLIENTS} clients (images/s) | HTTP overhead over the use cases |");
     println!("| --- | --- | --- | --- | --- |");
     for (what, lib, uc, web) in [
         (
             "ingest (algorithms alone: decode + HOG + flushed store append)",
-            lib_store_ingest,
-            uc_ingest_rate,
-            http_ingest,
+            lib.ingest,
+            uc.ingest,
+            web.rates.ingest,
         ),
         (
             "localize (algorithms alone: decode + HOG + similarity + solve + confidences)",
-            lib_localize,
-            uc_localize_rate,
-            http_localize,
+            lib.localize,
+            uc.localize,
+            web.rates.localize,
         ),
     ] {
         println!(
@@ -572,17 +602,21 @@ fn main() {
         );
     }
     println!();
-    println!("decode + HOG alone, no store: {lib_ingest:.0} images/s");
+    println!("decode + HOG alone, no store: {no_store:.0} images/s");
     println!(
-        "HTTP localize: the clients used {client_cpu:.2} s of CPU in {localize_secs:.2} s on \
-         {threads} threads ({:.1} % of the machine)",
-        100.0 * client_cpu / (localize_secs * threads as f64)
+        "HTTP localize: the clients used {:.2} s of CPU in {:.2} s on {threads} threads ({:.1} % \
+         of the machine)",
+        web.client_cpu,
+        web.localize_secs,
+        100.0 * web.client_cpu / (web.localize_secs * threads as f64)
     );
     println!(
         "one localize of {BATCH} images at a time, median of {LATENCY_REQUESTS}: use cases \
-         {uc_latency:.2} ms, HTTP {http_latency:.2} ms ({:+.1} %), HTTP with a new connection \
-         per request {http_latency_close:.2} ms ({:+.1} %)",
-        (http_latency / uc_latency - 1.0) * 100.0,
-        (http_latency_close / uc_latency - 1.0) * 100.0
+         {uc_latency:.2} ms, HTTP {:.2} ms ({:+.1} %), HTTP with a new connection per request \
+         {:.2} ms ({:+.1} %)",
+        web.latency,
+        (web.latency / uc_latency - 1.0) * 100.0,
+        web.latency_close,
+        (web.latency_close / uc_latency - 1.0) * 100.0
     );
 }
