@@ -1,7 +1,8 @@
 //! Two `App`s over one real store: two replicas of the service sharing one database, in one
 //! process. What a shared engine must make true is checked on both engines (each test runs
 //! once on sled and once on PostgreSQL, see [`on_both_engines`]): caches follow the store's
-//! versions, and batches of one trip apply one at a time wherever they arrive.
+//! versions, and batches of one trip apply one at a time wherever they arrive. Also on both
+//! engines: a localization gives its CPU turn back before its result is written.
 
 use std::io::Cursor;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
