@@ -34,8 +34,9 @@
 //! its distance to the scored row instead of the box window's 1 inside / 0 outside. It is one
 //! forward and one backward pass for all rows (`O(Q·D)` in total instead of `(2L+1)·Q·D`), and it
 //! has no window edge: evidence fades with distance instead of stopping at `L`. Measured effect
-//! and held-out results: ARCHITECTURE.md ("Confidence"). Trips keep the box window in its causal
-//! form (the scored frame last, [`window_ratio`]), [`ConfidenceParams::window`].
+//! and held-out results: ARCHITECTURE.md ("Confidence"). Trips score with the discounted ratio
+//! in its causal form (`trip/confidence.rs`); the box window ([`window_readout`]) stays
+//! selectable, [`ConfidenceParams::window`].
 
 use rayon::prelude::*;
 
@@ -238,26 +239,15 @@ fn local_readout(
 /// at the row beats every one through the band (see [`RowConfidence`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WindowReading {
-    /// `outside / inside` ([`window_ratio`]).
+    /// `outside / inside` ([`window_readout`]).
     pub confidence: f64,
     /// `hidden < inside` ([`RowConfidence::off_map`]).
     pub off_map: bool,
 }
 
 /// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
-/// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end).
-/// Trips use it with the scored row last (a causal window: only frames seen so far).
-pub fn window_ratio(
-    rows: &[&[f32]],
-    scored: usize,
-    graph: &GraphParams,
-    radius: usize,
-    j_star: usize,
-) -> f64 {
-    window_readout(rows, scored, graph, radius, j_star).confidence
-}
-
-/// [`window_ratio`] and the off-the-map test of the same window ([`WindowReading`]).
+/// to `rows` (consecutive `ĉ` rows, all of the same length, free start and free end), and the
+/// off-the-map test of the same window ([`WindowReading`]).
 ///
 /// The forward rows use the solver's row kernel ([`crate::solver`], same operations as the
 /// shortest path); the backward rows are plain right-to-left passes over precomputed costs.

@@ -1,6 +1,6 @@
 //! The discounted min-marginal ratio: the local ratio of [`super`] in `O(Q·D)` total.
 //!
-//! The box window of [`super::window_ratio`] (rows `i-L ..= i+L`, free ends) has to be solved
+//! The box window of [`super::window_readout`] (rows `i-L ..= i+L`, free ends) has to be solved
 //! anew for every scored row: `(2L+1)·D` work per row. Weighting the rows of a route by
 //! `g^|t-i|` instead (`0 < g < 1`) keeps the same meaning — evidence near row `i` counts, far
 //! evidence fades — but decomposes: with `FX_i`, `FH_i` the cheapest *discounted* path from the
@@ -76,6 +76,7 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> Reading {
         off_map: view.hidden < row.band(at, ro.radius).0,
     }
 }
+
 /// The values of one row a readout looks at: `m(x_ij)` of the columns `lo ..` and the best
 /// route through any other column or a hidden node.
 struct Near<'a> {
