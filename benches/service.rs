@@ -22,9 +22,7 @@ use std::time::Instant;
 use std::sync::Arc;
 
 use http::{Client, Part};
-use seasonloc::app::{
-    App, AppConfig, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries,
-};
+use seasonloc::app::{App, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries};
 use seasonloc::config::{ServeArgs, Settings};
 use seasonloc::features::hog::{HogOptions, HogSpec};
 use seasonloc::features::{decode_image, extract_batch};
@@ -226,20 +224,7 @@ fn settings(dir: &Path, threads: usize) -> Settings {
 fn use_cases(dir: &Path, threads: usize) -> App {
     let s = settings(dir, threads);
     let store = seasonloc::store::SledStore::open(&s.data_dir).expect("store");
-    App::new(
-        Arc::new(store),
-        AppConfig {
-            worker_threads: s.worker_threads,
-            max_image_pixels: s.max_image_pixels,
-            default_cnn_model: None,
-            max_descriptor_len: s.max_descriptor_len,
-            models: seasonloc::app::ModelPolicy {
-                dir: None,
-                max_bytes: s.max_model_bytes,
-            },
-        },
-    )
-    .expect("use cases")
+    App::new(Arc::new(store), seasonloc::service::app_config(&s)).expect("use cases")
 }
 
 /// The parts of a batch as the API hands them to the use cases.

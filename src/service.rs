@@ -53,6 +53,20 @@ pub fn init_tracing() {
         .try_init();
 }
 
+/// The use-case layer's settings from the service's.
+pub fn app_config(settings: &Settings) -> AppConfig {
+    AppConfig {
+        worker_threads: settings.worker_threads,
+        max_image_pixels: settings.max_image_pixels,
+        default_cnn_model: settings.default_cnn_model.clone(),
+        max_descriptor_len: settings.max_descriptor_len,
+        models: crate::app::ModelPolicy {
+            dir: settings.model_dir.clone(),
+            max_bytes: settings.max_model_bytes,
+        },
+    }
+}
+
 /// Serves on `listener` until `shutdown` completes, then drains and flushes the store.
 pub async fn serve(
     settings: Settings,
@@ -77,19 +91,7 @@ pub async fn serve(
         }
     };
     let drain = settings.shutdown_timeout;
-    let use_cases = Arc::new(App::new(
-        store,
-        AppConfig {
-            worker_threads: settings.worker_threads,
-            max_image_pixels: settings.max_image_pixels,
-            default_cnn_model: settings.default_cnn_model.clone(),
-            max_descriptor_len: settings.max_descriptor_len,
-            models: crate::app::ModelPolicy {
-                dir: settings.model_dir.clone(),
-                max_bytes: settings.max_model_bytes,
-            },
-        },
-    )?);
+    let use_cases = Arc::new(App::new(store, app_config(&settings))?);
     let state = AppState::new(Arc::clone(&use_cases), settings, auth)?;
     match &state.auth {
         Some(auth) => {
