@@ -10,6 +10,9 @@
 //! everything a request asks for (reference thumbnails, the store's flushed write, storing the
 //! localization result), so the difference is HTTP itself (connections, multipart parsing,
 //! routing, admission, JSON). The algorithms-alone column shows what the use cases add.
+//! Besides the rates it prints the server's CPU time per localized image in both paths (is
+//! HTTP's extra time CPU, or waiting?) and the latency of one localize at a time for batches of
+//! 1 to 50 images (what HTTP adds per request and per uploaded image).
 
 #[path = "../tests/service/http.rs"]
 #[allow(dead_code)]
@@ -32,8 +35,11 @@ use seasonloc::solver::{HiddenCost, SolverParams};
 const CLIENTS: usize = 8;
 const BATCH: usize = 50;
 const CELL: u32 = 8;
-/// Requests of the one-at-a-time latency measurement.
+/// Requests of the one-at-a-time latency measurement, per batch size.
 const LATENCY_REQUESTS: usize = 64;
+/// Batch sizes of the one-at-a-time latency measurement: what HTTP adds per request and per
+/// image (the body grows with the batch).
+const LATENCY_SIZES: [usize; 4] = [1, 10, 25, BATCH];
 
 /// The median of `times` in milliseconds.
 fn median_ms(times: impl Iterator<Item = std::time::Duration>) -> f64 {
@@ -188,7 +194,17 @@ impl KeepAlive {
 
 /// CPU seconds the calling thread has used (user + system, Linux `/proc`; 0 elsewhere).
 fn thread_cpu_secs() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else {
+    cpu_secs("/proc/thread-self/stat")
+}
+
+/// CPU seconds the whole process has used (every thread; user + system).
+fn process_cpu_secs() -> f64 {
+    cpu_secs("/proc/self/stat")
+}
+
+/// utime + stime of a `/proc` `stat` file, in seconds; 0 when it cannot be read.
+fn cpu_secs(path: &str) -> f64 {
+    let Ok(stat) = std::fs::read_to_string(path) else {
         return 0.0;
     };
     // Fields after the command name (which ends with the last ')'): utime and stime are the
@@ -372,9 +388,10 @@ fn algorithms_alone(w: &Workload) -> (f64, Rates) {
 }
 
 /// The use cases in process: `CLIENTS` concurrent tasks, each appending to its own map, then
-/// localizing against a map holding the references once; and the median latency of one
-/// localize at a time.
-fn use_case_rates(w: &Workload) -> (Rates, f64) {
+/// localizing against a map holding the references once. Returns the rates, the median
+/// latency of one localize at a time (ms) for each of [`LATENCY_SIZES`], and the CPU time per
+/// localized image (ms, every thread of the process).
+fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     let dir = tempfile::tempdir().expect("tempdir");
     let app = Arc::new(use_cases(dir.path(), w.threads));
     let rt = tokio::runtime::Runtime::new().expect("runtime");
@@ -423,6 +440,7 @@ fn use_case_rates(w: &Workload) -> (Rates, f64) {
         method: None,
     };
     let batches = w.query_batches().len();
+    let cpu = process_cpu_secs();
     let secs = {
         let (app, request) = (Arc::clone(&app), request.clone());
         concurrently(CLIENTS, w.rounds * batches, move |_, j| {
@@ -432,25 +450,38 @@ fn use_case_rates(w: &Workload) -> (Rates, f64) {
             }
         })
     };
+    let cpu = process_cpu_secs() - cpu;
     let localize = w.rate(&w.queries, secs);
-    let latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
-        let input = request(j);
-        let t = Instant::now();
-        rt.block_on(app.localize(target, input)).expect("localize");
-        t.elapsed()
-    }));
-    (Rates { ingest, localize }, latency)
+    let localize_cpu = 1e3 * cpu / (w.rounds * w.queries.len()) as f64;
+    let latency = LATENCY_SIZES
+        .iter()
+        .map(|&k| {
+            median_ms((0..LATENCY_REQUESTS).map(|j| {
+                let mut input = request(j);
+                if let Queries::Images(images) = &mut input.queries {
+                    images.truncate(k);
+                }
+                let t = Instant::now();
+                rt.block_on(app.localize(target, input)).expect("localize");
+                t.elapsed()
+            }))
+        })
+        .collect();
+    (Rates { ingest, localize }, latency, localize_cpu)
 }
 
 /// What the HTTP run measured besides its rates.
 struct HttpRun {
     rates: Rates,
-    /// Median latency of one localize at a time, on a kept connection and on a new one.
-    latency: f64,
+    /// Median latency of one localize at a time on a kept connection, for each of
+    /// [`LATENCY_SIZES`], and of a full batch on a new connection.
+    latency: Vec<f64>,
     latency_close: f64,
     /// CPU seconds the clients used during the localize phase, and its length.
     client_cpu: f64,
     localize_secs: f64,
+    /// The server's CPU time per localized image (ms; the process's less the clients').
+    localize_cpu: f64,
 }
 
 /// The running service: `CLIENTS` client threads on kept connections, each uploading batches
@@ -501,32 +532,42 @@ fn over_http(w: &Workload) -> HttpRun {
         assert_eq!(r.status, 200);
     }
     let params = Part::json("params", &serde_json::json!({"hidden_cost": 1.3}));
-    let qbodies: Vec<Vec<u8>> = w
-        .query_batches()
-        .iter()
-        .map(|b| {
-            let mut p = parts(b);
-            p.push(Part {
-                name: params.name.clone(),
-                file_name: None,
-                content_type: params.content_type.clone(),
-                bytes: params.bytes.clone(),
-            });
-            http::multipart_body(&p)
-        })
-        .collect();
+    let query_bodies = |k: usize| -> Vec<Vec<u8>> {
+        w.query_batches()
+            .iter()
+            .map(|b| {
+                let mut p = parts(&b[..k.min(b.len())]);
+                p.push(Part {
+                    name: params.name.clone(),
+                    file_name: None,
+                    content_type: params.content_type.clone(),
+                    bytes: params.bytes.clone(),
+                });
+                http::multipart_body(&p)
+            })
+            .collect()
+    };
+    let qbodies = query_bodies(BATCH);
     let path = format!("/v1/maps/{target}/localize");
-    let t = Instant::now();
+    let (t, cpu) = (Instant::now(), process_cpu_secs());
     let client_cpu = run(&|_| path.clone(), &qbodies);
     let localize_secs = t.elapsed().as_secs_f64();
+    let server_cpu = process_cpu_secs() - cpu - client_cpu;
+    let localize_cpu = 1e3 * server_cpu / (w.rounds * w.queries.len()) as f64;
     let localize = w.rate(&w.queries, localize_secs);
     let mut conn = KeepAlive::connect(client.addr);
-    let latency = median_ms((0..LATENCY_REQUESTS).map(|j| {
-        let t = Instant::now();
-        let (status, body) = conn.post(&path, &ct, &qbodies[j % qbodies.len()]);
-        assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
-        t.elapsed()
-    }));
+    let latency = LATENCY_SIZES
+        .iter()
+        .map(|&k| {
+            let bodies = query_bodies(k);
+            median_ms((0..LATENCY_REQUESTS).map(|j| {
+                let t = Instant::now();
+                let (status, body) = conn.post(&path, &ct, &bodies[j % bodies.len()]);
+                assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+                t.elapsed()
+            }))
+        })
+        .collect();
     // The same through a new connection per request (`Connection: close`).
     let latency_close = median_ms((0..LATENCY_REQUESTS).map(|j| {
         let t = Instant::now();
@@ -542,6 +583,7 @@ fn over_http(w: &Workload) -> HttpRun {
         latency_close,
         client_cpu,
         localize_secs,
+        localize_cpu,
     }
 }
 
@@ -560,7 +602,7 @@ fn main() {
         threads,
     };
     let (no_store, lib) = algorithms_alone(&w);
-    let (uc, uc_latency) = use_case_rates(&w);
+    let (uc, uc_latency, uc_cpu) = use_case_rates(&w);
     let web = over_http(&w);
 
     println!("service benchmark: {source}, {} references, {} queries, batches of {BATCH}, {rounds} rounds, {CLIENTS} HTTP clients, {threads} CPU threads, HOG {CELL} px", w.refs.len(), w.queries.len());
@@ -596,12 +638,21 @@ fn main() {
         100.0 * web.client_cpu / (web.localize_secs * threads as f64)
     );
     println!(
-        "one localize of {BATCH} images at a time, median of {LATENCY_REQUESTS}: use cases \
-         {uc_latency:.2} ms, HTTP {:.2} ms ({:+.1} %), HTTP with a new connection per request \
-         {:.2} ms ({:+.1} %)",
-        web.latency,
-        (web.latency / uc_latency - 1.0) * 100.0,
-        web.latency_close,
-        (web.latency_close / uc_latency - 1.0) * 100.0
+        "CPU time per localized image: use cases {uc_cpu:.3} ms, HTTP server {:.3} ms ({:+.1} %)",
+        web.localize_cpu,
+        (web.localize_cpu / uc_cpu - 1.0) * 100.0
+    );
+    println!();
+    println!(
+        "one localize at a time, median of {LATENCY_REQUESTS} (ms; HTTP on a kept connection):"
+    );
+    println!("| images | use cases | HTTP | HTTP - use cases |");
+    println!("| --- | --- | --- | --- |");
+    for ((k, u), h) in LATENCY_SIZES.iter().zip(&uc_latency).zip(&web.latency) {
+        println!("| {k} | {u:.3} | {h:.3} | {:+.3} |", h - u);
+    }
+    println!(
+        "{BATCH} images with a new connection per request: HTTP {:.3} ms",
+        web.latency_close
     );
 }
