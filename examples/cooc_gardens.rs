@@ -6,7 +6,11 @@
 //! (`CoocMap::trip_rows`, default trip parameters), scored at arrival and after the lag window.
 //! Each fused map also prints the `pooled (...)` lines: the three methods with the sources pooled
 //! by maximum-ratio combining (`support/pooled_fusion.rs`; `docs/cooc.md`, session 10), the
-//! alternative measured against the shipped most-decisive-source rule and not adopted.
+//! alternative measured against the shipped most-decisive-source rule and not adopted; and the
+//! `decisiveness floor (...)` lines: the shipped rule with the decisiveness's spread floor of 1
+//! (`None`, reproducing the table row), without a floor (`Some(0)`, a plain z-score) and with a
+//! floor of one correspondence in normalised units (`Some(1)`), with the rows' off-peak spread
+//! (`docs/cooc.md`, session 12).
 //!
 //! Settings are given as `key=value` arguments (unset = the library default): `upsample`,
 //! `max_width`, `kp` (max keypoints), `nms`, `cell`, `octaves`, `branching`, `depth`, `grid`
@@ -305,6 +309,15 @@ fn run(
         if map.locations().sources() > 1 {
             // Session 10: the sources pooled by maximum-ratio combining instead of one source
             // per query window, for three signal-to-noise estimates.
+            // Session 12: the decisiveness's spread floor in the units of the normalised rows.
+            for floor in [None, Some(0), Some(1)] {
+                let f = pooled_fusion::floored_aps(&map, &queries, &options, floor, &gt, n);
+                println!(
+                    "  decisiveness floor {floor:?}: cooc / cooc-seq / cooc-flow AP {:.3} / {:.3} / {:.3}, sources chosen {:?} (cooc) / {:?} (window); off-peak spread 5 % / median / 95 % / max {:.3} / {:.3} / {:.3} / {:.3}",
+                    f.aps[0], f.aps[1], f.aps[2], f.chosen_single, f.chosen_window,
+                    f.spread[0], f.spread[1], f.spread[2], f.spread[3]
+                );
+            }
             for weight in [
                 PoolWeight::Margin,
                 PoolWeight::Decisiveness,

@@ -3,7 +3,8 @@
 //! of each query window taking the rows of its most decisive source
 //! (`seasonloc::cooc::fused_similarity`), every source's standardised row is combined with the
 //! others, weighted by its signal-to-noise estimate (maximum-ratio combining). Kept here so the
-//! session's table can be reproduced.
+//! session's table can be reproduced. Session 12's variant of the shipped rule (the
+//! decisiveness's spread floor, [`floored_aps`]) is here for the same reason.
 
 use seasonloc::cooc::{
     best_per_query, check_sources, normalise_sources, off_peak_noise, row_peak, source_order,
@@ -232,4 +233,158 @@ pub fn pooled_aps(
             .expect("metrics")
             .ap
     })
+}
+
+/// What [`floored_aps`] measured on one fused map.
+pub struct Floored {
+    /// AP of `cooc`, `cooc-seq`, `cooc-flow`.
+    pub aps: [f64; 3],
+    /// Per source, the queries whose row it gave for `cooc` (window 1) and for the sequence
+    /// methods (the fusion window).
+    pub chosen_single: Vec<usize>,
+    pub chosen_window: Vec<usize>,
+    /// The 5th, 50th and 95th percentile and the maximum of the rows' off-peak spread (before
+    /// any floor), over every source and query.
+    pub spread: [f64; 4],
+}
+
+/// Session 12 (`docs/cooc.md`): the shipped rule (each query window takes its most decisive source's
+/// rows) with the decisiveness spread floored in the units of the rows it is measured on.
+/// `floor` `None`: the shipped floor of 1 (one correspondence of a raw score); `Some(0)`: no
+/// floor (a plain z-score, 1e-9 against division by zero); `Some(1)`: one correspondence in
+/// normalised units, `1 / median_j m_j` with `m_j` the source's column means of `s + 1`.
+pub fn floored_aps(
+    map: &CoocMap,
+    queries: &CoocQueries,
+    options: &CoocOptions,
+    floor: Option<usize>,
+    gt: &GroundTruth,
+    n: usize,
+) -> Floored {
+    let per_source = map.score_matrices_by_source(queries.words());
+    let present = map.locations().source_present();
+    let excl = options.sequence.exclusion;
+    let window = if options.fusion_window == 0 {
+        options.sequence.length
+    } else {
+        options.fusion_window
+    };
+    let (q, l) = check_sources(&per_source, &present).expect("sources");
+    let norm = Normalization::default();
+    let normalised = normalise_sources(&per_source, &present, norm).expect("normalised");
+    let floors: Vec<f64> = per_source
+        .iter()
+        .enumerate()
+        .map(|(s, m)| match floor {
+            None => 1.0,
+            Some(0) => 1e-9,
+            Some(_) => {
+                let mut means: Vec<f64> = (0..l)
+                    .filter(|&j| present[s * l + j])
+                    .map(|j| (0..q).map(|i| f64::from(m.get(i, j)) + 1.0).sum::<f64>() / q as f64)
+                    .collect();
+                means.sort_by(f64::total_cmp);
+                1.0 / means[means.len() / 2].max(1e-9)
+            }
+        })
+        .collect();
+    let spreads = std::cell::RefCell::new(Vec::new());
+    let d: Vec<Vec<f64>> = normalised
+        .iter()
+        .enumerate()
+        .map(|(s, m)| {
+            let p = &present[s * l..(s + 1) * l];
+            (0..q)
+                .map(|i| {
+                    let row = m.row(i);
+                    let Some((at, peak)) = row_peak(row, p) else {
+                        return 0.0;
+                    };
+                    let (mut k, mut sum, mut sq) = (0usize, 0f64, 0f64);
+                    for (j, (&v, &pj)) in row.iter().zip(p).enumerate() {
+                        if pj && j.abs_diff(at) > excl {
+                            k += 1;
+                            sum += f64::from(v);
+                            sq += f64::from(v) * f64::from(v);
+                        }
+                    }
+                    if k == 0 {
+                        return 0.0;
+                    }
+                    let mean = sum / k as f64;
+                    let raw_sd = (sq / k as f64 - mean * mean).max(0.0).sqrt();
+                    spreads.borrow_mut().push(raw_sd);
+                    let sd = raw_sd.max(floors[s]);
+                    (f64::from(peak) - mean) / sd
+                })
+                .collect()
+        })
+        .collect();
+    let order = |w: usize| -> Vec<Vec<usize>> {
+        (0..q)
+            .map(|i| {
+                let lo = i.saturating_sub((w - 1) / 2);
+                let hi = lo.saturating_add(w).min(q);
+                let mean: Vec<f64> = d
+                    .iter()
+                    .map(|ds| ds[lo..hi].iter().sum::<f64>() / (hi - lo) as f64)
+                    .collect();
+                let mut o: Vec<usize> = (0..per_source.len()).collect();
+                o.sort_by(|&a, &b| mean[b].total_cmp(&mean[a]).then(a.cmp(&b)));
+                o
+            })
+            .collect()
+    };
+    let fuse = |rows: &[Matrix], order: &[Vec<usize>]| -> Matrix {
+        let mut out = rows[0].clone();
+        for (i, sources) in order.iter().enumerate() {
+            let dst = out.row_mut(i);
+            for (j, o) in dst.iter_mut().enumerate() {
+                if let Some(&s) = sources.iter().find(|&&s| present[s * l + j]) {
+                    *o = rows[s].get(i, j);
+                }
+            }
+        }
+        out
+    };
+    let count = |order: &[Vec<usize>]| {
+        let mut c = vec![0usize; per_source.len()];
+        order.iter().for_each(|o| c[o[0]] += 1);
+        c
+    };
+    let (o1, ow) = (order(1), order(window));
+    let single = best_per_query(&fuse(&per_source, &o1));
+    let params = options.sequence;
+    let seq = seasonloc::cooc::sequence::match_sequences(
+        &fuse(&normalised, &ow),
+        &SequenceParams {
+            normalization: Normalization::None,
+            ..params
+        },
+    )
+    .expect("sequences");
+    let flow_rows =
+        normalise_sources(&per_source, &present, options.flow.normalization).expect("normalised");
+    let (_, flow) =
+        seasonloc::localize::solve_with_confidence(&fuse(&flow_rows, &ow), &options.flow)
+            .expect("flow");
+    let aps = [single, seq, flow].map(|p| {
+        evaluate(&p, gt, n, 2, &Exclusions::none())
+            .expect("metrics")
+            .ap
+    });
+    let mut spread = spreads.into_inner();
+    spread.sort_by(f64::total_cmp);
+    let at = |f: f64| {
+        spread
+            .get(((spread.len().max(1) - 1) as f64 * f) as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    Floored {
+        aps,
+        chosen_single: count(&o1),
+        chosen_window: count(&ow),
+        spread: [at(0.05), at(0.5), at(0.95), at(1.0)],
+    }
 }

@@ -8,16 +8,21 @@
 
 use crate::{Error, Matrix, Result};
 
-/// How decisively one source recognises one query: the z-score of the row's peak over the
+/// How decisively one source recognises one query: how far the row's peak stands above the
 /// source's own off-peak scores, `(peak - mean) / max(sd, 1)`, where the off-peak scores are
 /// those of the source's locations (`present`) more than `exclusion` locations from the peak
-/// (its neighbours show the same place). The spread is floored at one correspondence, the
-/// resolution of a group size. Without off-peak locations the mean is 0.
+/// (its neighbours show the same place). Without off-peak locations the mean is 0.
 ///
-/// Why a z-score: each source (drive time) has a chance level and a spread of its own at
-/// every query (a drive at another time of day gathers chance groups everywhere and no peak),
-/// so raw group sizes are not comparable across sources, but the distance of a peak from the
-/// source's own noise is.
+/// Why: each source (drive time) has a chance level and a spread of its own at every query (a
+/// drive at another time of day gathers chance groups everywhere and no peak), so raw peaks
+/// are not comparable across sources, but the distance of a peak from the source's own noise
+/// is. On raw group sizes this is a z-score with the spread floored at one correspondence, the
+/// resolution of a group size. On the floored-normalised rows the fused methods rank sources on
+/// ([`fused_similarity`], [`fused_scores`]) every off-peak spread is below 1 (0.14-0.58 on
+/// Gardens Point dev), so there the floor binds and this is the peak's excess over the row's
+/// off-peak mean in units of a location's mean score, which the normalisation already puts on
+/// one scale for every source; a plain z-score there was measured and chose no better
+/// (`docs/cooc.md`, session 12).
 pub fn decisiveness(row: &[f32], present: &[bool], exclusion: usize) -> f32 {
     let Some((peak_at, peak)) = row_peak(row, present) else {
         return 0.0;
