@@ -70,7 +70,8 @@ pub fn off_peak_noise(
 }
 
 /// Per query, the sources of a fused map from the most to the least decisive: the mean
-/// [`decisiveness`] of each source's raw score rows over the `window` queries centred on the
+/// [`decisiveness`] of each source's rows in `per_source` (the fused methods pass the
+/// floored-normalised rows, [`normalise_sources`]) over the `window` queries centred on the
 /// query (`window` 1: the query alone; clipped at the ends of the sequence); ties to the lower
 /// source index.
 ///
