@@ -56,7 +56,9 @@ pub struct ConfidenceParams {
     pub radius: usize,
     /// `g` in `(0, 1)`: score with the discounted min-marginal ratio instead of the box window
     /// (rows weighted `g^|t-i|` over the whole route, `O(Q·D)` in total; `discounted.rs`).
-    /// `None`: the box window of `half_window`. Offline only: trips keep the causal window.
+    /// `None`: the box window of `half_window` (offline only: a trip always scores with the
+    /// discounted ratio, `g = 1 - 1/(half_window + 1)` when this is `None`,
+    /// [`crate::trip::TripParams::discount`]).
     pub discount: Option<f64>,
 }
 
@@ -66,8 +68,8 @@ pub struct ConfidenceParams {
 pub const DEFAULT_DISCOUNT: f64 = 5.0 / 6.0;
 
 impl Default for ConfidenceParams {
-    /// The discounted ratio with `g` = [`DEFAULT_DISCOUNT`], `r = 2` (offline default). Trips
-    /// use [`ConfidenceParams::window`] (causal box window).
+    /// The discounted ratio with `g` = [`DEFAULT_DISCOUNT`], `r = 2`: the default offline and,
+    /// in its causal form on the frames seen so far, for trips (`trip/confidence.rs`).
     fn default() -> Self {
         ConfidenceParams {
             half_window: 5,
@@ -78,8 +80,8 @@ impl Default for ConfidenceParams {
 }
 
 impl ConfidenceParams {
-    /// The box window of half-width 5, `r = 2`: the trips' confidence (its causal form) and
-    /// the offline default of earlier versions (`eval --confidence window`).
+    /// The box window of half-width 5, `r = 2`: the offline default of earlier versions
+    /// (`eval --confidence window`).
     pub fn window() -> Self {
         ConfidenceParams {
             discount: None,

@@ -96,9 +96,10 @@ impl Method {
 /// `--confidence` values (flow method).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum ConfidenceArg {
-    /// The discounted min-marginal ratio (default; `O(Q·D)` in total).
+    /// The discounted min-marginal ratio (default; `O(Q·D)` in total; trips score with its
+    /// causal form).
     Discounted,
-    /// The local min-marginal ratio on the 11-row box window (the trips' confidence).
+    /// The local min-marginal ratio on the 11-row box window (the default of earlier versions).
     Window,
 }
 
@@ -179,8 +180,8 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 2)]
     pub confidence_radius: usize,
     /// Flow confidence: `discounted` (the min-marginal ratio with rows weighted `G^|t-i|`,
-    /// `O(Q·D)` in total) or `window` (the 11-row box window of earlier versions, the trips'
-    /// confidence; `12·D` work per matched row).
+    /// `O(Q·D)` in total; trips score with its causal form) or `window` (the 11-row box window
+    /// of earlier versions; `12·D` work per matched row).
     #[arg(long, value_enum, default_value_t = ConfidenceArg::Discounted)]
     pub confidence: ConfidenceArg,
     /// Flow confidence `discounted`: the weight `G` of a row one frame further away, 0 < G < 1.
