@@ -8,8 +8,8 @@
 //! * **cli** — the `seasonloc solve` / `seasonloc eval` front end (`src/cli`).
 //! * **app** — the use cases of the service ([`app`]): the only caller of the store, the only
 //!   dispatch on a map's kind, CPU work on its own pool.
-//! * **store** — the [`store::Store`] trait and its engines (sled, embedded): only `store`
-//!   knows a database.
+//! * **store** — the [`store::Store`] trait and its engines (sled, embedded, the default;
+//!   PostgreSQL, shared by replicas): only `store` knows a database.
 //! * **api** — the HTTP edge ([`api`], [`config`], [`service`]): only `api` knows axum and the
 //!   JSON wire types.
 //!

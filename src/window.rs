@@ -1,6 +1,8 @@
 //! Sliding-window minima over a row of the graph: the one home of the window minimum, with one
 //! tie rule, used by the offline `F = 1` kernel (`solver::kernel`), the online row step
-//! (`trip::online`), the confidences (`confidence`, `confidence::discounted`) and the
+//! (`trip::online`), the box-window and the trips' confidences (`confidence`,
+//! `trip::confidence`; the default discounted sweep has its own `f32` lane minima,
+//! `confidence/sweep/lanes.rs`, checked against a reference built on this module) and the
 //! min-marginals (`solver::marginals`).
 //!
 //! Two shapes:
@@ -23,7 +25,7 @@
 //! same rows resolve ties alike. Values-only minima have no argmin and so no tie to break.
 
 /// Largest fan-out for which the window minimum is a direct scan instead of a monotone deque
-/// (measured with `benches/solver.rs`, group `window`).
+/// (measured with `benches/solver.rs`, `solver_2400x2400/f1_k{4,8,9,64}`; BENCHMARKS.md).
 pub const DIRECT_MAX_K: usize = 8;
 
 /// How [`trailing_min_offsets`] computes the window minimum.

@@ -5,7 +5,7 @@
 //! request, call one use case of [`crate::app::App`] (which runs CPU work on its pool and owns
 //! every store access), and convert its answer to wire types at the edge.
 //!
-//! Layout (one convention for every resource; `tests/layering.rs` keeps it acyclic):
+//! Layout (one convention for every resource; `tests/layering/main.rs` keeps it acyclic):
 //! * a resource is a directory: `<resource>/mod.rs` has its routes and handlers,
 //!   `<resource>/dto.rs` its wire types and their conversions. The resources are `maps` (maps
 //!   and their reference images), `views` (image pages, thumbnails, pictures), `cooc` (drives

@@ -11,6 +11,11 @@
 //! (`count`, per drive `f64 time`, `count`, per image `u32 location`, `u32 n`, `n` x
 //! `(u32 word, u16 x, u16 y)`).
 //!
+//! Layout v2 (the current `VERSION`): v1 with two more keypoint parameters, `u32 max_width`
+//! and `u32 octaves`, after `cell_size`. A map whose keypoints were extracted the v1 way (no
+//! width cap, one octave) is still written as v1, so stored maps re-encode byte for byte; the
+//! default parameters (`max_width` 640) are written as v2.
+//!
 //! Invariant: `decode(encode(m)) == m`; decoding never panics on arbitrary bytes and names what
 //! is wrong.
 

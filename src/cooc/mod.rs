@@ -16,10 +16,11 @@
 //!
 //! Invariants: a built [`CoocMap`] has a vocabulary, one model per location (possibly empty) and
 //! an inverted index consistent with the models; every stage is deterministic for a given
-//! [`CoocParams::seed`]. This module depends only on `crate::Error`, `crate::Matrix`,
-//! `crate::localize::Prediction`, SeqSLAM's contrast enhancement
-//! (`crate::baselines::enhance_contrast`, an option of the sequence matching), `image` and
-//! `rayon` (no serde, no I/O).
+//! [`CoocParams::seed`]. This module depends only on core modules (`crate::Error`,
+//! `crate::Matrix`, `crate::codec` for its byte encoding, `crate::similarity` for the column
+//! normalisation, `crate::solver` and `crate::localize` for `cooc-flow` and the shared
+//! `Prediction`, SeqSLAM's contrast enhancement `crate::baselines::enhance_contrast`, an option
+//! of the sequence matching), `image` and `rayon` (no serde, no I/O).
 
 mod codec;
 mod fusion;

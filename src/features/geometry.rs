@@ -10,8 +10,8 @@
 //! The rule ([`fit_image`]), applied to every image (references and queries alike, so an image
 //! that already has the geometry is untouched and its descriptor bit-identical to before):
 //! 1. [`Fit::Stretch`] (the default): resize the whole frame to the geometry (bilinear, the
-//!    shared [`super::resize_gray`] path). It keeps the full field of view, as the CNN's default
-//!    `stretch`; for a camera of the same aspect ratio (Gardens Point's night 640x360 against
+//!    shared [`super::resize_gray`] path). It keeps the full field of view, as `eval`'s CNN
+//!    default `--cnn-resize stretch`; for a camera of the same aspect ratio (Gardens Point's night 640x360 against
 //!    day 960x540) it is the only sensible choice and the two fits are identical.
 //! 2. [`Fit::Crop`]: first cut the centred window of the geometry's aspect ratio out of the
 //!    frame ([`crop_window`]), then resize as above. It keeps the

@@ -1,5 +1,8 @@
-//! Min-marginals along a hypothesis, the raw material of a confidence: for every query row, the
-//! cheapest complete path that matches *near* the hypothesis, *elsewhere*, or goes *hidden*.
+//! Min-marginals along a hypothesis over the whole graph: for every query row, the cheapest
+//! complete path that matches *near* the hypothesis, *elsewhere*, or goes *hidden*. A library
+//! function (benched in `benches/solver.rs`, `row_alternatives_k4`); the shipped confidences
+//! read local forms of the same quantity instead (the box window, the discounted passes of
+//! `confidence/discounted.rs`, which are these recurrences with each row scaled by `g`).
 //!
 //! With `F_i` the forward DP of [`super::shortest_path()`] (cheapest source path ending at a node,
 //! node included) and `B_i` a backward DP (cheapest continuation from a node to the sink, node

@@ -17,7 +17,8 @@
 //! Code map: the graph helpers (blocked set, input checks, path -> [`Hypothesis`]) live in
 //! `graph.rs`, the `F = 1` dynamic programme in `shortest_path.rs` (its row step, the hot loop,
 //! in `kernel.rs`; the confidence reuses it), greedy and exact `F > 1` in
-//! `greedy.rs` / `exact.rs`, min-marginals for confidences in `marginals.rs`, and the test-only
+//! `greedy.rs` / `exact.rs`, the whole graph's min-marginals along a hypothesis in
+//! `marginals.rs` (the confidences read local forms of them), and the test-only
 //! reference solvers (generic min-cost flow, brute force) in `reference.rs`.
 //!
 //! Invariants: every solver returns hypotheses with one [`RowAssignment`] per query row, matches

@@ -551,7 +551,7 @@ pub struct Page<T> {
 /// A storage engine of the service. Object-safe: the use-case layer holds an
 /// `Arc<dyn Store>`. Every method is async and never blocks the calling task (an embedded
 /// engine runs its I/O on blocking threads). See the module doc for the rules every engine
-/// keeps (atomic, durable, conditional writes; engine-allocated ids; versioned descriptors).
+/// keeps (atomic, durable, conditional writes; caller-chosen ids; versioned descriptors).
 #[async_trait]
 pub trait Store: Send + Sync + 'static {
     /// Where the data lives, for logs (a folder, or a database address without credentials).

@@ -10,6 +10,8 @@
 //! | `I` + map id (`u64` BE) + index (`u32` BE) | an image record ([`encode_image`]: [`ImageMeta`](crate::store::ImageMeta), then the descriptor as raw LE `f32`) |
 //! | `L` + localization id (`u64` BE) | [`LocalizationRecord`](crate::store::LocalizationRecord) |
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
+//! | `P` + localization id (`u64` BE) | the PNG of its similarity picture (layout >= 5) |
+//! | `J` + map id (`u64` BE) + index (`u32` BE) | the image's JPEG thumbnail (layout >= 5) |
 //! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
 //! | `T` + trip id (`u64` BE) | [`TripRecord`](crate::store::TripRecord) (layout >= 4) |
 //! | `S` + trip id (`u64` BE) | a trip's solver state in one blob (format 1, layouts 4-5), opaque bytes from `crate::trip`; replaced by `b`/`s`/`r` at the trip's next batch |
