@@ -125,7 +125,7 @@ pub struct FrameEstimateDto {
     /// Estimated reference index, `null` when not on the map.
     #[serde(rename = "ref")]
     pub reference: Option<usize>,
-    /// Local min-marginal ratio (0 when not on the map).
+    /// The discounted min-marginal ratio on the trip's frames so far (0 when not on the map).
     pub confidence: f64,
 }
 
