@@ -8,6 +8,8 @@
 //!
 //! Run: `cargo bench --bench baselines -- --warm-up-time 1 --measurement-time 3`
 
+mod fixture;
+
 use std::path::{Path, PathBuf};
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -17,11 +19,7 @@ use seasonloc::similarity::cosine_matrix;
 use seasonloc::Matrix;
 
 fn nordland_dir() -> PathBuf {
-    let shared = std::env::var_os("SEASONLOC_SHARED").map_or_else(
-        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
-        PathBuf::from,
-    );
-    shared.join("data/nordland_64x32")
+    fixture::shared_root().join("data/nordland_64x32")
 }
 
 /// Mean-centred grayscale pixels of every PNG in `dir`, in file-name order.

@@ -4,6 +4,8 @@
 //! Needs `../shared/models` (skips with a message otherwise). Short runs:
 //! `cargo bench --bench cnn -- --warm-up-time 1 --measurement-time 3`.
 
+mod fixture;
+
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -14,15 +16,14 @@ use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 use seasonloc::features::Extractor;
 
 fn shared_models() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models");
+    let dir = fixture::shared_root().join("models");
     dir.join("efficientnet-lite0-224.onnx")
         .is_file()
         .then_some(dir)
 }
 
 fn nordland_frame() -> Option<DynamicImage> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/nordland_64x32/winter/images-00010.png");
+    let path = fixture::shared_root().join("data/nordland_64x32/winter/images-00010.png");
     image::open(path).ok()
 }
 
@@ -96,7 +97,7 @@ fn bench_batch(c: &mut Criterion, dir: &Path, image: &DynamicImage) {
 /// to 224x224 and run to `block10` by `extract_files` on the global rayon pool (both cores).
 /// Compare with `benches/onnxruntime_cnn.py` (same frames, same work, two threads).
 fn bench_nordland400(c: &mut Criterion, dir: &Path) {
-    let folder = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nordland_64x32/winter");
+    let folder = fixture::shared_root().join("data/nordland_64x32/winter");
     let Ok(mut paths) = seasonloc::features::list_images(&folder) else {
         eprintln!("skipping cnn_nordland400: {} not found", folder.display());
         return;

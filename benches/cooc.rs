@@ -6,6 +6,8 @@
 //!
 //! Run: `cargo bench --bench cooc -- --warm-up-time 1 --measurement-time 3`.
 
+mod fixture;
+
 use criterion::measurement::WallTime;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, BenchmarkId, Criterion};
 use image::{GrayImage, Luma};
@@ -77,14 +79,9 @@ fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
     (map, queries)
 }
 
-/// The Nordland folder: `../shared` beside the repository (CI) or `../../shared` from a
-/// worktree under `wt/`.
+/// The Nordland folder below the shared data ([`fixture::shared_root`]).
 fn nordland_dir() -> Option<std::path::PathBuf> {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    ["../shared", "../../shared"]
-        .iter()
-        .map(|s| root.join(s).join("data/nordland_64x32"))
-        .find(|d| d.join("summer").is_dir())
+    Some(fixture::shared_root().join("data/nordland_64x32")).filter(|d| d.join("summer").is_dir())
 }
 
 fn bench_recognition(c: &mut Criterion) {
@@ -232,14 +229,8 @@ fn bench_keypoints(c: &mut Criterion) {
 /// generated frame of that size when the shared data is absent), default settings: the frame
 /// is reduced to the 640 px working width first.
 fn bench_keypoints_960x540(c: &mut Criterion) {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    let path = ["../shared", "../../shared"]
-        .iter()
-        .map(|s| {
-            root.join(s)
-                .join("data/gardenspoint_dev/day_right/Image000.jpg")
-        })
-        .find(|p| p.is_file());
+    let path = Some(fixture::shared_root().join("data/gardenspoint_dev/day_right/Image000.jpg"))
+        .filter(|p| p.is_file());
     let image: GrayImage = match path.as_ref().map(image::open) {
         Some(Ok(img)) => img.to_luma8(),
         _ => {
@@ -256,13 +247,10 @@ fn bench_keypoints_960x540(c: &mut Criterion) {
     });
 }
 
-/// The Gardens Point dev folder (`../shared` beside the repository or `../../shared`).
+/// The Gardens Point dev folder below the shared data ([`fixture::shared_root`]).
 fn gardens_dir() -> Option<std::path::PathBuf> {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    ["../shared", "../../shared"]
-        .iter()
-        .map(|s| root.join(s).join("data/gardenspoint_dev"))
-        .find(|d| d.join("day_right").is_dir())
+    Some(fixture::shared_root().join("data/gardenspoint_dev"))
+        .filter(|d| d.join("day_right").is_dir())
 }
 
 /// The 3 x 3 non-overlapping tiles of a frame, row by row: nine images that share no pixel.

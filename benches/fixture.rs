@@ -9,14 +9,24 @@ use std::time::Duration;
 use image::{DynamicImage, GrayImage};
 use seasonloc::Matrix;
 
-/// `../shared/<rel>` relative to the crate root (or `$SEASONLOC_SHARED_DIR/<rel>` when that
-/// variable is set), or `None` with a printed skip message.
+/// Where the shared data lives: `$SEASONLOC_SHARED_DIR` when set, else `../shared` beside the
+/// crate root, else `../../shared` (a worktree one level down); the first of the last two
+/// when neither exists. Every bench reads its data below it.
+pub fn shared_root() -> PathBuf {
+    if let Some(dir) = std::env::var_os("SEASONLOC_SHARED_DIR") {
+        return PathBuf::from(dir);
+    }
+    let crate_root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    ["../shared", "../../shared"]
+        .iter()
+        .map(|s| crate_root.join(s))
+        .find(|d| d.is_dir())
+        .unwrap_or_else(|| crate_root.join("../shared"))
+}
+
+/// `<shared root>/<rel>` ([`shared_root`]), or `None` with a printed skip message.
 pub fn shared(rel: &str) -> Option<PathBuf> {
-    let root = std::env::var_os("SEASONLOC_SHARED_DIR").map_or_else(
-        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
-        PathBuf::from,
-    );
-    let path = root.join(rel);
+    let path = shared_root().join(rel);
     if path.exists() {
         Some(path)
     } else {

@@ -14,6 +14,8 @@
 //! HTTP's extra time CPU, or waiting?) and the latency of one localize at a time for batches of
 //! 1 to 50 images (what HTTP adds per request and per uploaded image).
 
+mod fixture;
+
 #[path = "../tests/service/http.rs"]
 #[allow(dead_code)]
 mod http;
@@ -49,12 +51,7 @@ fn median_ms(times: impl Iterator<Item = std::time::Duration>) -> f64 {
 }
 
 fn images() -> (Vec<Vec<u8>>, Vec<Vec<u8>>, &'static str) {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = ["../shared", "../../shared"]
-        .iter()
-        .map(|s| root.join(s).join("data/nordland_64x32"))
-        .find(|d| d.is_dir())
-        .unwrap_or_else(|| root.join("../shared/data/nordland_64x32"));
+    let dir = fixture::shared_root().join("data/nordland_64x32");
     let read = |season: &str| -> Option<Vec<Vec<u8>>> {
         let mut files: Vec<_> = std::fs::read_dir(dir.join(season))
             .ok()?
