@@ -234,6 +234,28 @@ fn the_objects_fit_together() {
         c.env.contains_key("SEASONLOC_DATABASE_URL"),
         "replicas need the shared database"
     );
+    // Unless the pod opts out, the kubelet mounts an API token at
+    // /var/run/secrets/kubernetes.io/serviceaccount. On the Debian image /var/run is /run, so a
+    // volume mounted at /run/secrets (or above it) leaves no place to create that mount point
+    // (the volume is read-only) and the container never starts (kubernetes/kubernetes#65835).
+    let token = "/run/secrets/kubernetes.io/serviceaccount";
+    let under_run = |at: &str| -> String {
+        let at = at.trim_end_matches('/');
+        at.strip_prefix("/var")
+            .filter(|rest| rest.starts_with("/run"))
+            .unwrap_or(at)
+            .to_string()
+    };
+    if let Some((at, _)) = c.mounts.iter().find(|(at, _)| {
+        let at = under_run(at);
+        token == at || token.starts_with(&format!("{at}/"))
+    }) {
+        assert_eq!(
+            deployment["spec"]["template"]["spec"]["automountServiceAccountToken"],
+            Value::Bool(false),
+            "a volume at {at} covers the API token's mount point: the pod must not mount a token"
+        );
+    }
     // Every setting is one the binary reads: an unknown name (a typo) would be ignored silently.
     let help = std::process::Command::new(env!("CARGO_BIN_EXE_seasonloc"))
         .args(["serve", "--help"])
