@@ -7,8 +7,8 @@
 //! decisiveness's spread floor, [`floored_aps`]) is here for the same reason.
 
 use seasonloc::cooc::{
-    best_per_query, check_sources, normalise_sources, off_peak_noise, row_peak, source_order,
-    CoocMap, CoocOptions, CoocQueries, SequenceParams,
+    best_per_query, check_sources, fuse_rows, normalise_sources, off_peak_noise, off_peak_stats,
+    rank_sources, row_peak, source_order, CoocMap, CoocOptions, CoocQueries, SequenceParams,
 };
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
 use seasonloc::similarity::Normalization;
@@ -300,19 +300,9 @@ pub fn floored_aps(
                     let Some((at, peak)) = row_peak(row, p) else {
                         return 0.0;
                     };
-                    let (mut k, mut sum, mut sq) = (0usize, 0f64, 0f64);
-                    for (j, (&v, &pj)) in row.iter().zip(p).enumerate() {
-                        if pj && j.abs_diff(at) > excl {
-                            k += 1;
-                            sum += f64::from(v);
-                            sq += f64::from(v) * f64::from(v);
-                        }
-                    }
-                    if k == 0 {
+                    let Some((mean, raw_sd)) = off_peak_stats(row, p, at, excl) else {
                         return 0.0;
-                    }
-                    let mean = sum / k as f64;
-                    let raw_sd = (sq / k as f64 - mean * mean).max(0.0).sqrt();
+                    };
                     spreads.borrow_mut().push(raw_sd);
                     let sd = raw_sd.max(floors[s]);
                     (f64::from(peak) - mean) / sd
@@ -320,39 +310,13 @@ pub fn floored_aps(
                 .collect()
         })
         .collect();
-    let order = |w: usize| -> Vec<Vec<usize>> {
-        (0..q)
-            .map(|i| {
-                let lo = i.saturating_sub((w - 1) / 2);
-                let hi = lo.saturating_add(w).min(q);
-                let mean: Vec<f64> = d
-                    .iter()
-                    .map(|ds| ds[lo..hi].iter().sum::<f64>() / (hi - lo) as f64)
-                    .collect();
-                let mut o: Vec<usize> = (0..per_source.len()).collect();
-                o.sort_by(|&a, &b| mean[b].total_cmp(&mean[a]).then(a.cmp(&b)));
-                o
-            })
-            .collect()
-    };
-    let fuse = |rows: &[Matrix], order: &[Vec<usize>]| -> Matrix {
-        let mut out = rows[0].clone();
-        for (i, sources) in order.iter().enumerate() {
-            let dst = out.row_mut(i);
-            for (j, o) in dst.iter_mut().enumerate() {
-                if let Some(&s) = sources.iter().find(|&&s| present[s * l + j]) {
-                    *o = rows[s].get(i, j);
-                }
-            }
-        }
-        out
-    };
+    let fuse = |rows: &[Matrix], order: &[Vec<usize>]| fuse_rows(rows, &present, order);
     let count = |order: &[Vec<usize>]| {
         let mut c = vec![0usize; per_source.len()];
         order.iter().for_each(|o| c[o[0]] += 1);
         c
     };
-    let (o1, ow) = (order(1), order(window));
+    let (o1, ow) = (rank_sources(&d, 1), rank_sources(&d, window));
     let single = best_per_query(&fuse(&per_source, &o1));
     let params = options.sequence;
     let seq = seasonloc::cooc::sequence::match_sequences(

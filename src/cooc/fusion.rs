@@ -54,6 +54,18 @@ pub fn off_peak_noise(
     peak_at: usize,
     exclusion: usize,
 ) -> (f64, f64) {
+    off_peak_stats(row, present, peak_at, exclusion)
+        .map_or((0.0, 1.0), |(mean, sd)| (mean, sd.max(1.0)))
+}
+
+/// The mean and the spread (no floor) of the row's off-peak scores: the source's locations
+/// (`present`) more than `exclusion` from `peak_at`; `None` without such locations.
+pub fn off_peak_stats(
+    row: &[f32],
+    present: &[bool],
+    peak_at: usize,
+    exclusion: usize,
+) -> Option<(f64, f64)> {
     let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
     for (j, (&v, &p)) in row.iter().zip(present).enumerate() {
         if p && j.abs_diff(peak_at) > exclusion {
@@ -63,10 +75,10 @@ pub fn off_peak_noise(
         }
     }
     if n == 0 {
-        return (0.0, 1.0);
+        return None;
     }
     let mean = sum / n as f64;
-    (mean, (sq / n as f64 - mean * mean).max(0.0).sqrt().max(1.0))
+    Some((mean, (sq / n as f64 - mean * mean).max(0.0).sqrt()))
 }
 
 /// Per query, the sources of a fused map from the most to the least decisive: the mean
@@ -105,8 +117,16 @@ pub fn source_order(
                 .collect()
         })
         .collect();
+    Ok(rank_sources(&d, window))
+}
+
+/// Per query, the sources from the highest to the lowest mean of `d[source][query]` over the
+/// `window` queries centred on the query (clipped at the ends of the sequence); ties to the
+/// lower source index. [`source_order`] ranks on [`decisiveness`] this way.
+pub fn rank_sources(d: &[Vec<f64>], window: usize) -> Vec<Vec<usize>> {
+    let q = d.first().map_or(0, Vec::len);
     let w = window.max(1);
-    Ok((0..q)
+    (0..q)
         .map(|i| {
             let lo = i.saturating_sub((w - 1) / 2);
             let hi = lo.saturating_add(w).min(q);
@@ -114,11 +134,11 @@ pub fn source_order(
                 .iter()
                 .map(|ds| ds[lo..hi].iter().sum::<f64>() / (hi - lo) as f64)
                 .collect();
-            let mut order: Vec<usize> = (0..per_source.len()).collect();
+            let mut order: Vec<usize> = (0..d.len()).collect();
             order.sort_by(|&a, &b| mean[b].total_cmp(&mean[a]).then(a.cmp(&b)));
             order
         })
-        .collect())
+        .collect()
 }
 
 /// Checks that `per_source` are `Q x L` matrices and `present` has `sources x L` flags;
@@ -142,7 +162,7 @@ pub fn check_sources(per_source: &[Matrix], present: &[bool]) -> Result<(usize, 
 
 /// Row `i` of the fused matrix takes every location from the first source in `order[i]` that
 /// has it (`present`); a location no source has keeps source 0's value.
-fn fuse_rows(per_source: &[Matrix], present: &[bool], order: &[Vec<usize>]) -> Matrix {
+pub fn fuse_rows(per_source: &[Matrix], present: &[bool], order: &[Vec<usize>]) -> Matrix {
     let (q, l) = (per_source[0].rows(), per_source[0].cols());
     let mut out = per_source[0].clone();
     for (i, sources) in order.iter().enumerate().take(q) {

@@ -34,8 +34,8 @@ pub mod spatial;
 pub mod vocabulary;
 
 pub use fusion::{
-    check_sources, decisiveness, fused_scores, fused_similarity, normalise_sources, off_peak_noise,
-    row_peak, source_order,
+    check_sources, decisiveness, fuse_rows, fused_scores, fused_similarity, normalise_sources,
+    off_peak_noise, off_peak_stats, rank_sources, row_peak, source_order,
 };
 pub use localize::{best_per_query, localize, CoocMethod, CoocOptions, CoocQueries};
 pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
