@@ -23,7 +23,8 @@ pub struct ImageInput {
     pub bytes: Bytes,
 }
 
-/// Width and height from the header, without decoding the pixels.
+/// Width and height from the header, without decoding the pixels: the image as it decodes
+/// (upright, after its Exif orientation).
 pub(crate) fn dimensions(part: &ImageInput) -> AppResult<(u32, u32)> {
     let reader = image::ImageReader::new(Cursor::new(&part.bytes[..]))
         .with_guessed_format()
@@ -38,8 +39,7 @@ pub(crate) fn dimensions(part: &ImageInput) -> AppResult<(u32, u32)> {
         }
         None => return Err(invalid(part, "not a JPEG or PNG image".into())),
     }
-    reader
-        .into_dimensions()
+    features::upright_dimensions(reader)
         .map_err(|e| invalid(part, format!("unreadable image header: {e}")))
 }
 

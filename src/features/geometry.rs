@@ -100,9 +100,10 @@ pub fn crop_window(image_size: (u32, u32), geometry: (u32, u32)) -> Result<(u32,
     Ok(((w - cw) / 2, (h - ch) / 2, cw, ch))
 }
 
-/// The pixel size `(width, height)` of an image file, read from its header only.
+/// The pixel size `(width, height)` of an image file as it decodes (upright, after its Exif
+/// orientation), read from its header only.
 pub fn image_file_size(path: &std::path::Path) -> Result<(u32, u32)> {
-    image::ImageReader::open(path)
+    let reader = image::ImageReader::open(path)
         .map_err(|source| Error::Io {
             path: path.to_path_buf(),
             source,
@@ -111,12 +112,11 @@ pub fn image_file_size(path: &std::path::Path) -> Result<(u32, u32)> {
         .map_err(|source| Error::Io {
             path: path.to_path_buf(),
             source,
-        })?
-        .into_dimensions()
-        .map_err(|e| Error::Image {
-            name: path.display().to_string(),
-            reason: format!("cannot read the image header: {e}"),
-        })
+        })?;
+    super::upright_dimensions(reader).map_err(|e| Error::Image {
+        name: path.display().to_string(),
+        reason: format!("cannot read the image header: {e}"),
+    })
 }
 
 /// `image` cropped as [`Fit`] asks for the geometry `geometry` (not yet resized: the

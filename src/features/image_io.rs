@@ -47,7 +47,9 @@ mod decode;
 mod resize;
 
 pub use colour::{to_gray, to_rgb};
-pub use decode::{decode_gray, decode_image, decode_image_as, from_colour_decode};
+pub use decode::{
+    decode_gray, decode_image, decode_image_as, from_colour_decode, upright_dimensions,
+};
 pub use resize::{prepare_gray, resize_gray, resize_rgb};
 
 /// Pixel limit used by [`load_image_file`]: 100 megapixels.

@@ -26,8 +26,8 @@ mod image_io;
 pub use geometry::{image_file_size, Fit, Fitted};
 pub use image_io::{
     decode_gray, decode_image, decode_image_as, from_colour_decode, list_images, load_image_file,
-    load_image_file_as, prepare_gray, resize_gray, resize_rgb, to_gray, to_rgb, Pixels,
-    DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
+    load_image_file_as, prepare_gray, resize_gray, resize_rgb, to_gray, to_rgb, upright_dimensions,
+    Pixels, DEFAULT_MAX_PIXELS, IMAGE_EXTENSIONS,
 };
 
 /// Turns one image into one global descriptor.

@@ -171,6 +171,64 @@ fn images_of_any_size_are_brought_to_the_map_geometry() {
     assert!(on_track >= 16, "only {on_track} of 20 trip frames on track");
 }
 
+/// A camera mounted on its side (or a phone) tags its frames with an Exif orientation instead of
+/// rotating their pixels: such query images are turned upright before they are described, so
+/// they localize like upright ones (stored a quarter turn anticlockwise, tagged 6: "turn a
+/// quarter clockwise to show"), and the map's reference thumbnails show them upright.
+#[test]
+fn images_tagged_with_an_exif_orientation_are_turned_upright() {
+    use image::codecs::png::PngEncoder;
+    use image::{ExtendedColorType, ImageEncoder};
+    // A little-endian TIFF block whose one IFD entry is Orientation = 6.
+    let exif: Vec<u8> = [
+        &b"II*\0\x08\0\0\0\x01\0"[..],
+        &[0x12, 0x01, 3, 0, 1, 0, 0, 0, 6, 0, 0, 0],
+        &[0, 0, 0, 0],
+    ]
+    .concat();
+    let tagged = |png: &[u8]| {
+        let img = image::load_from_memory(png).unwrap().to_luma8();
+        let stored = image::imageops::rotate270(&img);
+        let mut out = Vec::new();
+        let mut encoder = PngEncoder::new(&mut out);
+        encoder.set_exif_metadata(exif.clone()).unwrap();
+        encoder
+            .write_image(
+                stored.as_raw(),
+                stored.width(),
+                stored.height(),
+                ExtendedColorType::L8,
+            )
+            .unwrap();
+        out
+    };
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(60, 13);
+    let map = create_hog_map(&c, "exif", 8);
+    let refs: Vec<(String, Vec<u8>)> = (0..60)
+        .map(|i| (format!("ref-{i:03}.png"), route.reference_png(i)))
+        .collect();
+    upload(&c, &map, &refs, None);
+    let queries: Vec<(String, Vec<u8>)> = (10..50)
+        .map(|i| (format!("q-{i:03}.png"), tagged(&route.query_png(i))))
+        .collect();
+    let result = run_localize(&c, &map, &queries, &json!({}));
+    let n = result["predictions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| (p["ref"].as_i64().unwrap() - p["query"].as_i64().unwrap() - 10).abs() <= 1)
+        .count();
+    assert!(n * 10 >= 40 * 8, "only {n} of 40 tagged queries localized");
+
+    // A map whose first image is tagged takes the upright size as its geometry.
+    let upright = create_hog_map(&c, "exif-first", 8);
+    upload(&c, &upright, &[("r.png".into(), tagged(&refs[0].1))], None);
+    let r = c.get(&format!("/v1/maps/{upright}"));
+    assert_eq!(r.json()["descriptor"]["resize"], json!([64, 32]));
+}
+
 /// The issue's case: a map built from 960x540 frames takes 640x360 query images and trip frames
 /// (another camera, same aspect ratio) without any per-request setting, and localizes them.
 #[test]

@@ -1,18 +1,24 @@
 //! Decoding JPEG/PNG bytes into pixels: format sniffing by content, the pixel limit checked
 //! from the header before any pixel is decoded, and JPEG through `zune-jpeg` in strict mode,
 //! giving only the pixels the caller reads ([`super::Pixels`]: the Y plane alone for gray
-//! descriptors). Apart from conversion and resizing because it is the only part that reads
-//! untrusted bytes: every error here names the image.
+//! descriptors), turned upright by the image's Exif orientation (as a viewer or a browser shows
+//! it; a phone or a camera mounted on its side tags its frames rather than rotating them).
+//! Apart from conversion and resizing because it is the only part that reads untrusted bytes:
+//! every error here names the image.
 
 use std::io::Cursor;
 
-use image::{DynamicImage, GrayImage, ImageFormat, ImageReader, RgbImage};
+use image::metadata::Orientation;
+use image::{DynamicImage, GrayImage, ImageDecoder, ImageFormat, ImageReader, RgbImage};
 
 use super::{to_gray, Pixels};
 use crate::{Error, Result};
 
 /// Decodes one JPEG/PNG image given as bytes; `name` (file or multipart part name) appears in
-/// errors. Images with more than `max_pixels` pixels are rejected before being decoded.
+/// errors. Images with more than `max_pixels` pixels are rejected before being decoded. The
+/// image comes upright: an Exif orientation tag (JPEG `APP1`, PNG `eXIf`) other than 1 is
+/// applied (rotation and/or mirroring, so a tag of 5-8 swaps width and height); a missing or
+/// unreadable tag means "as stored".
 /// The colour decode ([`Pixels::Colour`]); see [`decode_image_as`].
 pub fn decode_image(name: &str, bytes: &[u8], max_pixels: u64) -> Result<DynamicImage> {
     decode_image_as(name, bytes, max_pixels, Pixels::Colour)
@@ -47,21 +53,52 @@ pub fn decode_image_as(
             )))
         }
     };
-    let image = if format == ImageFormat::Jpeg {
+    let (mut image, orientation) = if format == ImageFormat::Jpeg {
         decode_jpeg(bytes, max_pixels, pixels).map_err(fail)?
     } else {
-        let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
-            .into_dimensions()
-            .map_err(|e| fail(format!("cannot read the {format:?} header: {e}")))?;
+        let header = |e: image::ImageError| fail(format!("cannot read the {format:?} header: {e}"));
+        let mut decoder = ImageReader::with_format(Cursor::new(bytes), format)
+            .into_decoder()
+            .map_err(header)?;
+        let (w, h) = decoder.dimensions();
         check_pixel_limit(w, h, max_pixels).map_err(fail)?;
-        ImageReader::with_format(Cursor::new(bytes), format)
-            .decode()
-            .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))?
+        // An unreadable orientation tag is no reason to refuse the pixels.
+        let orientation = decoder.orientation().unwrap_or(Orientation::NoTransforms);
+        let image = DynamicImage::from_decoder(decoder)
+            .map_err(|e| fail(format!("cannot decode the {w}x{h} {format:?} image: {e}")))?;
+        (image, orientation)
     };
+    image.apply_orientation(orientation);
     Ok(match pixels {
         Pixels::Colour => image,
         Pixels::Gray => gray_image(image),
     })
+}
+
+/// The `(width, height)` of the image `reader` holds as [`decode_image`] gives it (upright:
+/// swapped when its Exif orientation turns it a quarter), from the header alone.
+pub fn upright_dimensions<R: std::io::BufRead + std::io::Seek>(
+    reader: ImageReader<R>,
+) -> image::ImageResult<(u32, u32)> {
+    let mut decoder = reader.into_decoder()?;
+    let (w, h) = decoder.dimensions();
+    let orientation = decoder.orientation().unwrap_or(Orientation::NoTransforms);
+    Ok(if quarter_turn(orientation) {
+        (h, w)
+    } else {
+        (w, h)
+    })
+}
+
+/// Whether `orientation` swaps width and height.
+fn quarter_turn(orientation: Orientation) -> bool {
+    matches!(
+        orientation,
+        Orientation::Rotate90
+            | Orientation::Rotate270
+            | Orientation::Rotate90FlipH
+            | Orientation::Rotate270FlipH
+    )
 }
 
 /// [`decode_image_as`]`(bytes, pixels)` from the [`Pixels::Colour`] decode of the same bytes,
@@ -115,12 +152,13 @@ fn check_pixel_limit(w: u32, h: u32, max_pixels: u64) -> std::result::Result<(),
 /// grey and no error; a localization service must reject such a frame instead. Going direct
 /// also decodes without `image`'s copy of the input. Gray JPEGs give `Luma8`; YCbCr JPEGs give
 /// their Y plane alone when only gray is wanted ([`Pixels::Gray`]); every other case `Rgb8`
-/// (as `image` does, alpha aside).
+/// (as `image` does, alpha aside). Also returns the Exif orientation (`NoTransforms` without a
+/// readable tag), not yet applied.
 fn decode_jpeg(
     bytes: &[u8],
     max_pixels: u64,
     pixels: Pixels,
-) -> std::result::Result<DynamicImage, String> {
+) -> std::result::Result<(DynamicImage, Orientation), String> {
     use zune_jpeg::zune_core::bytestream::ZCursor;
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;
@@ -142,6 +180,10 @@ fn decode_jpeg(
         u32::try_from(h).unwrap_or(u32::MAX),
     );
     check_pixel_limit(w, h, max_pixels)?;
+    let orientation = decoder
+        .exif()
+        .and_then(|exif| Orientation::from_exif_chunk(exif))
+        .unwrap_or(Orientation::NoTransforms);
     // zune-jpeg turns YCbCr into Luma by keeping Y and skipping the chroma components' IDCT
     // and upsampling; it has no other "to Luma" conversion, so RGB, CMYK and YCCK JPEGs are
     // decoded to RGB and made gray by the caller.
@@ -181,7 +223,9 @@ fn decode_jpeg(
         }
         JpegOut::Rgb => RgbImage::from_raw(w, h, decoded).map(DynamicImage::ImageRgb8),
     };
-    image.ok_or_else(|| failed(&"the decoder returned a buffer of the wrong size"))
+    image
+        .map(|image| (image, orientation))
+        .ok_or_else(|| failed(&"the decoder returned a buffer of the wrong size"))
 }
 
 /// What [`decode_jpeg`] asks zune-jpeg for.
@@ -475,5 +519,91 @@ mod tests {
         assert!(why.contains("exceeds the limit"), "{why}");
         let (_, why) = reason(decode_image("hdr.png", head, 5000).unwrap_err());
         assert!(why.contains("cannot decode"), "{why}");
+    }
+
+    /// A minimal little-endian Exif (TIFF) block whose first IFD holds one Orientation entry.
+    fn exif_orientation(value: u16) -> Vec<u8> {
+        let mut tiff = b"II*\0\x08\0\0\0".to_vec();
+        tiff.extend_from_slice(&1u16.to_le_bytes()); // one entry
+        tiff.extend_from_slice(&0x0112u16.to_le_bytes()); // Orientation
+        tiff.extend_from_slice(&3u16.to_le_bytes()); // SHORT
+        tiff.extend_from_slice(&1u32.to_le_bytes()); // count
+        tiff.extend_from_slice(&value.to_le_bytes());
+        tiff.extend_from_slice(&[0, 0]);
+        tiff.extend_from_slice(&0u32.to_le_bytes()); // no next IFD
+        tiff
+    }
+
+    /// `img` encoded as `format` (JPEG or PNG) with the Exif block `exif` (JPEG `APP1`, PNG
+    /// `eXIf`).
+    fn encode_tagged(img: &image::RgbImage, format: ImageFormat, exif: &[u8]) -> Vec<u8> {
+        use image::codecs::{jpeg::JpegEncoder, png::PngEncoder};
+        use image::{ExtendedColorType, ImageEncoder};
+        fn write(mut encoder: impl ImageEncoder, img: &image::RgbImage, exif: &[u8]) {
+            encoder.set_exif_metadata(exif.to_vec()).unwrap();
+            let (w, h) = img.dimensions();
+            encoder
+                .write_image(img.as_raw(), w, h, ExtendedColorType::Rgb8)
+                .unwrap();
+        }
+        let mut out = Vec::new();
+        match format {
+            ImageFormat::Jpeg => write(JpegEncoder::new(&mut out), img, exif),
+            _ => write(PngEncoder::new(&mut out), img, exif),
+        }
+        out
+    }
+
+    #[test]
+    fn an_exif_orientation_turns_the_image_upright() {
+        let img = noisy_rgb(40, 24, 5);
+        let header = |bytes: &[u8]| {
+            upright_dimensions(
+                ImageReader::new(Cursor::new(bytes))
+                    .with_guessed_format()
+                    .unwrap(),
+            )
+            .unwrap()
+        };
+        for (name, format) in [("jpeg", ImageFormat::Jpeg), ("png", ImageFormat::Png)] {
+            let tag = |exif: &[u8]| encode_tagged(&img, format, exif);
+            let plain = encode(&img, format);
+            for pixels in [Pixels::Colour, Pixels::Gray] {
+                let stored = decode_image_as(name, &plain, 10_000, pixels).unwrap();
+                // 1: as stored; 6: a quarter turn clockwise; 3: half a turn; 5: a quarter
+                // turn and a mirror image.
+                for (value, want) in [
+                    (1, stored.clone()),
+                    (6, stored.rotate90()),
+                    (3, stored.rotate180()),
+                    (5, stored.rotate90().fliph()),
+                ] {
+                    let tagged = tag(&exif_orientation(value));
+                    let got = decode_image_as(name, &tagged, 10_000, pixels).unwrap();
+                    assert_eq!(got, want, "{name} {pixels:?} orientation {value}");
+                    // The header-only size is the decoded one: the map's geometry and the
+                    // descriptor-length checks see the upright image.
+                    assert_eq!(
+                        header(&tagged),
+                        (got.width(), got.height()),
+                        "{name} {value}"
+                    );
+                }
+                // A tag that cannot be read (no TIFF header, or an orientation of 9) leaves
+                // the pixels as stored instead of refusing them.
+                for exif in [b"not a tiff block".to_vec(), exif_orientation(9)] {
+                    let tagged = tag(&exif);
+                    assert_eq!(
+                        decode_image_as(name, &tagged, 10_000, pixels).unwrap(),
+                        stored
+                    );
+                    assert_eq!(header(&tagged), (40, 24));
+                }
+            }
+        }
+        // The pixel limit still comes from the header, whatever the orientation.
+        let tagged = encode_tagged(&img, ImageFormat::Jpeg, &exif_orientation(6));
+        let (_, why) = reason(decode_image("big", &tagged, 959).unwrap_err());
+        assert!(why.contains("exceeds the limit of 959"), "{why}");
     }
 }
