@@ -307,6 +307,24 @@ fn run(
             }
         }
         if map.locations().sources() > 1 {
+            // Session 13: the window over which single-image `cooc` chooses its source (1:
+            // the rule before; the whole batch: the shipped one, the table's `cooc` column).
+            let single: Vec<String> = [1, 10, seasonloc::cooc::WHOLE_BATCH]
+                .iter()
+                .map(|&window| {
+                    let excl = options.sequence.exclusion;
+                    let scores = queries
+                        .fused_scores(Normalization::default(), excl, window)
+                        .expect("fused");
+                    let preds = seasonloc::cooc::best_per_query(&scores);
+                    let m = evaluate(&preds, &gt, n, 2, &Exclusions::none()).expect("metrics");
+                    format!("{:.3}", m.ap)
+                })
+                .collect();
+            println!(
+                "  single-image source chosen per query / over 10 queries / over the batch (shipped): cooc AP {}",
+                single.join(" / ")
+            );
             // Session 10: the sources pooled by maximum-ratio combining instead of one source
             // per query window, for three signal-to-noise estimates.
             // Session 12: the decisiveness's spread floor in the units of the normalised rows.

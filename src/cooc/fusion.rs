@@ -120,9 +120,15 @@ pub fn source_order(
     Ok(rank_sources(&d, window))
 }
 
+/// The window of [`rank_sources`] (and [`source_order`], [`fused_scores`]) that is the whole
+/// batch for every query: one source for all its rows. Single-image recognition on a fused map
+/// chooses its source this way (`CoocQueries`' single-image method).
+pub const WHOLE_BATCH: usize = usize::MAX;
+
 /// Per query, the sources from the highest to the lowest mean of `d[source][query]` over the
-/// `window` queries centred on the query (clipped at the ends of the sequence); ties to the
-/// lower source index. [`source_order`] ranks on [`decisiveness`] this way.
+/// `window` queries centred on the query (clipped at the ends of the sequence, so a window of
+/// `2Q - 1` or more, [`WHOLE_BATCH`], is every query); ties to the lower source index.
+/// [`source_order`] ranks on [`decisiveness`] this way.
 pub fn rank_sources(d: &[Vec<f64>], window: usize) -> Vec<Vec<usize>> {
     let q = d.first().map_or(0, Vec::len);
     let w = window.max(1);
@@ -179,8 +185,8 @@ pub fn fuse_rows(per_source: &[Matrix], present: &[bool], order: &[Vec<usize>]) 
 /// The raw scores of a fused map as one `Q x L` matrix: each query's row from the source
 /// that is most decisive on the rows [`fused_similarity`] gives under `normalization`
 /// ([`source_order`] with `exclusion` and `window`). Single-image recognition on a fused map
-/// takes its best location from this row (window 1); with one source it is that source's
-/// scores.
+/// takes its best location from this row (window [`WHOLE_BATCH`]); with one source it is that
+/// source's scores.
 pub fn fused_scores(
     per_source: &[Matrix],
     present: &[bool],
@@ -391,5 +397,63 @@ mod tests {
         let raw = fused_scores(&[day, night.clone()], &present, Normalization::None, 1, 1).unwrap();
         assert_eq!(raw.get(0, 3), night.get(0, 3));
         assert_eq!(raw.get(0, 0), 6.0);
+    }
+
+    #[test]
+    fn the_whole_batch_reads_every_query_from_the_source_it_resembles_most() {
+        // Source 0 (the map's drive): query i peaks at location i, 5 over a chance level of
+        // 0-1. Source 1 (an added drive of similar conditions): a peak at the wrong location
+        // i + 3, 9 high for queries 2 and 5 (more decisive there than source 0) and 2
+        // elsewhere.
+        let (q, l) = (8, 12);
+        let mut rng = crate::cooc::SplitMix64::new(5);
+        let mut map = Matrix::zeros(q, l);
+        let mut added = Matrix::zeros(q, l);
+        for i in 0..q {
+            for j in 0..l {
+                map.set(i, j, rng.below(2) as f32);
+                added.set(i, j, rng.below(2) as f32);
+            }
+            map.set(i, i, 5.0);
+            added.set(i, i + 3, if i == 2 || i == 5 { 9.0 } else { 2.0 });
+        }
+        let sources = [map.clone(), added.clone()];
+        let present = vec![true; 2 * l];
+        let n = Normalization::FlooredColumns;
+        // One query at a time, some queries (2 and 5 among them) take the added drive's wrong
+        // peak ...
+        let order = source_order(
+            &normalise_sources(&sources, &present, n).unwrap(),
+            &present,
+            1,
+            1,
+        )
+        .unwrap();
+        let firsts: Vec<usize> = order.iter().map(|o| o[0]).collect();
+        assert!(firsts[2] == 1 && firsts[5] == 1, "{firsts:?}");
+        assert!(
+            firsts.iter().filter(|&&s| s == 0).count() > q / 2,
+            "{firsts:?}"
+        );
+        // ... over the whole batch every row is the map's own: what the map alone answered.
+        for window in [WHOLE_BATCH, 2 * q - 1] {
+            assert_eq!(fused_scores(&sources, &present, n, 1, window).unwrap(), map);
+        }
+        // The order of the sources does not matter; a batch that resembles the added drive most
+        // is read from it alone.
+        let swapped = [added.clone(), map.clone()];
+        let mut strong = added.clone();
+        for i in 0..q {
+            strong.set(i, i + 3, 9.0);
+        }
+        let sources = [map, strong.clone()];
+        assert_eq!(
+            fused_scores(&sources, &present, n, 1, WHOLE_BATCH).unwrap(),
+            strong
+        );
+        assert_eq!(
+            fused_scores(&swapped, &present, n, 1, WHOLE_BATCH).unwrap(),
+            swapped[1]
+        );
     }
 }

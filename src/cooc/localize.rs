@@ -29,7 +29,7 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use super::fusion::{fused_scores, fused_similarity};
+use super::fusion::{fused_scores, fused_similarity, WHOLE_BATCH};
 use super::map::CoocMap;
 use super::model::Word;
 use super::recognition::Schedule;
@@ -330,13 +330,20 @@ impl<'m> CoocQueries<'m> {
         }
     }
 
-    /// Best-first single-image recognition of every query, in parallel; on a fused map, the
-    /// best location of each query's most decisive source (ranked on that query's own rows,
-    /// floored-normalised per source, with `exclusion`; ties to the lowest location, as the
-    /// search breaks them).
+    /// Best-first single-image recognition of every query, in parallel; on a fused map, each
+    /// query's best location in the source the batch resembles most decisively (mean
+    /// decisiveness over the whole batch, [`WHOLE_BATCH`], on the rows floored-normalised per
+    /// source, with `exclusion`; ties to the lowest location, as the search breaks them).
+    ///
+    /// Why the batch and not the query alone: a batch is one camera at one time of day, the
+    /// time the paper reads its query's model by (section II-E); one query's decisiveness is
+    /// too noisy to choose between two drives of similar conditions, and choosing per query
+    /// lost AP where a drive was added to a map the queries were already recognised on
+    /// (`docs/cooc.md`, session 13). A batch that mixes times of day is read with the drive
+    /// most of it resembles.
     fn single(&self, exclusion: usize) -> Result<Vec<Prediction>> {
         if self.map.locations().sources() > 1 {
-            let scores = self.fused_scores(Normalization::default(), exclusion, 1)?;
+            let scores = self.fused_scores(Normalization::default(), exclusion, WHOLE_BATCH)?;
             return Ok(best_per_query(&scores));
         }
         Ok(self

@@ -383,7 +383,9 @@ pub fn flow_similarity(scores: &Matrix) -> Matrix {
 pub(crate) mod tests {
     use super::super::fusion::decisiveness;
     use super::super::keypoints::tests::squares;
-    use super::super::{localize, CoocMethod, CoocOptions, CoocQueries, SequenceParams};
+    use super::super::{
+        best_per_query, localize, CoocMethod, CoocOptions, CoocQueries, SequenceParams,
+    };
     use super::*;
     use crate::localize::Prediction;
     use crate::similarity::Normalization;
@@ -575,6 +577,40 @@ pub(crate) mod tests {
         }
         let back = CoocMap::from_bytes(&map.to_bytes()).unwrap();
         assert_eq!(sequence_match(&back, &queries, &seq), p);
+    }
+
+    #[test]
+    fn single_image_recognition_on_a_fused_map_reads_the_batch_from_one_source() {
+        // A day + night map and a batch of day queries with two night ones among them: one
+        // query at a time the night queries would be read from the night drive; the batch,
+        // mostly day, is read from the day drive alone (`localize::CoocQueries`' single-image
+        // method, `fusion::WHOLE_BATCH`).
+        let day: Vec<GrayImage> = (0..14).map(|s| scene(s, false)).collect();
+        let night: Vec<GrayImage> = (0..14).map(|s| scene(s, true)).collect();
+        let mut map =
+            CoocMap::build(&params(), &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        map.add_drive(&Drive::sequential(22.0, night.clone()).unwrap())
+            .unwrap();
+        let mut batch = day.clone();
+        batch[4] = night[4].clone();
+        batch[9] = night[9].clone();
+        let queries = CoocQueries::new(&map, &batch).unwrap();
+        let options = options();
+        let excl = options.sequence.exclusion;
+        let n = Normalization::FlooredColumns;
+        let read = |window| best_per_query(&queries.fused_scores(n, excl, window).unwrap());
+        let single = queries
+            .localize(CoocMethod::Single, &options)
+            .unwrap()
+            .predictions;
+        assert_eq!(single, read(crate::cooc::WHOLE_BATCH));
+        assert_ne!(
+            single,
+            read(1),
+            "precondition: per query, the night rows differ"
+        );
+        let day_only = best_per_query(&map.score_matrices_by_source(queries.words())[0]);
+        assert_eq!(single, day_only);
     }
 
     #[test]

@@ -35,7 +35,7 @@ pub mod vocabulary;
 
 pub use fusion::{
     check_sources, decisiveness, fuse_rows, fused_scores, fused_similarity, normalise_sources,
-    off_peak_noise, off_peak_stats, rank_sources, row_peak, source_order,
+    off_peak_noise, off_peak_stats, rank_sources, row_peak, source_order, WHOLE_BATCH,
 };
 pub use localize::{best_per_query, localize, CoocMethod, CoocOptions, CoocQueries};
 pub use map::{extract_all, flow_similarity, CoocMap, Drive, DriveFeatures};
