@@ -104,7 +104,9 @@ pub struct CoocOptions {
     pub flow: LocalizeOptions,
     /// On a map fused from several drives, `cooc-seq` and `cooc-flow` take each query's row
     /// from the source most decisive over this many queries centred on it
-    /// ([`super::source_order`]); 0 (the default) = the sequence length `sequence.length`.
+    /// ([`super::source_order`]); 0 (the default) = the whole batch ([`WHOLE_BATCH`]: one
+    /// source for the batch, as single-image recognition chooses it; `docs/cooc.md`, session
+    /// 13).
     pub fusion_window: usize,
 }
 
@@ -112,7 +114,7 @@ impl CoocOptions {
     /// The window of [`CoocOptions::fusion_window`], resolved.
     fn window(&self) -> usize {
         if self.fusion_window == 0 {
-            self.sequence.length
+            WHOLE_BATCH
         } else {
             self.fusion_window
         }

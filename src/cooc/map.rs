@@ -580,7 +580,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn single_image_recognition_on_a_fused_map_reads_the_batch_from_one_source() {
+    fn every_method_on_a_fused_map_reads_the_batch_from_one_source() {
         // A day + night map and a batch of day queries with two night ones among them: one
         // query at a time the night queries would be read from the night drive; the batch,
         // mostly day, is read from the day drive alone (`localize::CoocQueries`' single-image
@@ -611,6 +611,28 @@ pub(crate) mod tests {
         );
         let day_only = best_per_query(&map.score_matrices_by_source(queries.words())[0]);
         assert_eq!(single, day_only);
+
+        // The sequence methods too: a batch of 9 day and 5 night frames is read from the day
+        // drive alone, as the day map answers it; a window of the sequence length would read
+        // the night stretch from the night drive.
+        let day_map =
+            CoocMap::build(&params(), &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        let mut batch = day.clone();
+        batch[9..].clone_from_slice(&night[9..]);
+        let fused = CoocQueries::new(&map, &batch).unwrap();
+        let alone = CoocQueries::new(&day_map, &batch).unwrap();
+        assert_ne!(
+            fused.similarity(n, excl, options.sequence.length).unwrap(),
+            alone.similarity(n, excl, 1).unwrap(),
+            "precondition: per window, the night stretch reads the night drive"
+        );
+        for method in CoocMethod::ALL {
+            assert_eq!(
+                fused.localize(method, &options).unwrap().predictions,
+                alone.localize(method, &options).unwrap().predictions,
+                "{method}"
+            );
+        }
     }
 
     #[test]
