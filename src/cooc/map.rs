@@ -587,8 +587,9 @@ pub(crate) mod tests {
         // method, `fusion::WHOLE_BATCH`).
         let day: Vec<GrayImage> = (0..14).map(|s| scene(s, false)).collect();
         let night: Vec<GrayImage> = (0..14).map(|s| scene(s, true)).collect();
-        let mut map =
+        let day_map =
             CoocMap::build(&params(), &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
+        let mut map = day_map.clone();
         map.add_drive(&Drive::sequential(22.0, night.clone()).unwrap())
             .unwrap();
         let mut batch = day.clone();
@@ -615,8 +616,6 @@ pub(crate) mod tests {
         // The sequence methods too: a batch of 9 day and 5 night frames is read from the day
         // drive alone, as the day map answers it; a window of the sequence length would read
         // the night stretch from the night drive.
-        let day_map =
-            CoocMap::build(&params(), &[Drive::sequential(12.0, day.clone()).unwrap()]).unwrap();
         let mut batch = day.clone();
         batch[9..].clone_from_slice(&night[9..]);
         let fused = CoocQueries::new(&map, &batch).unwrap();
