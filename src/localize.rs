@@ -122,8 +122,9 @@ fn localize_inspecting<T>(
 ///   supported one.
 ///
 /// A row whose own evidence puts it off the map ([`crate::confidence::RowConfidence::off_map`]:
-/// the best local route hidden at the row beats every one through the predicted place) gets no
-/// prediction from that hypothesis; for the first, it counts as unsettled, so a further
+/// a local route hidden at the row costs less than the best one through the predicted place
+/// plus a quarter of what hiding that route there would cost) gets no prediction from that
+/// hypothesis; for the first, it counts as unsettled, so a further
 /// hypothesis may place it on the conditions above.
 ///
 /// Among several such hypotheses the most confident wins. On a single traversal the further

@@ -49,13 +49,14 @@ pub(super) struct Reading {
     pub at: usize,
     /// The ratio at radius `r` around `at`.
     pub confidence: f64,
-    /// The cheapest route hidden at the row is cheaper than every route through a match within
-    /// `r` of `at`: the row's own min-marginals prefer "off the map" to the place.
+    /// The row's own min-marginals put it off the map rather than at `at`
+    /// ([`super::off_the_map`]).
     pub off_map: bool,
 }
 
-/// Reads row `i` out for the path's match `j_star`: see [`Reading`] and [`Readout`].
-pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> Reading {
+/// Reads row `i` out for the path's match `j_star`: see [`Reading`] and [`Readout`]. `row` is
+/// the row's `ĉ` and `w` the hidden cost (the off-the-map test, [`super::off_the_map`]).
+pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize, row: &[f32], w: f64) -> Reading {
     let d = view.lay.d;
     // Every band the readout looks at lies within `span` of the match: keep those values,
     // and the best route anywhere else (or hidden).
@@ -64,16 +65,21 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize) -> Reading {
     let hi = (j_star + span).min(d - 1);
     let near: Vec<f32> = (lo..=hi).map(|j| view.through(j)).collect();
     let far = view.best_outside(lo, hi).min(view.hidden);
-    let row = Near {
+    let band = Near {
         lo,
         near: &near,
         far,
     };
-    let (at, confidence) = pick(&row, ro, j_star);
+    let (at, confidence) = pick(&band, ro, j_star);
     Reading {
         at,
         confidence,
-        off_map: view.hidden < row.band(at, ro.radius).0,
+        off_map: super::off_the_map(
+            f64::from(view.hidden),
+            f64::from(band.band(at, ro.radius).0),
+            super::best_node_cost(row, at, ro.radius),
+            w,
+        ),
     }
 }
 
@@ -191,7 +197,7 @@ pub(super) fn discounted_readouts(
     let rows = sweep(chat, graph, discount, &scored, |i, view| {
         wanted[i]
             .iter()
-            .map(|&(t, j)| (t, read(view, readout, j)))
+            .map(|&(t, j)| (t, read(view, readout, j, chat.row(i), graph.hidden_cost)))
             .collect::<Vec<_>>()
     });
     let mut result: Vec<Reading> = targets
@@ -336,7 +342,7 @@ mod tests {
                 let slow = at_r[i][js];
                 prop_assert_eq!(f.at, js);
                 prop_assert!(close(f.confidence, slow.ratio), "row {i} col {js}: {} vs {}", f.confidence, slow.ratio);
-                if let Some(off) = slow.off_map(1e-5) {
+                if let Some(off) = slow.off_map(1e-5, &chat, (i, js, r), w) {
                     prop_assert_eq!(f.off_map, off, "row {} col {}: {:?}", i, js, slow);
                 }
             }
@@ -354,7 +360,7 @@ mod tests {
                     "row {i} col {js}: pinned {at} ({}) but the best is {best}", at_1[i][at]);
                 let slow = at_r[i][at];
                 prop_assert!(close(f.confidence, slow.ratio), "row {i} col {at}: {} vs {}", f.confidence, slow.ratio);
-                if let Some(off) = slow.off_map(1e-5) {
+                if let Some(off) = slow.off_map(1e-5, &chat, (i, at, r), w) {
                     prop_assert_eq!(f.off_map, off, "row {} col {}: {:?}", i, at, slow);
                 }
             }

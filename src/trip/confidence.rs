@@ -28,7 +28,7 @@
 
 use std::cell::RefCell;
 
-use crate::confidence::{band_reading, GraphParams};
+use crate::confidence::{band_costs, GraphParams};
 use crate::solver::{forward_values_row, match_cost, RowScratch};
 use crate::window::leading_min_in_place;
 
@@ -143,9 +143,9 @@ impl Discount {
     }
 
     /// The ratio of a row from its forward and backward values, for the prediction `j_star`
-    /// (read as offline: [`band_reading`]).
+    /// (read as offline: [`band_costs`]).
     fn ratio(&self, f: (&[f64], &[f64]), b: (&[f64], &[f64]), j_star: usize) -> f64 {
-        band_reading(f, b, j_star, self.radius).confidence
+        band_costs(f, b, j_star, self.radius).ratio()
     }
 
     /// The forward pass over `rows` from `before` into `buf` (rows `0..rows.len()`).

@@ -25,29 +25,34 @@ fn options(flows: usize) -> LocalizeOptions {
     }
 }
 
+/// Of `rows` of `case`: how many `predictions` localize within the tolerance, and how many
+/// they leave without a prediction.
+fn tally(data: &Data, case: &Case, predictions: &[Prediction], rows: &[usize]) -> (usize, usize) {
+    let at = |i: usize| predictions.iter().find(|p| p.query == i);
+    let correct = rows
+        .iter()
+        .filter(|&&i| {
+            let truth = case.truth[i].expect("rows on the map");
+            at(i).is_some_and(|p| p.reference.abs_diff(truth) <= data.tolerance)
+        })
+        .count();
+    let hidden = rows.iter().filter(|&&i| at(i).is_none()).count();
+    (correct, hidden)
+}
+
 /// Runs `case` on `data` with `F = flows` and checks its expectation.
 fn check(data: &Data, case: &Case, flows: usize) -> Vec<Prediction> {
     let queries = data.queries(&case.frames);
     let result = localize(&queries, &data.references, &options(flows)).unwrap();
-    let by_row: Vec<Option<&Prediction>> = (0..case.frames.len())
-        .map(|i| result.predictions.iter().find(|p| p.query == i))
-        .collect();
+    let predictions = result.predictions;
     let tol = data.tolerance;
-    let correct = |rows: &[usize]| {
-        rows.iter()
-            .filter(|&&i| {
-                let truth = case.truth[i].expect("rows on the map");
-                by_row[i].is_some_and(|p| p.reference.abs_diff(truth) <= tol)
-            })
-            .count()
-    };
     match &case.expect {
         Expectation::Localized {
             parts,
             min_fraction,
         } => {
             for (name, rows) in parts {
-                let n = correct(rows);
+                let (n, _) = tally(data, case, &predictions, rows);
                 eprintln!(
                     "{} / {}: {name}: {n} of {} correct",
                     data.name,
@@ -68,18 +73,17 @@ fn check(data: &Data, case: &Case, flows: usize) -> Vec<Prediction> {
             off_map,
             min_fraction,
         } => {
-            let n = correct(on_map);
-            let hidden = off_map.iter().filter(|&&i| by_row[i].is_none()).count();
+            let (n, _) = tally(data, case, &predictions, on_map);
+            let hidden = off_map
+                .iter()
+                .filter(|&&i| predictions.iter().all(|p| p.query != i))
+                .count();
             eprintln!(
                 "{} / {}: {n} of {} on-map rows correct, {hidden} of {} detour rows hidden",
                 data.name,
                 case.name,
                 on_map.len(),
                 off_map.len()
-            );
-            assert!(
-                n as f64 >= min_fraction * on_map.len() as f64,
-                "{n} on the map"
             );
             assert!(
                 hidden as f64 >= min_fraction * off_map.len() as f64,
@@ -90,7 +94,40 @@ fn check(data: &Data, case: &Case, flows: usize) -> Vec<Prediction> {
             );
         }
     }
-    result.predictions
+    predictions
+}
+
+/// A detour off the map and back: its rows are hidden (the data's fraction, in
+/// [`check`]), and it costs the rest of the drive little: the on-map rows are localized as
+/// well as when the same drive takes the bypassed places instead (at most one row in 40
+/// fewer), and on that straight drive the bypassed places are not taken for off the map (at
+/// most one in 10 hidden).
+fn detour(data: &Data) {
+    let case = routes::detour_case(data);
+    let with_detour = check(data, &case, 1);
+    let straight = routes::straight_case(data);
+    let without = check(data, &straight, 1);
+    let Expectation::Detour {
+        on_map, off_map, ..
+    } = &case.expect
+    else {
+        unreachable!("a detour case")
+    };
+    let (n_with, _) = tally(data, &case, &with_detour, on_map);
+    let (n_without, _) = tally(data, &straight, &without, on_map);
+    assert!(
+        n_with + on_map.len() / 40 >= n_without,
+        "{}: the detour costs the on-map rows {n_with} of {} right, {n_without} without it",
+        data.name,
+        on_map.len()
+    );
+    let (_, hidden) = tally(data, &straight, &without, off_map);
+    assert!(
+        hidden * 10 <= off_map.len(),
+        "{}: {hidden} of {} rows of the bypassed places hidden when they are driven",
+        data.name,
+        off_map.len()
+    );
 }
 
 fn loop_route(data: &Data) {
@@ -197,20 +234,17 @@ fn nordland_variable_speed_every_second_and_third_frame_and_stops() {
 }
 
 #[test]
-#[ignore = "issue 14 open: with the auto hidden cost the path matches the detour frames; the \
-            off-the-map readout hides 2 of 15 generated and 32 of 50 Nordland detour rows \
-            (90 % and 70 % asked)"]
+#[ignore = "issue 14 open: 5 of the 15 generated detour rows hidden (90 % asked). The detour is \
+            as long as the section it bypasses, and the path's matches on it (ĉ 0.96-1.08, node \
+            costs 0.93-1.04) are cheaper than the auto hidden cost (1.09): neither the route nor \
+            the row's min-marginals tell it from the bypassed places (ARCHITECTURE.md, Known gap)"]
 fn a_detour_off_the_map_is_hidden() {
-    let data = Data::generated();
-    check(&data, &routes::detour_case(&data), 1);
+    detour(&Data::generated());
 }
 
 #[test]
-#[ignore = "issue 14 open: with the auto hidden cost the path matches the detour frames; the \
-            off-the-map readout hides 2 of 15 generated and 32 of 50 Nordland detour rows \
-            (90 % and 70 % asked)"]
 fn nordland_detour_off_the_map_is_hidden() {
     if let Some(data) = Data::nordland() {
-        check(&data, &routes::detour_case(&data), 1);
+        detour(&data);
     }
 }

@@ -30,7 +30,7 @@ pub enum Expectation {
         parts: Vec<(&'static str, Vec<usize>)>,
         min_fraction: f64,
     },
-    /// The on-map rows are localized, the detour rows hidden.
+    /// The detour rows are hidden (the on-map rows: `detour` in `main.rs`).
     Detour {
         on_map: Vec<usize>,
         off_map: Vec<usize>,
@@ -245,6 +245,28 @@ pub fn detour_case(data: &Data) -> Case {
             on_map,
             off_map,
             min_fraction: data.min_fraction,
+        },
+    )
+}
+
+/// The drive of [`detour_case`] with the bypassed places driven instead of the detour: the
+/// same frames on the map, and the section the detour left out in between.
+pub fn straight_case(data: &Data) -> Case {
+    let (s, h, q) = (data.start, data.len / 2, data.len / 4);
+    let frames: Vec<usize> = (s..s + 2 * h + q).collect();
+    Case::new(
+        data,
+        "detour's section driven straight",
+        frames,
+        Expectation::Localized {
+            parts: vec![
+                (
+                    "the detour drive's on-map rows",
+                    (0..h).chain(h + q..2 * h + q).collect(),
+                ),
+                ("the bypassed places", (h..h + q).collect()),
+            ],
+            min_fraction: 0.0,
         },
     )
 }
