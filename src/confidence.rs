@@ -375,7 +375,7 @@ pub(crate) fn band_costs(
 
 /// The cost `1/ĉ` of the best matching node of `row` within `radius` of `centre` (`+inf` when
 /// none is usable): the row's own evidence for the place, in the graph's units.
-pub(crate) fn best_node_cost(row: &[f32], centre: usize, radius: usize) -> f64 {
+pub fn best_node_cost(row: &[f32], centre: usize, radius: usize) -> f64 {
     let lo = centre.saturating_sub(radius);
     let hi = (centre + radius).min(row.len().saturating_sub(1));
     row.get(lo..=hi)
@@ -403,7 +403,7 @@ pub const OFF_MAP_SHARE: f64 = 0.25;
 /// take another course that recovers most of what hiding costs, so the match is held by the
 /// route's commitment rather than by the image. With no usable node in the band this is
 /// `hidden < inside`.
-pub(crate) fn off_the_map(hidden: f64, inside: f64, node: f64, w: f64) -> bool {
+pub fn off_the_map(hidden: f64, inside: f64, node: f64, w: f64) -> bool {
     if inside.is_finite() && node.is_finite() {
         hidden < inside + OFF_MAP_SHARE * (w - node)
     } else {
