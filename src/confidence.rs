@@ -652,6 +652,33 @@ mod tests {
     }
 
     #[test]
+    fn a_row_is_off_the_map_when_hiding_it_wins_back_most_of_its_stake() {
+        // inside 10, the band's best node costs 0.8 (ĉ 1.25), W = 1.2: the stake is 0.4, and
+        // hiding the band's route at the row costs at most 10.4.
+        let (inside, node, w) = (10.0, 0.8, 1.2);
+        let bar = inside + OFF_MAP_SHARE * (w - node);
+        // A hidden route that beats the place outright, or costs less than the bar: off.
+        assert!(off_the_map(9.9, inside, node, w));
+        assert!(off_the_map(bar - 1e-9, inside, node, w));
+        // At the bar or above (hiding frees the route too little): the image holds the match.
+        assert!(!off_the_map(bar, inside, node, w));
+        assert!(!off_the_map(10.4, inside, node, w));
+        // A best node dearer than W (stake -0.1): hiding the band's route at the row costs at
+        // most 9.9, below the bar (9.975), so such a row is always off the map.
+        assert!(off_the_map(inside - 1.3 + w, inside, 1.3, w));
+        // No usable node or no route through the band: the plain comparison.
+        assert!(off_the_map(5.0, f64::INFINITY, f64::INFINITY, w));
+        assert!(!off_the_map(f64::INFINITY, f64::INFINITY, f64::INFINITY, w));
+        assert!(!off_the_map(10.1, inside, f64::INFINITY, w));
+        // The band's best node is the cheapest within the radius; unusable entries cost +inf.
+        let row = [2.0f32, 0.5, -1.0, 1.25, 4.0];
+        assert_eq!(best_node_cost(&row, 2, 1), 0.8);
+        assert_eq!(best_node_cost(&row, 0, 0), 0.5);
+        assert_eq!(best_node_cost(&row, 4, 3), 0.25);
+        assert_eq!(best_node_cost(&[-1.0, 0.0], 0, 1), f64::INFINITY);
+    }
+
+    #[test]
     fn hidden_rows_get_no_confidence_and_the_best_match_of_a_row_is_predicted() {
         let chat = Matrix::from_vec(
             3,
