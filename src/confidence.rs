@@ -520,14 +520,7 @@ mod tests {
         ) -> Option<bool> {
             let node = (0..chat.cols())
                 .filter(|j| j.abs_diff(at) <= r)
-                .map(|j| {
-                    let v = chat.get(i, j);
-                    if v > 0.0 {
-                        1.0 / f64::from(v)
-                    } else {
-                        f64::INFINITY
-                    }
-                })
+                .map(|j| match_cost(chat.get(i, j)))
                 .fold(f64::INFINITY, f64::min);
             let bar = if self.inside.is_finite() && node.is_finite() {
                 self.inside + OFF_MAP_SHARE * (w - node)

@@ -25,19 +25,24 @@ fn options(flows: usize) -> LocalizeOptions {
     }
 }
 
-/// Of `rows` of `case`: how many `predictions` localize within the tolerance, and how many
-/// they leave without a prediction.
-fn tally(data: &Data, case: &Case, predictions: &[Prediction], rows: &[usize]) -> (usize, usize) {
-    let at = |i: usize| predictions.iter().find(|p| p.query == i);
-    let correct = rows
-        .iter()
+/// How many of `rows` (on the map) of `case` the `predictions` localize within the tolerance.
+fn correct(data: &Data, case: &Case, predictions: &[Prediction], rows: &[usize]) -> usize {
+    rows.iter()
         .filter(|&&i| {
             let truth = case.truth[i].expect("rows on the map");
-            at(i).is_some_and(|p| p.reference.abs_diff(truth) <= data.tolerance)
+            predictions
+                .iter()
+                .find(|p| p.query == i)
+                .is_some_and(|p| p.reference.abs_diff(truth) <= data.tolerance)
         })
-        .count();
-    let hidden = rows.iter().filter(|&&i| at(i).is_none()).count();
-    (correct, hidden)
+        .count()
+}
+
+/// How many of `rows` the `predictions` leave without a prediction.
+fn hidden(predictions: &[Prediction], rows: &[usize]) -> usize {
+    rows.iter()
+        .filter(|&&i| predictions.iter().all(|p| p.query != i))
+        .count()
 }
 
 /// Runs `case` on `data` with `F = flows` and checks its expectation.
@@ -52,7 +57,7 @@ fn check(data: &Data, case: &Case, flows: usize) -> Vec<Prediction> {
             min_fraction,
         } => {
             for (name, rows) in parts {
-                let (n, _) = tally(data, case, &predictions, rows);
+                let n = correct(data, case, &predictions, rows);
                 eprintln!(
                     "{} / {}: {name}: {n} of {} correct",
                     data.name,
@@ -73,11 +78,8 @@ fn check(data: &Data, case: &Case, flows: usize) -> Vec<Prediction> {
             off_map,
             min_fraction,
         } => {
-            let (n, _) = tally(data, case, &predictions, on_map);
-            let hidden = off_map
-                .iter()
-                .filter(|&&i| predictions.iter().all(|p| p.query != i))
-                .count();
+            let n = correct(data, case, &predictions, on_map);
+            let hidden = hidden(&predictions, off_map);
             eprintln!(
                 "{} / {}: {n} of {} on-map rows correct, {hidden} of {} detour rows hidden",
                 data.name,
@@ -113,15 +115,15 @@ fn detour(data: &Data) {
     else {
         unreachable!("a detour case")
     };
-    let (n_with, _) = tally(data, &case, &with_detour, on_map);
-    let (n_without, _) = tally(data, &straight, &without, on_map);
+    let n_with = correct(data, &case, &with_detour, on_map);
+    let n_without = correct(data, &straight, &without, on_map);
     assert!(
         n_with + on_map.len() / 40 >= n_without,
         "{}: the detour costs the on-map rows {n_with} of {} right, {n_without} without it",
         data.name,
         on_map.len()
     );
-    let (_, hidden) = tally(data, &straight, &without, off_map);
+    let hidden = hidden(&without, off_map);
     assert!(
         hidden * 10 <= off_map.len(),
         "{}: {hidden} of {} rows of the bypassed places hidden when they are driven",
