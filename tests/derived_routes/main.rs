@@ -2,10 +2,14 @@
 //! the way a fleet vehicle drives it — a section twice (a loop), at another speed (every 2nd or
 //! 3rd frame, stops), and off the map and back (a detour). Ground truth follows the derivation.
 //!
-//! Each case runs twice: on small generated data (always) and on the Nordland dev split (winter
-//! frames against the summer map, HOG 8 px; skipped with a message when `../shared` is absent).
+//! Each case runs three times: on small generated data (always), on the Nordland dev split
+//! (winter frames against the summer map, HOG 8 px) and on Gardens Point dev (night frames of
+//! any size against the first 70 places of the day walk, HOG at the shipped 32 px); the
+//! real-data runs skip with a message when `../shared` is absent.
 //! Everything runs with the shipped defaults except `F` where the case is about flows.
 
+#[path = "../support/gardens_point.rs"]
+mod gardens_point;
 #[path = "../support/nordland.rs"]
 mod nordland;
 mod routes;
@@ -248,5 +252,40 @@ fn a_detour_off_the_map_is_hidden() {
 fn nordland_detour_off_the_map_is_hidden() {
     if let Some(data) = Data::nordland() {
         detour(&data);
+    }
+}
+
+#[test]
+fn gardens_point_loop_driven_twice_is_recovered_with_two_flows() {
+    if let Some(data) = Data::gardens_point() {
+        loop_route(&data);
+    }
+}
+
+#[test]
+fn gardens_point_variable_speed_every_second_and_third_frame_and_stops() {
+    if let Some(data) = Data::gardens_point() {
+        for case in routes::speed_cases(&data) {
+            check(&data, &case, 1);
+        }
+    }
+}
+
+#[test]
+#[ignore = "issue 14 open: 0 of the 10 Gardens Point detour rows hidden (70 % asked), with HOG \
+            and with the CNN. The detour is as long as the section it bypasses and the path \
+            drives that section during it (HOG confidences 0.9995-1.0034, the drive's lowest; \
+            the 40 on-map rows all right): only appearance could tell, and at night on a \
+            70-place map it does not (ARCHITECTURE.md, Known gap)"]
+fn gardens_point_detour_off_the_map_is_hidden() {
+    if let Some(data) = Data::gardens_point() {
+        detour(&data);
+    }
+}
+
+#[test]
+fn gardens_point_a_second_flow_never_lowers_ap_on_a_single_traversal() {
+    if let Some(data) = Data::gardens_point() {
+        single_traversal(&data);
     }
 }

@@ -2,9 +2,14 @@
 //! of query frames (frame `f < map_len` shows place `f`, frames from `map_len` on are off the
 //! map) and query drives as lists of pool frames.
 
-use seasonloc::features::extract_files;
 use seasonloc::features::hog::{HogOptions, HogSpec};
+use seasonloc::features::{extract_files, image_file_size, Fit, Fitted};
 use seasonloc::Matrix;
+
+/// Places of the Gardens Point map (day_right frames `0..GP_MAP`).
+const GP_MAP: usize = 70;
+/// First night frame of the Gardens Point detour (15 places past the map's end).
+const GP_OFF_MAP: usize = 85;
 
 /// A map and a pool of query frames.
 pub struct Data {
@@ -161,6 +166,32 @@ impl Data {
             start: 300,
             len: 200,
             off_map: 1800,
+            min_fraction: 0.7,
+        })
+    }
+
+    /// Gardens Point dev: the map is the day walk on the right of the path, frames
+    /// `0..GP_MAP`, the pool all 100 night frames (640x360, brought to the map's 960x540 by the
+    /// shipped stretch); night frames from [`GP_OFF_MAP`] on show places 15 or more steps past
+    /// the map's end, so they are off the map. HOG with the shipped 32 px cells, tolerance 2
+    /// (the dataset's README). `None` (with a message) when the data is absent.
+    pub fn gardens_point() -> Option<Data> {
+        let dir = crate::gardens_point::gardens_point()?;
+        let day = crate::gardens_point::traversal(&dir, "day_right");
+        let night = crate::gardens_point::traversal(&dir, "night_right");
+        let geometry = image_file_size(&day[0]).unwrap();
+        let hog = Fitted::hog(32, geometry, Fit::Stretch).unwrap();
+        let references = extract_files(&hog, &day[..GP_MAP], &|| {}).unwrap();
+        let pool = extract_files(&hog, &night, &|| {}).unwrap();
+        Some(Data {
+            name: "gardens point",
+            references,
+            pool,
+            map_len: GP_MAP,
+            tolerance: 2,
+            start: 10,
+            len: 40,
+            off_map: GP_OFF_MAP,
             min_fraction: 0.7,
         })
     }
