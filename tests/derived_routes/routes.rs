@@ -8,7 +8,7 @@ use seasonloc::Matrix;
 
 /// Places of the Gardens Point map (day_right frames `0..GP_MAP`).
 const GP_MAP: usize = 70;
-/// First night frame of the Gardens Point detour (15 places past the map's end).
+/// First night frame of the Gardens Point detour (16 places past the map's last, 69).
 const GP_OFF_MAP: usize = 85;
 
 /// A map and a pool of query frames.
@@ -172,8 +172,8 @@ impl Data {
 
     /// Gardens Point dev: the map is the day walk on the right of the path, frames
     /// `0..GP_MAP`, the pool all 100 night frames (640x360, brought to the map's 960x540 by the
-    /// shipped stretch); night frames from [`GP_OFF_MAP`] on show places 15 or more steps past
-    /// the map's end, so they are off the map. HOG with the shipped 32 px cells, tolerance 2
+    /// shipped stretch); night frames from [`GP_OFF_MAP`] on show places 16 or more steps past
+    /// the map's last, so they are off the map. HOG with the shipped 32 px cells, tolerance 2
     /// (the dataset's README). `None` (with a message) when the data is absent.
     pub fn gardens_point() -> Option<Data> {
         let dir = crate::gardens_point::gardens_point()?;
