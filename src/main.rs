@@ -49,17 +49,50 @@ fn one_line(err: &anyhow::Error) -> String {
 }
 
 /// Help and version go to stdout as clap renders them; every other parse error becomes one line
-/// on stderr (clap's first line, without the usage block) and exit code 2.
+/// on stderr and exit code 2.
 fn usage_error(err: clap::Error) -> ExitCode {
     match err.kind() {
         ErrorKind::DisplayHelp
         | ErrorKind::DisplayVersion
         | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => err.exit(),
         _ => {
-            let rendered = err.render().to_string();
-            let line = rendered.lines().next().unwrap_or("invalid arguments");
-            eprintln!("seasonloc: {}", line.trim_start_matches("error: "));
+            eprintln!("seasonloc: {}", usage_line(&err.render().to_string()));
             ExitCode::from(2)
         }
+    }
+}
+
+/// Clap's message as one line: its first paragraph (the error and, for missing arguments, the
+/// indented list that names them), without the tips and the usage block after it.
+fn usage_line(rendered: &str) -> String {
+    let line = rendered
+        .lines()
+        .take_while(|l| !l.trim().is_empty())
+        .map(str::trim)
+        .collect::<Vec<_>>()
+        .join(" ");
+    match line.trim_start_matches("error: ") {
+        "" => "invalid arguments".to_owned(),
+        text => text.to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::usage_line;
+
+    #[test]
+    fn a_usage_error_keeps_the_names_of_missing_arguments_on_its_line() {
+        let rendered = "error: the following required arguments were not provided:\n  \
+                        --reference <REFERENCE>\n  --query <QUERY>\n\nUsage: seasonloc eval \
+                        --reference <REFERENCE>\n\nFor more information, try '--help'.\n";
+        assert_eq!(
+            usage_line(rendered),
+            "the following required arguments were not provided: --reference <REFERENCE> \
+             --query <QUERY>"
+        );
+        let tip = "error: unexpected argument 'x' found\n\n  tip: use '-- x'\n\nUsage: s\n";
+        assert_eq!(usage_line(tip), "unexpected argument 'x' found");
+        assert_eq!(usage_line(""), "invalid arguments");
     }
 }

@@ -276,7 +276,12 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
     };
     let ground_truth = GroundTruth::from_csv(gt_path)?;
     let query_files = list_images(query)?;
-    check_ground_truth(&ground_truth, gt_path, query, query_files.len())?;
+    check_ground_truth(
+        &ground_truth,
+        gt_path,
+        (query, query_files.len()),
+        (&drives[0].folder, drives[0].files.len()),
+    )?;
     let job = Job {
         references: drives.iter().collect(),
         query,
@@ -313,14 +318,27 @@ fn reference_drives(args: &EvalArgs) -> Result<Vec<ReferenceDrive>> {
     Ok(drives)
 }
 
-fn check_ground_truth(gt: &GroundTruth, path: &Path, query: &Path, queries: usize) -> Result<()> {
-    if let Some(q) = gt.max_query_index() {
-        if q >= queries {
-            bail!(
-                "{}: names query {q} but {} has only {queries} images",
-                path.display(),
-                query.display(),
-            );
+/// Every index the ground truth at `path` names must be an image of its folder: `query` and
+/// `reference` are each a folder with its image count.
+fn check_ground_truth(
+    gt: &GroundTruth,
+    path: &Path,
+    query: (&Path, usize),
+    reference: (&Path, usize),
+) -> Result<()> {
+    let checks = [
+        ("query", gt.max_query_index(), query),
+        ("reference", gt.max_reference_index(), reference),
+    ];
+    for (what, max, (folder, count)) in checks {
+        if let Some(i) = max {
+            if i >= count {
+                bail!(
+                    "{}: names {what} {i} but {} has only {count} images",
+                    path.display(),
+                    folder.display(),
+                );
+            }
         }
     }
     Ok(())

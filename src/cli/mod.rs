@@ -26,15 +26,20 @@ pub struct Cli {
     pub command: Command,
 }
 
-/// Subcommands.
+/// Subcommands. Each takes a negative number as an option's value (`--fan-out -1`), so that the
+/// option's own parser names the option and its rule instead of clap reporting an unknown
+/// argument `-1`.
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Solve the data-association graph on a similarity matrix (.npy) and print the hypotheses.
+    #[command(allow_negative_numbers = true)]
     Solve(solve::SolveArgs),
     /// Localize a query image folder against a reference folder and score it against ground truth.
+    #[command(allow_negative_numbers = true)]
     Eval(Box<eval::EvalArgs>),
     /// Run the HTTP service on the embedded store, or on PostgreSQL with `--database-url`
     /// (see docs/service.md).
+    #[command(allow_negative_numbers = true)]
     Serve(Box<crate::config::ServeArgs>),
 }
 

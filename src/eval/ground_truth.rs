@@ -25,6 +25,15 @@ impl GroundTruth {
         self.matches.keys().next_back().copied()
     }
 
+    /// The largest reference index any ground-truth row names, if any.
+    pub fn max_reference_index(&self) -> Option<usize> {
+        self.matches
+            .values()
+            .filter_map(|refs| refs.last())
+            .max()
+            .copied()
+    }
+
     /// Ground truth from `(query_index, ref_index)` pairs (several per query allowed).
     pub fn from_pairs(pairs: impl IntoIterator<Item = (usize, usize)>) -> Self {
         let mut matches: BTreeMap<usize, Vec<usize>> = BTreeMap::new();

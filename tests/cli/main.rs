@@ -167,6 +167,29 @@ fn solve_rejects_bad_input_with_one_line() {
             ],
             "stop_hidden_fraction",
         ),
+        // A missing argument is named, not only announced.
+        (vec!["solve"], "--similarity"),
+        // A negative value is the option's error, not an unknown argument `-1`.
+        (
+            vec![
+                "solve",
+                "--similarity",
+                ok.to_str().unwrap(),
+                "--fan-out",
+                "-1",
+            ],
+            "--fan-out",
+        ),
+        (
+            vec![
+                "solve",
+                "--similarity",
+                ok.to_str().unwrap(),
+                "--hidden-cost",
+                "-1",
+            ],
+            "hidden-cost",
+        ),
     ];
     for (args, needle) in cases {
         seasonloc(&args).failure_mentions(needle);
@@ -254,10 +277,21 @@ fn eval_rejects_bad_input_with_one_line() {
     // A first reference image smaller than one HOG cell cannot set the input geometry.
     let tiny = dir.path("tiny");
     std::fs::create_dir_all(&tiny).unwrap();
+    // Each bad folder holds as many images as the route's references (the ground truth's
+    // indices fit), the bad one first: its own error is the one to name.
+    let fill = |folder: &std::path::Path| {
+        for k in 1..10 {
+            image::RgbImage::new(64, 32)
+                .save(folder.join(format!("z{k}.png")))
+                .unwrap();
+        }
+    };
     image::RgbImage::new(4, 4).save(tiny.join("a.png")).unwrap();
+    fill(&tiny);
     let corrupt = dir.path("corrupt");
     std::fs::create_dir_all(&corrupt).unwrap();
     std::fs::write(corrupt.join("x.png"), b"\x89PNG but not really").unwrap();
+    fill(&corrupt);
     let base2 = |r: &str, q: &str| -> Vec<String> {
         [
             "eval",
@@ -290,6 +324,11 @@ fn eval_rejects_bad_input_with_one_line() {
         ),
         (base2(corrupt.to_str().unwrap(), &route.query), "x.png"),
         (with(base(&route.query), &["--flows", "abc"]), "--flows"),
+        (
+            with(base(&route.query), &["--tolerance", "-1"]),
+            "--tolerance",
+        ),
+        (vec!["eval".to_string()], "--reference"),
         (with(base(&route.query), &["--exclude", "5-2"]), "exclude"),
         (with(base(&route.query), &["--cell-size", "1"]), "cell_size"),
         (
@@ -320,6 +359,17 @@ fn eval_rejects_bad_input_with_one_line() {
                 v
             },
             "missing.csv",
+        ),
+        (
+            {
+                let far = dir.path("far.csv");
+                std::fs::write(&far, "query_index,ref_index\n0,50\n").unwrap();
+                let mut v = base(&route.query);
+                let gt = v.iter().position(|a| a == "--ground-truth").unwrap() + 1;
+                v[gt] = far.to_str().unwrap().to_string();
+                v
+            },
+            "names reference 50 but",
         ),
     ];
     for (args, needle) in cases {

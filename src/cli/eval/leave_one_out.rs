@@ -49,7 +49,8 @@ pub(super) fn leave_one_out(
     let ground_truth = match &args.ground_truth {
         Some(path) => {
             let gt = GroundTruth::from_csv(path)?;
-            check_ground_truth(&gt, path, &drives[0].folder, locations)?;
+            let drive = (drives[0].folder.as_path(), locations);
+            check_ground_truth(&gt, path, drive, drive)?;
             gt
         }
         None => GroundTruth::from_pairs((0..locations).map(|k| (k, k))),
