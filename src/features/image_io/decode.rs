@@ -57,11 +57,17 @@ pub fn decode_image_as(
         decode_jpeg(bytes, max_pixels, pixels).map_err(fail)?
     } else {
         let header = |e: image::ImageError| fail(format!("cannot read the {format:?} header: {e}"));
-        let mut decoder = ImageReader::with_format(Cursor::new(bytes), format)
-            .into_decoder()
-            .map_err(header)?;
+        // The header is read without `image`'s memory limits, whose estimate of a row buffer
+        // would refuse a huge width as "Memory limit exceeded" before the pixel limit could
+        // name its size; once the size passes, the default limits guard the decode.
+        let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+        reader.no_limits();
+        let mut decoder = reader.into_decoder().map_err(header)?;
         let (w, h) = decoder.dimensions();
         check_pixel_limit(w, h, max_pixels).map_err(fail)?;
+        decoder
+            .set_limits(image::Limits::default())
+            .map_err(header)?;
         // An unreadable orientation tag is no reason to refuse the pixels.
         let orientation = decoder.orientation().unwrap_or(Orientation::NoTransforms);
         let image = DynamicImage::from_decoder(decoder)
@@ -77,9 +83,14 @@ pub fn decode_image_as(
 
 /// The `(width, height)` of the image `reader` holds as [`decode_image`] gives it (upright:
 /// swapped when its Exif orientation turns it a quarter), from the header alone.
+///
+/// Read without `image`'s memory limits (nothing is allocated for pixels here): a header with
+/// a huge width gives its size, for the caller's pixel limit to refuse by name, instead of a
+/// "Memory limit exceeded" from the decoder's row-buffer estimate.
 pub fn upright_dimensions<R: std::io::BufRead + std::io::Seek>(
-    reader: ImageReader<R>,
+    mut reader: ImageReader<R>,
 ) -> image::ImageResult<(u32, u32)> {
+    reader.no_limits();
     let mut decoder = reader.into_decoder()?;
     let (w, h) = decoder.dimensions();
     let orientation = decoder.orientation().unwrap_or(Orientation::NoTransforms);
@@ -519,6 +530,44 @@ mod tests {
         assert!(why.contains("exceeds the limit"), "{why}");
         let (_, why) = reason(decode_image("hdr.png", head, 5000).unwrap_err());
         assert!(why.contains("cannot decode"), "{why}");
+    }
+
+    /// `png` with its IHDR's width and height replaced (and the chunk's CRC recomputed).
+    fn png_claiming(png: &[u8], width: u32, height: u32) -> Vec<u8> {
+        let mut out = png.to_vec();
+        // Signature (8), IHDR length (4), "IHDR" (4), width (4), height (4), 5 more bytes.
+        out[16..20].copy_from_slice(&width.to_be_bytes());
+        out[20..24].copy_from_slice(&height.to_be_bytes());
+        let mut crc = 0xFFFF_FFFFu32;
+        for &b in &out[12..29] {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 {
+                    (crc >> 1) ^ 0xEDB8_8320
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        out[29..33].copy_from_slice(&(!crc).to_be_bytes());
+        out
+    }
+
+    #[test]
+    fn a_huge_png_header_is_refused_by_the_pixel_limit_by_size() {
+        let bytes = encode(&sample_rgb(4, 2), ImageFormat::Png);
+        for (w, h) in [(i32::MAX as u32, 1), (500_000_000, 1), (1, i32::MAX as u32)] {
+            let huge = png_claiming(&bytes, w, h);
+            let reader = ImageReader::new(Cursor::new(&huge[..]))
+                .with_guessed_format()
+                .unwrap();
+            assert_eq!(upright_dimensions(reader).unwrap(), (w, h));
+            let (_, why) = reason(decode_image("huge.png", &huge, 1 << 24).unwrap_err());
+            assert!(why.contains(&format!("{w}x{h} px")), "{why}");
+            assert!(why.contains("exceeds the limit"), "{why}");
+        }
+        // The patch itself keeps a valid PNG: the original size still decodes.
+        assert!(decode_image("same.png", &png_claiming(&bytes, 4, 2), 8).is_ok());
     }
 
     /// A minimal little-endian Exif (TIFF) block whose first IFD holds one Orientation entry.
