@@ -314,6 +314,18 @@ impl ServeArgs {
         let database_url = match self.database_url.as_deref().map(str::trim) {
             None | Some("") => None,
             Some(url) if url.starts_with("postgres://") || url.starts_with("postgresql://") => {
+                // `user:pa@ss@host` is ambiguous: the driver would take `ss@host` for the host
+                // and every error would print that piece of the password.
+                let authority = url.split_once("://").map_or("", |(_, rest)| rest);
+                let authority = authority.split(['/', '?']).next().unwrap_or("");
+                if authority.matches('@').count() > 1 {
+                    return Err(ConfigError {
+                        name: "database_url",
+                        reason: "has more than one `@` before the host: write an `@` in the \
+                                 user name or password as %40"
+                            .into(),
+                    });
+                }
                 Some(DatabaseUrl(url.to_string()))
             }
             Some(_) => {
@@ -482,6 +494,16 @@ mod tests {
             with("mysql://x").validate().unwrap_err().name,
             "database_url"
         );
+        // An unencoded `@` in the password is refused without echoing any of it.
+        let err = with("postgres://alice:Top@SECRET@127.0.0.1:1/db")
+            .validate()
+            .unwrap_err();
+        assert_eq!(err.name, "database_url");
+        assert!(!err.to_string().contains("SECRET"), "{err}");
+        assert!(err.to_string().contains("%40"), "{err}");
+        assert!(with("postgres://alice:Top%40SECRET@127.0.0.1:1/db")
+            .validate()
+            .is_ok());
     }
 
     #[test]
