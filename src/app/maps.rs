@@ -13,6 +13,8 @@ use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
 use crate::features::cnn::{CnnOptions, CnnSpec};
+use crate::features::hog::{HogOptions, HogSpec};
+use crate::features::Extractor;
 use crate::store::{
     CnnSettings, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
 };
@@ -101,6 +103,28 @@ fn check_cnn(options: CnnOptions, max_len: usize) -> AppResult<CnnSettings> {
     })
 }
 
+/// A HOG map with a `resize` gives every image the descriptor length of that size: one over the
+/// server's limit could never take an image, so it is refused when created, naming `resize`.
+fn check_hog_resize(cell_size: u32, (w, h): (u32, u32), max_len: usize) -> AppResult<()> {
+    let options = HogOptions {
+        cell_size,
+        resize: Some((w, h)),
+    };
+    let dim = HogSpec::new(options)
+        .and_then(|spec| spec.dim_for(w, h))
+        .map_err(|e| AppError::inconsistent("descriptor.resize", e.to_string()))?;
+    if dim > max_len {
+        return Err(AppError::inconsistent(
+            "descriptor.resize",
+            format!(
+                "{w}x{h} with {cell_size} px cells gives descriptors of length {dim}, more than \
+                 the server's limit of {max_len} (use a smaller `resize` or larger cells)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 impl App {
     /// Creates a map.
     pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
@@ -136,6 +160,16 @@ impl App {
                     "descriptor.dim",
                     format!("{dim} is more than the server's limit of {max_len}"),
                 ));
+            }
+            DescriptorSpec::Settings(DescriptorSettings::Hog {
+                cell_size,
+                resize: Some(size),
+            }) => {
+                check_hog_resize(cell_size, size, max_len)?;
+                DescriptorSettings::Hog {
+                    cell_size,
+                    resize: Some(size),
+                }
             }
             DescriptorSpec::Settings(d) => d,
             DescriptorSpec::Cnn(mut options) => {

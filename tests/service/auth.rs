@@ -737,6 +737,31 @@ fn descriptor_length_is_bounded_before_decoding() {
         (422, "inconsistent_parameter")
     );
     assert!(r.message().contains("descriptor.dim"), "{}", r.message());
+    // And HOG maps whose `resize` fixes a descriptor over the cap: such a map could never take
+    // an image, so it is refused when created, naming `resize`.
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "h", "descriptor": {"kind": "hog", "cell_size": 8, "resize": [64, 64]}}),
+    );
+    assert_eq!(
+        (r.status, r.code().as_str()),
+        (422, "inconsistent_parameter"),
+        "{}",
+        r.message()
+    );
+    assert!(r.message().contains("descriptor.resize"), "{}", r.message());
+    assert!(r.message().contains("limit of 100"), "{}", r.message());
+    spec::check("post", "/v1/maps", &r);
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "h", "descriptor": {"kind": "hog", "cell_size": 16, "resize": [32, 16]}}),
+    );
+    assert_eq!(
+        r.status,
+        201,
+        "a resize under the cap is a map: {}",
+        r.message()
+    );
 
     // With the default cap, a small PNG that would expand to a huge descriptor (a 3000x3000
     // blank image on a `cell_size: 2` map: tens of millions of values) is refused from its

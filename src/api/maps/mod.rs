@@ -137,12 +137,6 @@ fn validate(
     }
     let descriptor = match req.descriptor {
         DescriptorDto::Hog { cell_size, resize } => {
-            if cell_size == 0 {
-                return Err(ApiError::param(
-                    "descriptor.cell_size",
-                    "must be at least 1 pixel",
-                ));
-            }
             if let Some([w, h]) = resize {
                 if w == 0 || h == 0 {
                     return Err(ApiError::param(
@@ -320,8 +314,8 @@ async fn append_images(
     let map = state.app.map_for_images(map_id(&id)?).await?;
     let s = &state.settings;
     let batch = upload::read(
-        multipart.map_err(upload::rejection)?,
-        "metadata",
+        multipart.map_err(|r| upload::rejection(r, &headers))?,
+        Some("metadata"),
         s.max_batch_images,
         s.max_body_bytes,
     )
