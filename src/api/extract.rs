@@ -94,21 +94,28 @@ pub fn map_id(s: &str) -> Result<u64, ApiError> {
 
 /// Parses a JSON document that must be an object (a request body, the `params` or `drive`
 /// part): serde would also fill a struct from an array (`[4, null]` as `{"fan_out": 4}`), which
-/// the schema does not allow, so anything but an object is 400 `invalid_parameter` naming
-/// `root` (or `body`).
+/// the schema does not allow, so other JSON is 400 `invalid_parameter` naming `root` (or
+/// `body`). What is not JSON at all, or nothing, is 400 `bad_request` ("malformed JSON"), as
+/// from [`parse_json`].
 pub fn parse_json_object<T: DeserializeOwned>(
     bytes: &[u8],
     root: Option<&str>,
 ) -> Result<T, ApiError> {
+    let what = root.map_or_else(|| "the body".to_string(), |r| format!("`{r}`"));
     match bytes.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'{') => parse_json(bytes, root),
-        Some(_) => Err(ApiError::param(
-            root.unwrap_or("body"),
-            "must be a JSON object",
-        )),
-        None => Err(ApiError::BadRequest(
-            "malformed JSON: the body is empty".into(),
-        )),
+        Some(_) => match serde_json::from_slice::<serde::de::IgnoredAny>(bytes) {
+            Ok(_) => Err(ApiError::param(
+                root.unwrap_or("body"),
+                "must be a JSON object",
+            )),
+            Err(e) => Err(ApiError::BadRequest(format!(
+                "malformed JSON in {what}: {e}"
+            ))),
+        },
+        None => Err(ApiError::BadRequest(format!(
+            "malformed JSON: {what} is empty"
+        ))),
     }
 }
 

@@ -9,6 +9,7 @@
 
 use axum::body::Bytes;
 use axum::extract::multipart::{Multipart, MultipartError, MultipartRejection};
+use axum::http::{header, HeaderMap};
 
 use super::error::ApiError;
 use crate::app::ImageInput;
@@ -26,12 +27,33 @@ pub struct Upload {
     pub json: Option<Bytes>,
 }
 
-/// Maps the multipart extractor's rejection (missing boundary, wrong content type).
-pub fn rejection(r: MultipartRejection) -> ApiError {
-    ApiError::UnsupportedMediaType(format!(
-        "expected a multipart/form-data body with `image` parts: {}",
-        r.body_text()
-    ))
+/// Maps the multipart extractor's rejection (a missing or other content type, a missing
+/// boundary) to 415, saying which of them it was from the request's `headers`.
+pub fn rejection(r: MultipartRejection, headers: &HeaderMap) -> ApiError {
+    let got = headers.get(header::CONTENT_TYPE).map(|v| {
+        String::from_utf8_lossy(v.as_bytes())
+            .chars()
+            .take(120)
+            .collect::<String>()
+    });
+    ApiError::UnsupportedMediaType(match got {
+        None => "expected `Content-Type: multipart/form-data` with `image` parts; the request \
+                 has no Content-Type"
+            .into(),
+        Some(t)
+            if t.trim_start()
+                .to_ascii_lowercase()
+                .starts_with("multipart/form-data") =>
+        {
+            format!(
+                "`{t}` is not usable: {} (send the boundary its parts are separated by)",
+                r.body_text()
+            )
+        }
+        Some(t) => {
+            format!("expected `Content-Type: multipart/form-data` with `image` parts, got `{t}`")
+        }
+    })
 }
 
 fn stream_error(e: MultipartError, max_body: usize) -> ApiError {
@@ -45,11 +67,11 @@ fn stream_error(e: MultipartError, max_body: usize) -> ApiError {
 }
 
 /// Reads every part. `json_part` names the one optional JSON part accepted besides `image`
-/// (e.g. `metadata` or `params`); any other part name is 400. More than `max_images` image
-/// parts is 400 `batch_too_large`, none is 400 `empty_batch`.
+/// (e.g. `metadata` or `params`), if any; any other part name is 400. More than `max_images`
+/// image parts is 400 `batch_too_large`, none is 400 `empty_batch`.
 pub async fn read(
     mut multipart: Multipart,
-    json_part: &'static str,
+    json_part: Option<&'static str>,
     max_images: usize,
     max_body: usize,
 ) -> Result<Upload, ApiError> {
@@ -74,15 +96,18 @@ pub async fn read(
             };
             let bytes = field.bytes().await.map_err(|e| stream_error(e, max_body))?;
             upload.images.push(ImagePart { name, bytes });
-        } else if part == json_part {
+        } else if json_part == Some(part.as_str()) {
             if upload.json.is_some() {
                 return Err(ApiError::BadRequest(format!("part `{part}` appears twice")));
             }
             upload.json = Some(field.bytes().await.map_err(|e| stream_error(e, max_body))?);
         } else {
-            return Err(ApiError::BadRequest(format!(
-                "unknown part `{part}` (expected `image` parts and an optional `{json_part}` part)"
-            )));
+            return Err(ApiError::BadRequest(match json_part {
+                Some(json) => format!(
+                    "unknown part `{part}` (expected `image` parts and an optional `{json}` part)"
+                ),
+                None => format!("unknown part `{part}` (expected only `image` parts)"),
+            }));
         }
     }
     if upload.images.is_empty() {

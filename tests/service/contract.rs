@@ -383,6 +383,38 @@ fn optional_fields_take_null_and_objects_must_be_objects() {
         br#"["a", {"kind": "hog"}]"#,
     );
     expect(&r, "post", "/v1/maps", 400, "invalid_parameter");
+    // What is not JSON at all is malformed JSON, whatever its first byte.
+    for (path, body) in [
+        ("/v1/maps", "notjson"),
+        ("/v1/maps", r#"{"name": "x", "#),
+        (trips.as_str(), "notjson"),
+    ] {
+        let r = c.request("POST", path, Some("application/json"), body.as_bytes());
+        assert_eq!(
+            (r.status, r.code().as_str()),
+            (400, "bad_request"),
+            "{body}"
+        );
+        assert!(
+            r.message().contains("malformed JSON"),
+            "{body}: {}",
+            r.message()
+        );
+    }
+    // An empty or broken `params` part is named as the part, not as "the body".
+    let localize_images = format!("/v1/maps/{hog}/localize");
+    for params in [&b""[..], b"notjson"] {
+        let parts = [
+            Part::image("q.png", route.query_png(0)),
+            Part {
+                bytes: params.to_vec(),
+                ..Part::json("params", &json!({}))
+            },
+        ];
+        let r = c.post_multipart(&localize_images, &parts);
+        assert_eq!((r.status, r.code().as_str()), (400, "bad_request"));
+        assert!(r.message().contains("`params`"), "{}", r.message());
+    }
 
     let vectors = create_vector_map(&c, "null-vectors", 2);
     let r = c.post_json(

@@ -79,6 +79,10 @@ fn unknown_ids_are_404() {
         let r = c.get(&format!("/v1/localizations?map={id}"));
         expect(&r, "get", "/v1/localizations", 404, "map_not_found");
     }
+    // An empty filter is a malformed query, not a map that does not exist.
+    let r = c.get("/v1/localizations?map=");
+    expect(&r, "get", "/v1/localizations", 400, "invalid_parameter");
+    assert!(r.message().contains("map"), "{}", r.message());
     assert!(c
         .get("/v1/maps/ffffffffffffffff")
         .message()

@@ -244,18 +244,44 @@ fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     let r = c.post_multipart(&frames, &wrong_size);
     assert_eq!((r.status, r.code()), (422, "invalid_image".into()));
     assert!(r.message().contains("tiny.png"), "{}", r.message());
+    // Frames are `image` parts only (a trip's parameters are fixed when it is opened).
     let r = c.post_multipart(&frames, &[Part::json("params", &json!({}))]);
-    assert_eq!((r.status, r.code()), (400, "empty_batch".into()));
-    let mut with_params = query_parts(&route, 6..7);
-    with_params.push(Part::json("params", &json!({"lag": 3})));
-    let r = c.post_multipart(&frames, &with_params);
     assert_eq!((r.status, r.code()), (400, "bad_request".into()));
+    for extra in ["params", "foo"] {
+        let mut parts = query_parts(&route, 6..7);
+        parts.push(Part::json(extra, &json!({"lag": 3})));
+        let r = c.post_multipart(&frames, &parts);
+        assert_eq!((r.status, r.code()), (400, "bad_request".into()));
+        assert!(
+            r.message().contains(&format!(
+                "unknown part `{extra}` (expected only `image` parts)"
+            )),
+            "{}",
+            r.message()
+        );
+    }
     let r = c.post_multipart(&frames, &query_parts(&route, 6..19));
     check("POST", FRAMES, &r);
     assert_eq!((r.status, r.code()), (400, "batch_too_large".into()));
     let r = c.request("POST", &frames, Some("application/json"), b"{}");
     check("POST", FRAMES, &r);
     assert_eq!(r.status, 415);
+    assert!(
+        r.message()
+            .contains("expected `Content-Type: multipart/form-data` with `image` parts, got `application/json`"),
+        "{}",
+        r.message()
+    );
+    let r = c.request("POST", &frames, None, b"x");
+    assert_eq!(r.status, 415);
+    assert!(
+        r.message().contains("has no Content-Type"),
+        "{}",
+        r.message()
+    );
+    let r = c.request("POST", &frames, Some("multipart/form-data"), b"x");
+    assert_eq!(r.status, 415);
+    assert!(r.message().contains("boundary"), "{}", r.message());
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 6);
     let a = post_frames(&c, &trip, &query_parts(&route, 6..12));
     let b = post_frames(&c, &twin, &query_parts(&route, 6..12));

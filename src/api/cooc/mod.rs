@@ -31,8 +31,8 @@ async fn add_drive(
     state.app.map_for_drives(id).await?;
     let s = &state.settings;
     let batch = upload::read(
-        multipart.map_err(upload::rejection)?,
-        "drive",
+        multipart.map_err(|r| upload::rejection(r, &headers))?,
+        Some("drive"),
         s.max_batch_images,
         s.max_body_bytes,
     )

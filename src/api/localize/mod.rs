@@ -69,8 +69,14 @@ async fn parse(
     } else {
         let multipart = Multipart::from_request(req, state)
             .await
-            .map_err(upload::rejection)?;
-        let batch = upload::read(multipart, "params", s.max_batch_images, s.max_body_bytes).await?;
+            .map_err(|r| upload::rejection(r, &headers))?;
+        let batch = upload::read(
+            multipart,
+            Some("params"),
+            s.max_batch_images,
+            s.max_body_bytes,
+        )
+        .await?;
         let params = match &batch.json {
             Some(json) => LocalizeParams::from_json(json)?,
             None => LocalizeParams::default(),
@@ -170,7 +176,15 @@ async fn list(
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<axum::Json<LocalizationListResponse>, ApiError> {
     let Query(q) = query.map_err(|e| ApiError::param("query", e.body_text()))?;
-    let map = q.map.as_deref().map(map_id).transpose()?;
+    let map = match q.map.as_deref() {
+        Some("") => {
+            return Err(ApiError::param(
+                "map",
+                "is empty: give a map id, or leave `map` out to list every map's localizations",
+            ))
+        }
+        other => other.map(map_id).transpose()?,
+    };
     let limit = q.limit.unwrap_or(DEFAULT_PAGE);
     if limit == 0 || limit > MAX_PAGE {
         return Err(ApiError::param(

@@ -108,18 +108,14 @@ async fn frames(
 ) -> Result<(HeaderMap, Json<FramesResponse>), ApiError> {
     let trip = trip_id(&id)?;
     let s = &state.settings;
+    // Frames are `image` parts only: a trip's parameters are fixed when it is opened.
     let batch = upload::read(
-        multipart.map_err(upload::rejection)?,
-        "params",
+        multipart.map_err(|r| upload::rejection(r, &headers))?,
+        None,
         s.max_batch_images,
         s.max_body_bytes,
     )
     .await?;
-    if batch.json.is_some() {
-        return Err(ApiError::BadRequest(
-            "frames take no `params` part: a trip's parameters are fixed when it is opened".into(),
-        ));
-    }
     let key = idempotency::from_request(&headers, &batch)?;
     let outcome = state.app.post_frames_once(trip, batch.images, key).await?;
     let t = &outcome.timings;
