@@ -330,6 +330,10 @@ fn eval_rejects_bad_input_with_one_line() {
         ),
         (vec!["eval".to_string()], "--reference"),
         (with(base(&route.query), &["--exclude", "5-2"]), "exclude"),
+        (
+            with(base(&route.query), &["--exclude", "0-100"]),
+            "nothing to score: no query left after --exclude 0-100 has a ground-truth match",
+        ),
         (with(base(&route.query), &["--cell-size", "1"]), "cell_size"),
         (
             with(base(&route.query), &["--plot", "/no/such/dir/p.png"]),

@@ -53,6 +53,18 @@ pub(super) fn run_job(
     let ground_truth = job.ground_truth;
     let query_files = job.query_files;
     let reference_files = &job.references[0].files;
+    // Every metric is a share of the queries with a true match: with none left there is
+    // nothing to measure (each would print 0).
+    if !(0..query_files.len()).any(|q| !exclusions.contains(q) && ground_truth.has_match(q)) {
+        bail!(
+            "nothing to score: no query {}has a ground-truth match",
+            if args.exclude.is_empty() {
+                String::new()
+            } else {
+                format!("left after --exclude {} ", args.exclude)
+            }
+        );
+    }
     let methods = methods.to_vec();
     let needs_descriptors = methods.iter().any(|m| !m.is_cooc());
     let cooc_params = methods
