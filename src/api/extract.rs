@@ -101,7 +101,7 @@ pub fn parse_json_object<T: DeserializeOwned>(
     bytes: &[u8],
     root: Option<&str>,
 ) -> Result<T, ApiError> {
-    let what = root.map_or_else(|| "the body".to_string(), |r| format!("`{r}`"));
+    let what = || root.map_or_else(|| "the body".to_string(), |r| format!("`{r}`"));
     match bytes.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'{') => parse_json(bytes, root),
         Some(_) => match serde_json::from_slice::<serde::de::IgnoredAny>(bytes) {
@@ -110,11 +110,13 @@ pub fn parse_json_object<T: DeserializeOwned>(
                 "must be a JSON object",
             )),
             Err(e) => Err(ApiError::BadRequest(format!(
-                "malformed JSON in {what}: {e}"
+                "malformed JSON in {}: {e}",
+                what()
             ))),
         },
         None => Err(ApiError::BadRequest(format!(
-            "malformed JSON: {what} is empty"
+            "malformed JSON: {} is empty",
+            what()
         ))),
     }
 }
