@@ -41,7 +41,10 @@
 use rayon::prelude::*;
 
 mod discounted;
+mod stretch;
 mod sweep;
+
+pub use stretch::{chance_contrast, chance_stretches, row_contrast, weak_stretches};
 
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
 use crate::window::leading_min_in_place;
@@ -80,6 +83,16 @@ impl Default for ConfidenceParams {
 }
 
 impl ConfidenceParams {
+    /// The rows on each side of a scored row whose evidence its confidence rests on: the box
+    /// window's half-width `L`, or for the discounted ratio the mean distance of its row
+    /// weights `g^k`, `g / (1 - g)` (5 for the default `g = 5/6`, the `L` it was derived from).
+    pub fn evidence_span(&self) -> usize {
+        match self.discount {
+            Some(g) if g > 0.0 && g < 1.0 => (g / (1.0 - g)).round() as usize,
+            _ => self.half_window,
+        }
+    }
+
     /// The box window of half-width 5, `r = 2`: the offline default of earlier versions
     /// (`eval --confidence window`).
     pub fn window() -> Self {
@@ -140,6 +153,27 @@ pub fn score_hypothesis(
 /// `c`), and scored with the ratio at radius `r` there: a sub-frame readout of the path
 /// (ARCHITECTURE.md, "Confidence"). `c = 0` names the path's match itself.
 pub fn score_hypotheses(
+    chat: &Matrix,
+    graph: &GraphParams,
+    hypotheses: &[Hypothesis],
+    params: &ConfidenceParams,
+    claim: usize,
+) -> Result<Vec<Vec<RowConfidence>>> {
+    let mut scored = read_hypotheses(chat, graph, hypotheses, params, claim)?;
+    // A stretch of a route's matches no more distinct than chance is off the map too
+    // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
+    let len = 2 * params.evidence_span();
+    for (rows, h) in scored.iter_mut().zip(hypotheses) {
+        let route: Vec<(usize, usize)> = h.rows.iter().filter_map(predicted_at).collect();
+        let weak = chance_stretches(chat, &route, len, graph.fan_out);
+        for (row, weak) in rows.iter_mut().zip(weak) {
+            row.off_map |= weak;
+        }
+    }
+    Ok(scored)
+}
+
+fn read_hypotheses(
     chat: &Matrix,
     graph: &GraphParams,
     hypotheses: &[Hypothesis],

@@ -187,14 +187,10 @@ pub fn solve_with_confidence(
     Ok((solution, best.into_iter().flatten().collect()))
 }
 
-/// The rows on each side of a scored row whose evidence its confidence rests on: the box
-/// window's half-width `L`, or for the discounted ratio the mean distance of its row weights
-/// `g^k`, `g / (1 - g)` (5 for the default `g = 5/6`, the `L` it was derived from).
+/// The rows on each side of a scored row whose evidence its confidence rests on
+/// ([`ConfidenceParams::evidence_span`]).
 pub fn evidence_span(params: &ConfidenceParams) -> usize {
-    match params.discount {
-        Some(g) if g > 0.0 && g < 1.0 => (g / (1.0 - g)).round() as usize,
-        _ => params.half_window,
-    }
+    params.evidence_span()
 }
 
 /// The references the first hypothesis matches, per query row (all of a row's matches).

@@ -240,10 +240,6 @@ fn nordland_variable_speed_every_second_and_third_frame_and_stops() {
 }
 
 #[test]
-#[ignore = "issue 14 open: 5 of the 15 generated detour rows hidden (90 % asked). The detour is \
-            as long as the section it bypasses, and the path's matches on it (ĉ 0.96-1.08, node \
-            costs 0.93-1.04) are cheaper than the auto hidden cost (1.09): neither the route nor \
-            the row's min-marginals tell it from the bypassed places (ARCHITECTURE.md, Known gap)"]
 fn a_detour_off_the_map_is_hidden() {
     detour(&Data::generated());
 }
@@ -272,12 +268,6 @@ fn gardens_point_variable_speed_every_second_and_third_frame_and_stops() {
 }
 
 #[test]
-#[ignore = "issue 14 open: 0 of the 10 Gardens Point detour rows hidden (70 % asked), with HOG \
-            and with the CNN. The detour is as long as the section it bypasses and the path \
-            drives that section during it (HOG confidences 0.9995-1.0034, the drive's lowest; \
-            the 40 on-map rows all right). HOG's appearance does not tell them from the map; \
-            the CNN's does, but its auto hidden cost (2.12) is twice a chance match's, and a \
-            lower fixed one costs Nordland dev (ARCHITECTURE.md, Known gap)"]
 fn gardens_point_detour_off_the_map_is_hidden() {
     if let Some(data) = Data::gardens_point() {
         detour(&data);
