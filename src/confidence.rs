@@ -44,7 +44,10 @@ mod discounted;
 mod stretch;
 mod sweep;
 
-pub use stretch::{chance_contrast, chance_stretches, row_contrast, weak_stretches};
+pub use stretch::{
+    chance_contrast, chance_stretches, row_contrast, weak_stretches, OUTLIER_CONTRAST, SAMPLE,
+    STRONG,
+};
 
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
 use crate::window::leading_min_in_place;
