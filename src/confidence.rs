@@ -166,9 +166,10 @@ pub fn score_hypotheses(
     // A stretch of a route's matches no more distinct than chance is off the map too
     // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
     let len = 2 * params.evidence_span();
+    let bar = chance_contrast(graph.fan_out.saturating_add(1));
     for (rows, h) in scored.iter_mut().zip(hypotheses) {
         let route: Vec<(usize, usize)> = h.rows.iter().filter_map(predicted_at).collect();
-        let weak = chance_stretches(chat, &route, len, graph.fan_out);
+        let weak = chance_stretches(chat, &route, len, bar);
         for (row, weak) in rows.iter_mut().zip(weak) {
             row.off_map |= weak;
         }

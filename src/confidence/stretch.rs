@@ -15,7 +15,7 @@
 //! a row whose match is an outlier of its row on its own ([`OUTLIER_CONTRAST`]).
 //!
 //! `L` is the confidence's evidence span on both sides (`2 · 5 = 10` rows by default,
-//! [`crate::localize::evidence_span`]): a detour shorter than that is left to the row's own
+//! [`crate::confidence::ConfidenceParams::evidence_span`]): a detour shorter than that is left to the row's own
 //! test. Measured effect: ARCHITECTURE.md, "Off the map". Cost: one median and one MAD per
 //! matched row (two linear-time selections over at most [`SAMPLE`] of its `D` values), rows in
 //! parallel.
@@ -120,24 +120,16 @@ fn erfc(x: f64) -> f64 {
 
 /// Which entries of `contrast` (the matched rows of one route, in row order) lie in a stretch
 /// of `len` consecutive entries whose mean is below `bar`. With fewer than `len` entries there
-/// is no stretch to judge and none is weak (a short batch keeps every prediction). `O(n)` with a sliding sum and a difference array; an
-/// infinite contrast (a row that does not spread) counts as [`STRONG`], a NaN as 0.
+/// is no stretch to judge and none is weak (a short batch keeps every prediction). `O(n)` with
+/// a sliding sum and a difference array; an infinite contrast (a row that does not spread)
+/// counts as [`STRONG`], a NaN as 0.
 pub fn weak_stretches(contrast: &[f64], len: usize, bar: f64) -> Vec<bool> {
     let n = contrast.len();
     let len = len.max(1);
     if n < len {
         return vec![false; n];
     }
-    let c: Vec<f64> = contrast
-        .iter()
-        .map(|&x| {
-            if x.is_nan() {
-                0.0
-            } else {
-                x.clamp(-STRONG, STRONG)
-            }
-        })
-        .collect();
+    let c: Vec<f64> = contrast.iter().map(|&x| counted(x)).collect();
     let mut marks = vec![0i64; n + 1];
     let mut sum: f64 = c[..len].iter().sum();
     for s in 0..=n - len {
@@ -162,14 +154,24 @@ pub fn weak_stretches(contrast: &[f64], len: usize, bar: f64) -> Vec<bool> {
 /// The contrast an infinite one counts as in a stretch's mean: far above any bar.
 pub const STRONG: f64 = 1e3;
 
+/// What a contrast counts as in a stretch's mean: clamped to `±`[`STRONG`], a NaN as 0.
+fn counted(x: f64) -> f64 {
+    if x.is_nan() {
+        0.0
+    } else {
+        x.clamp(-STRONG, STRONG)
+    }
+}
+
 /// The rows of one route (`(row, reference)` of each matched row, in row order) that lie in a
-/// stretch of `len` matched rows whose mean contrast is below [`chance_contrast`]`(fan_out +
-/// 1)` and whose own contrast is below [`OUTLIER_CONTRAST`]. `chat` is the normalised similarity matrix the route was found on.
+/// stretch of `len` matched rows whose mean contrast is below `bar` (the chance bar of the
+/// route's fan-out `K`, [`chance_contrast`]`(K + 1)`) and whose own contrast is below
+/// [`OUTLIER_CONTRAST`]. `chat` is the normalised similarity matrix the route was found on.
 pub fn chance_stretches(
     chat: &Matrix,
     route: &[(usize, usize)],
     len: usize,
-    fan_out: usize,
+    bar: f64,
 ) -> Vec<bool> {
     let contrast: Vec<f64> = route
         .par_iter()
@@ -177,7 +179,7 @@ pub fn chance_stretches(
             row_contrast(chat.row(i), j, scratch)
         })
         .collect();
-    let weak = weak_stretches(&contrast, len, chance_contrast(fan_out.saturating_add(1)));
+    let weak = weak_stretches(&contrast, len, bar);
     weak.into_iter()
         .zip(&contrast)
         .map(|(weak, &c)| weak && c < OUTLIER_CONTRAST)
@@ -238,16 +240,7 @@ mod tests {
     fn weak_slow(c: &[f64], len: usize, bar: f64) -> Vec<bool> {
         let n = c.len();
         let len = len.max(1);
-        let c: Vec<f64> = c
-            .iter()
-            .map(|&x| {
-                if x.is_nan() {
-                    0.0
-                } else {
-                    x.clamp(-STRONG, STRONG)
-                }
-            })
-            .collect();
+        let c: Vec<f64> = c.iter().map(|&x| counted(x)).collect();
         (0..n)
             .map(|t| {
                 (t.saturating_sub(len - 1)..=t)
@@ -275,7 +268,7 @@ mod tests {
                     let near_tie = (t.saturating_sub(l - 1)..=t).filter(|&s| s + l <= n).any(|s| {
                         let m: f64 = c[s..s + l]
                             .iter()
-                            .map(|&x| if x.is_nan() { 0.0 } else { x.clamp(-STRONG, STRONG) })
+                            .map(|&x| counted(x))
                             .sum::<f64>() / l as f64;
                         (m - bar).abs() < 1e-9
                     });
@@ -322,7 +315,7 @@ mod tests {
                 }
             })
             .collect();
-        let weak = chance_stretches(&chat, &route, 10, 4);
+        let weak = chance_stretches(&chat, &route, 10, chance_contrast(5));
         assert!(weak[10..20].iter().all(|&w| w), "{weak:?}");
         assert!(
             weak[..10].iter().chain(&weak[20..]).all(|&w| !w),
@@ -344,6 +337,8 @@ mod tests {
                 sharp.set(i, i + 5, 6.0);
             }
         }
-        assert!(chance_stretches(&sharp, &route, 10, 4).iter().all(|&w| !w));
+        assert!(chance_stretches(&sharp, &route, 10, chance_contrast(5))
+            .iter()
+            .all(|&w| !w));
     }
 }
