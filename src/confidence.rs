@@ -45,8 +45,8 @@ mod stretch;
 mod sweep;
 
 pub use stretch::{
-    chance_contrast, chance_stretches, row_contrast, weak_stretches, OUTLIER_CONTRAST, SAMPLE,
-    STRONG,
+    chance_contrast, chance_marks, chance_stretches, row_contrast, weak_stretches, RowSpread,
+    OUTLIER_CONTRAST, SAMPLE, STRONG,
 };
 
 use crate::solver::{forward_values_row, match_cost, Hypothesis, RowScratch};
@@ -94,6 +94,12 @@ impl ConfidenceParams {
             Some(g) if g > 0.0 && g < 1.0 => (g / (1.0 - g)).round() as usize,
             _ => self.half_window,
         }
+    }
+
+    /// Matched rows in a stretch the stretch rule judges (`stretch.rs`): the evidence span on
+    /// both sides, `2 · `[`Self::evidence_span`] (10 by default), offline and in trips.
+    pub fn stretch_len(&self) -> usize {
+        2 * self.evidence_span()
     }
 
     /// The box window of half-width 5, `r = 2`: the offline default of earlier versions
@@ -165,7 +171,7 @@ pub fn score_hypotheses(
     let mut scored = read_hypotheses(chat, graph, hypotheses, params, claim)?;
     // A stretch of a route's matches no more distinct than chance is off the map too
     // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
-    let len = 2 * params.evidence_span();
+    let len = params.stretch_len();
     let bar = chance_contrast(graph.fan_out.saturating_add(1));
     for (rows, h) in scored.iter_mut().zip(hypotheses) {
         let route: Vec<(usize, usize)> = h.rows.iter().filter_map(predicted_at).collect();

@@ -32,32 +32,62 @@ pub fn row_contrast(row: &[f32], j: usize, scratch: &mut Vec<f32>) -> f64 {
     let Some(&v) = row.get(j) else {
         return 0.0;
     };
-    scratch.clear();
-    // Rows longer than SAMPLE are read at an even stride: a median and a MAD from 4,096 values
-    // are exact to a few hundredths of a deviation, and a city-scale map (30,790 places) then
-    // costs a ninth of the full selections (the solve with predictions stays near the solve).
-    let stride = row.len().div_ceil(SAMPLE).max(1);
-    scratch.extend(
-        row.iter()
-            .step_by(stride)
-            .copied()
-            .filter(|x| x.is_finite()),
-    );
-    if !v.is_finite() || scratch.is_empty() {
+    if !v.is_finite() {
         return 0.0;
     }
-    let median = f64::from(median_in_place(scratch));
-    for x in scratch.iter_mut() {
-        *x = (f64::from(*x) - median).abs() as f32;
+    RowSpread::of(row, scratch).map_or(0.0, |s| s.contrast(v))
+}
+
+/// Where a query row's values sit and how far they spread: the median and `1.4826 · MAD` of
+/// its usable values (see [`row_contrast`]). Computed once per row, it gives the contrast of
+/// any of the row's values in `O(1)`: what a trip keeps for the rows of its lag window, whose
+/// matches move while they are re-traced.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RowSpread {
+    median: f64,
+    scale: f64,
+}
+
+impl RowSpread {
+    /// The spread of `row`; `None` when it has no finite value. `scratch` is reused.
+    pub fn of(row: &[f32], scratch: &mut Vec<f32>) -> Option<RowSpread> {
+        scratch.clear();
+        // Rows longer than SAMPLE are read at an even stride: a median and a MAD from 4,096
+        // values are exact to a few hundredths of a deviation, and a city-scale map (30,790
+        // places) then costs a ninth of the full selections (the solve with predictions stays
+        // near the solve).
+        let stride = row.len().div_ceil(SAMPLE).max(1);
+        scratch.extend(
+            row.iter()
+                .step_by(stride)
+                .copied()
+                .filter(|x| x.is_finite()),
+        );
+        if scratch.is_empty() {
+            return None;
+        }
+        let median = f64::from(median_in_place(scratch));
+        for x in scratch.iter_mut() {
+            *x = (f64::from(*x) - median).abs() as f32;
+        }
+        let scale = 1.4826 * f64::from(median_in_place(scratch));
+        Some(RowSpread { median, scale })
     }
-    let mad = 1.4826 * f64::from(median_in_place(scratch));
-    let excess = f64::from(v) - median;
-    if mad > 0.0 {
-        excess / mad
-    } else if excess > 0.0 {
-        f64::INFINITY
-    } else {
-        0.0
+
+    /// The robust `z` of `v` in this row (`+inf` above the median of a row that does not
+    /// spread, 0 at or below it; 0 for a non-finite `v`).
+    pub fn contrast(&self, v: f32) -> f64 {
+        if !v.is_finite() {
+            return 0.0;
+        }
+        let excess = f64::from(v) - self.median;
+        if self.scale > 0.0 {
+            excess / self.scale
+        } else if excess > 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        }
     }
 }
 
@@ -179,9 +209,16 @@ pub fn chance_stretches(
             row_contrast(chat.row(i), j, scratch)
         })
         .collect();
-    let weak = weak_stretches(&contrast, len, bar);
-    weak.into_iter()
-        .zip(&contrast)
+    chance_marks(&contrast, len, bar)
+}
+
+/// The off-the-map marks of a route whose matched rows have these contrasts (in row order):
+/// in a weak stretch ([`weak_stretches`]) and not an outlier on its own
+/// ([`OUTLIER_CONTRAST`]). [`chance_stretches`] offline, a trip on its lag window.
+pub fn chance_marks(contrast: &[f64], len: usize, bar: f64) -> Vec<bool> {
+    weak_stretches(contrast, len, bar)
+        .into_iter()
+        .zip(contrast)
         .map(|(weak, &c)| weak && c < OUTLIER_CONTRAST)
         .collect()
 }

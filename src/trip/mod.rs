@@ -24,9 +24,14 @@
 //!   the frames so far (`trip/confidence.rs`): causal at arrival (the forward pass alone, the scored
 //!   frame last), re-scored with the later frames while it stays in the lag window. Its cost
 //!   per batch is `2 · lag` row steps, whatever the trip's length.
-//! * **Status** of the latest frame: `lost` when it is hidden or its confidence is at most
-//!   [`LOST_RATIO`] (no local evidence for the match), `relocalized` when the best path entered
-//!   one of this batch's frames by a relocalization jump, else `localized`.
+//! * **Off the map by the stretch** (`trip/stretch.rs`): the offline stretch rule on the
+//!   matched frames of the re-traced lag window. A frame in a stretch of `L` matched frames
+//!   whose matches stand out of their rows no more than chance is reported without a reference
+//!   (confidence 0); the newest frame is judged on the stretches that end at it.
+//! * **Status** of the latest frame: `lost` when it has no reference (hidden, or off the map by
+//!   the stretch) or its confidence is at most [`LOST_RATIO`] (no local evidence for the
+//!   match), `relocalized` when the best path entered one of this batch's frames by a
+//!   relocalization jump, else `localized`.
 //! * **Stored form** ([`persist`]): a constant *base* (parameters and prior, written once), a
 //!   *snapshot* of the trip at the start of its lag window, and a *log* of the raw rows since
 //!   the snapshot. A batch writes its raw rows (`4 · D` bytes per frame) and, once every `lag`
@@ -50,6 +55,7 @@ mod params;
 pub mod persist;
 pub mod state;
 mod storage;
+mod stretch;
 
 use confidence::{Discount, DiscountedForward};
 pub use normalize::column_prior;
@@ -60,6 +66,7 @@ pub use params::{
     MAX_CONFIDENCE_WINDOW,
 };
 pub use persist::{StateDelta, StoredState};
+use stretch::WindowStretch;
 
 /// Largest lag window of a trip in cells (`lag` x the map's references): about 300 MiB of
 /// state. The default lag of 32 stays below it up to 524,288 references.
@@ -100,6 +107,8 @@ pub struct Trip {
     log: Option<LogWindow>,
     stored: Stored,
     pending: StateDelta,
+    /// The stretch rule on the lag window (a cache of the window rows: not persisted).
+    stretch: WindowStretch,
 }
 
 impl Trip {
@@ -143,6 +152,7 @@ impl Trip {
                 base_written: true,
             },
             pending: StateDelta::default(),
+            stretch: WindowStretch::new(&params),
         })
     }
 
@@ -181,6 +191,7 @@ impl Trip {
             + self.disc.heap_bytes()
             + log
             + self.pending.heap_bytes()
+            + self.stretch.heap_bytes()
     }
 
     /// The graph and discount the confidence scores with (the solver's `W` once resolved).
@@ -246,8 +257,35 @@ impl Trip {
         Ok(())
     }
 
-    /// The best path over the lag window with each matched row's confidence.
-    fn score_window(&self) -> Vec<(RowEstimate, f64)> {
+    /// The best path over the lag window with each matched row's confidence; a row the
+    /// stretch rule puts off the map (`stretch.rs`) is reported without a reference, at 0.
+    fn score_window(&mut self) -> Vec<(RowEstimate, f64)> {
+        let scored = self.window_ratios();
+        let Some(solver) = &self.solver else {
+            return scored;
+        };
+        let rows = solver.window_rows();
+        let first = solver.rows() - rows.len();
+        let trace: Vec<RowEstimate> = scored.iter().map(|&(e, _)| e).collect();
+        let mut marks = self.stretch.marks(first, rows, &trace).into_iter();
+        scored
+            .into_iter()
+            .map(|(e, conf)| match e.reference {
+                Some(_) if marks.next().unwrap_or(false) => (
+                    RowEstimate {
+                        reference: None,
+                        ..e
+                    },
+                    0.0,
+                ),
+                _ => (e, conf),
+            })
+            .collect()
+    }
+
+    /// The best path over the lag window with each matched row's confidence (the discounted
+    /// ratio on the frames so far; 0 for a hidden row).
+    fn window_ratios(&self) -> Vec<(RowEstimate, f64)> {
         let Some(solver) = &self.solver else {
             return Vec::new();
         };
@@ -468,8 +506,8 @@ mod tests {
 #[cfg(test)]
 mod confidence_tests {
     use super::*;
-    use crate::confidence::score_hypothesis;
     use crate::confidence::ConfidenceParams;
+    use crate::confidence::{chance_contrast, chance_marks, row_contrast, score_hypothesis};
     use crate::solver::{Hypothesis, Match, RowAssignment};
     use proptest::prelude::*;
 
@@ -539,8 +577,21 @@ mod confidence_tests {
                 let u = trip.push_batch(&Matrix::from_rows(&rows).unwrap()).unwrap();
                 start += n;
                 let prefix = Matrix::from_vec(start, d, chat.as_slice()[..start * d].to_vec()).unwrap();
-                let window_frames: Vec<usize> = u.window.iter().map(|e| e.frame).collect();
-                for e in u.window.iter().chain(u.estimates.iter().filter(|e| !window_frames.contains(&e.frame))) {
+                // The ratios before the stretch rule hides any frame (`window_ratios`): what
+                // the batch reported, except frames the rule put off the map (its own test
+                // below).
+                let ratios: Vec<FrameEstimate> = trip
+                    .window_ratios()
+                    .into_iter()
+                    .map(|(e, conf)| FrameEstimate { frame: e.row, reference: e.reference, confidence: conf })
+                    .collect();
+                prop_assert_eq!(ratios.len(), u.window.len());
+                for (a, b) in ratios.iter().zip(&u.window) {
+                    prop_assert!(a == b || (a.reference.is_some() && b.reference.is_none() && b.confidence == 0.0),
+                        "{:?} vs {:?}", a, b);
+                }
+                let window_frames: Vec<usize> = ratios.iter().map(|e| e.frame).collect();
+                for e in ratios.iter().chain(u.estimates.iter().filter(|e| !window_frames.contains(&e.frame))) {
                     match e.reference {
                         Some(j) if window_frames.contains(&e.frame) => {
                             // The trip's passes are f64, the offline sweep's f32 lanes
@@ -552,6 +603,62 @@ mod confidence_tests {
                         }
                         Some(_) => {} // left the window within this batch: scored on an earlier prefix
                         None => prop_assert_eq!(e.confidence, 0.0),
+                    }
+                }
+            }
+        }
+
+        /// After every batch, the frames of the lag window the trip reports without a
+        /// reference though its path matches them are exactly those the offline stretch rule
+        /// marks on the window's matched frames: [`chance_marks`] of [`row_contrast`] at each
+        /// match, with the trip's `L` and the chance bar of its `K`. Raw rows, so `ĉ` is `c`.
+        #[test]
+        fn trip_hides_the_frames_the_offline_stretch_rule_marks_on_its_window(
+            d in 3usize..24, vals in prop::collection::vec(0.0f32..1.0, 24 * 60),
+            sizes in prop::collection::vec(1usize..12, 1..7),
+            k in 0usize..5, w in 0.5f64..3.0, lag in 1usize..40,
+            reloc in prop::option::of(0.2f64..3.0), g in 0.5f64..0.9,
+        ) {
+            let q: usize = sizes.iter().sum();
+            let chat = Matrix::from_vec(q, d, vals[..q * d].to_vec()).unwrap();
+            let params = TripParams {
+                fan_out: k,
+                hidden_cost: Some(w),
+                lag,
+                relocalization: reloc,
+                normalize: false,
+                confidence: ConfidenceParams { discount: Some(g), ..ConfidenceParams::default() },
+                ..TripParams::default()
+            };
+            let len = params.confidence.stretch_len();
+            let bar = chance_contrast(k + 1);
+            let mut trip = Trip::new(vec![1.0; d], params).unwrap();
+            let mut start = 0;
+            let mut scratch = Vec::new();
+            for n in sizes {
+                let rows: Vec<&[f32]> = (start..start + n).map(|i| chat.row(i)).collect();
+                let u = trip.push_batch(&Matrix::from_rows(&rows).unwrap()).unwrap();
+                start += n;
+                let path: Vec<(usize, Option<usize>)> = trip
+                    .window_ratios()
+                    .into_iter()
+                    .map(|(e, _)| (e.row, e.reference))
+                    .collect();
+                let matched: Vec<(usize, usize)> =
+                    path.iter().filter_map(|&(i, j)| j.map(|j| (i, j))).collect();
+                let contrast: Vec<f64> = matched
+                    .iter()
+                    .map(|&(i, j)| row_contrast(chat.row(i), j, &mut scratch))
+                    .collect();
+                let mut want = chance_marks(&contrast, len, bar).into_iter();
+                prop_assert_eq!(path.len(), u.window.len());
+                for (&(i, j), e) in path.iter().zip(&u.window) {
+                    prop_assert_eq!(e.frame, i);
+                    if j.is_some() {
+                        let hidden = want.next().unwrap();
+                        prop_assert_eq!(e.reference.is_none(), hidden, "frame {} of {}", i, start);
+                    } else {
+                        prop_assert!(e.reference.is_none());
                     }
                 }
             }

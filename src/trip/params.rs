@@ -108,9 +108,10 @@ pub const DEFAULT_RELOCALIZATION_COST: f64 = 1.0;
 pub struct FrameEstimate {
     /// Frame index since the trip started.
     pub frame: usize,
-    /// Estimated reference index, `None` when not on the map (hidden).
+    /// Estimated reference index, `None` when not on the map (hidden by the path, or in a
+    /// chance stretch: `trip/stretch.rs`).
     pub reference: Option<usize>,
-    /// The discounted min-marginal ratio on the frames so far (0 when hidden): causal for the
+    /// The discounted min-marginal ratio on the frames so far (0 without a reference): causal for the
     /// newest frame, re-scored with the later frames for the others (see `trip/confidence.rs`).
     pub confidence: f64,
 }
@@ -120,7 +121,8 @@ pub struct FrameEstimate {
 pub enum TripStatus {
     /// The latest frame is matched with local support.
     Localized,
-    /// The latest frame is hidden or has no local support.
+    /// The latest frame has no reference (hidden, or off the map by the stretch) or no local
+    /// support.
     Lost,
     /// The path re-entered the map by a jump during this batch.
     Relocalized,
