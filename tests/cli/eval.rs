@@ -1,0 +1,244 @@
+//! `seasonloc eval` on generated image routes: its outputs, images of any size brought to the
+//! map's geometry, and every bad input answered in one line before any work.
+
+use crate::common::{seasonloc, write_route, Dir};
+
+#[test]
+fn eval_localizes_a_generated_route_and_writes_its_outputs() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 40, 30);
+    let preds = dir.path("out/p.csv");
+    let plot = dir.path("out/pr.png");
+    std::fs::create_dir_all(dir.path("out")).unwrap();
+    let out = seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        &route.ground_truth,
+        "--cell-size",
+        "8",
+        "--tolerance",
+        "1",
+        "--compare",
+        "best-match,seqslam",
+        "--predictions",
+        preds.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ])
+    .success_json();
+    assert_eq!(out["method"], "flow");
+    assert_eq!(out["queries"], 30);
+    assert_eq!(out["references"], 40);
+    for key in [
+        "ap",
+        "recall_at_100p",
+        "recall_at_99p",
+        "max_f1",
+        "precision_at_full",
+    ] {
+        let v = out[key].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=1.0).contains(&v), "{key} = {v}");
+    }
+    assert!(
+        out["ap"].as_f64().unwrap() > 0.9,
+        "the generated route is easy: {out}"
+    );
+    for stage in ["features", "similarity", "solve"] {
+        assert!(out["seconds"][stage].as_f64().is_some(), "{out}");
+    }
+    let compared: Vec<&str> = out["compared"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["method"].as_str().unwrap())
+        .collect();
+    assert_eq!(compared, vec!["best-match", "seqslam"]);
+    let csv = std::fs::read_to_string(&preds).unwrap();
+    assert!(
+        csv.starts_with("query_index,ref_index,confidence\n"),
+        "{csv}"
+    );
+    assert!(csv.lines().count() > 20);
+    let png = std::fs::read(&plot).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
+
+#[test]
+fn eval_rejects_bad_input_with_one_line() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 10, 10);
+    std::fs::create_dir_all(dir.path("empty")).unwrap();
+    let empty = dir.path("empty");
+    let odd = dir.path("odd");
+    std::fs::create_dir_all(&odd).unwrap();
+    image::RgbImage::new(64, 32)
+        .save(odd.join("a.png"))
+        .unwrap();
+    image::RgbImage::new(48, 32)
+        .save(odd.join("b.png"))
+        .unwrap();
+    // A first reference image smaller than one HOG cell cannot set the input geometry.
+    let tiny = dir.path("tiny");
+    std::fs::create_dir_all(&tiny).unwrap();
+    // Each bad folder holds as many images as the route's references (the ground truth's
+    // indices fit), the bad one first: its own error is the one to name.
+    let fill = |folder: &std::path::Path| {
+        for k in 1..10 {
+            image::RgbImage::new(64, 32)
+                .save(folder.join(format!("z{k}.png")))
+                .unwrap();
+        }
+    };
+    image::RgbImage::new(4, 4).save(tiny.join("a.png")).unwrap();
+    fill(&tiny);
+    let corrupt = dir.path("corrupt");
+    std::fs::create_dir_all(&corrupt).unwrap();
+    std::fs::write(corrupt.join("x.png"), b"\x89PNG but not really").unwrap();
+    fill(&corrupt);
+    let base2 = |r: &str, q: &str| -> Vec<String> {
+        [
+            "eval",
+            "--reference",
+            r,
+            "--query",
+            q,
+            "--ground-truth",
+            &route.ground_truth,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let base = |q: &str| base2(&route.reference, q);
+    let with = |mut v: Vec<String>, extra: &[&str]| {
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v
+    };
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (base(dir.path("nope").to_str().unwrap()), "nope"),
+        (base(empty.to_str().unwrap()), "empty"),
+        (base2(tiny.to_str().unwrap(), &route.query), "a.png"),
+        (
+            with(
+                base2(odd.to_str().unwrap(), &route.query),
+                &["--fit", "zoom"],
+            ),
+            "--fit",
+        ),
+        (base2(corrupt.to_str().unwrap(), &route.query), "x.png"),
+        (with(base(&route.query), &["--flows", "abc"]), "--flows"),
+        (
+            with(base(&route.query), &["--tolerance", "-1"]),
+            "--tolerance",
+        ),
+        (vec!["eval".to_string()], "--reference"),
+        (with(base(&route.query), &["--exclude", "5-2"]), "exclude"),
+        (
+            with(base(&route.query), &["--exclude", "0-100"]),
+            "nothing to score: no query left after --exclude 0-100 has a ground-truth match",
+        ),
+        (with(base(&route.query), &["--cell-size", "1"]), "cell_size"),
+        (
+            with(base(&route.query), &["--plot", "/no/such/dir/p.png"]),
+            "/no/such/dir",
+        ),
+        // Refused before the run, not by the encoder at its end.
+        (
+            with(
+                base(&route.query),
+                &["--plot", dir.path("p.svg").to_str().unwrap()],
+            ),
+            "name it *.png",
+        ),
+        // A missing model is the CNN's problem, not the input geometry's.
+        (
+            with(
+                base(&route.query),
+                &["--descriptor", "cnn", "--cnn-model", "/no/such/m.onnx"],
+            ),
+            "--descriptor cnn: /no/such/m.onnx",
+        ),
+        (
+            {
+                let mut v = base(&route.query);
+                let gt = v.iter().position(|a| a == "--ground-truth").unwrap() + 1;
+                v[gt] = dir.path("missing.csv").to_str().unwrap().to_string();
+                v
+            },
+            "missing.csv",
+        ),
+        (
+            {
+                let far = dir.path("far.csv");
+                std::fs::write(&far, "query_index,ref_index\n0,50\n").unwrap();
+                let mut v = base(&route.query);
+                let gt = v.iter().position(|a| a == "--ground-truth").unwrap() + 1;
+                v[gt] = far.to_str().unwrap().to_string();
+                v
+            },
+            "names reference 50 but",
+        ),
+    ];
+    for (args, needle) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        seasonloc(&args).failure_mentions(needle);
+    }
+}
+
+/// Query images of another size or aspect ratio than the map's are brought to the map's input
+/// geometry (its first reference image's size) without any flag, by `--fit` stretch or crop.
+#[test]
+fn eval_brings_images_of_any_size_to_the_map_geometry() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 40, 30);
+    let resized = |name: &str, (w, h): (u32, u32), pad: u32| {
+        let out = dir.path(name);
+        std::fs::create_dir_all(&out).unwrap();
+        for entry in std::fs::read_dir(&route.query).unwrap() {
+            let path = entry.unwrap().path();
+            let img = image::open(&path).unwrap().to_rgb8();
+            let big = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+            // `pad` grey rows above and below: another camera with a taller field of view.
+            let mut framed = image::RgbImage::from_pixel(w, h + 2 * pad, image::Rgb([90; 3]));
+            image::imageops::replace(&mut framed, &big, 0, i64::from(pad));
+            framed.save(out.join(path.file_name().unwrap())).unwrap();
+        }
+        out.to_str().unwrap().to_string()
+    };
+    let twice = resized("query-128x64", (128, 64), 0);
+    let taller = resized("query-96x64", (96, 48), 8);
+    let run = |query: &str, extra: &[&str]| {
+        let mut args = vec![
+            "eval",
+            "--reference",
+            &route.reference,
+            "--query",
+            query,
+            "--ground-truth",
+            &route.ground_truth,
+            "--cell-size",
+            "8",
+            "--tolerance",
+            "1",
+        ];
+        args.extend_from_slice(extra);
+        seasonloc(&args).success_json()
+    };
+    let same = run(&route.query, &[]);
+    let out = run(&twice, &[]);
+    assert_eq!(out["input_geometry"], serde_json::json!([64, 32]), "{out}");
+    assert_eq!(out["fit"], "stretch");
+    assert_eq!(out["descriptor_dim"], same["descriptor_dim"]);
+    assert!(out["ap"].as_f64().unwrap() > 0.9, "{out}");
+    // 96x64 with 8 px bands: the centred 2:1 window is the scene; crop finds it.
+    let crop = run(&taller, &["--fit", "crop"]);
+    assert_eq!(crop["fit"], "crop");
+    assert!(crop["ap"].as_f64().unwrap() > 0.9, "{crop}");
+    // An explicit --resize is the geometry instead.
+    let explicit = run(&twice, &["--resize", "32x16"]);
+    assert_eq!(explicit["input_geometry"], serde_json::json!([32, 16]));
+}
