@@ -173,9 +173,12 @@ pub fn score_hypotheses(
     // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
     let len = params.stretch_len();
     let bar = chance_contrast(graph.fan_out.saturating_add(1));
-    for (rows, h) in scored.iter_mut().zip(hypotheses) {
-        let route: Vec<(usize, usize)> = h.rows.iter().filter_map(predicted_at).collect();
-        let weak = chance_stretches(chat, &route, len, bar);
+    let routes: Vec<Vec<(usize, usize)>> = hypotheses
+        .iter()
+        .map(|h| h.rows.iter().filter_map(predicted_at).collect())
+        .collect();
+    let marks = chance_stretches(chat, &routes, len, bar);
+    for (rows, weak) in scored.iter_mut().zip(marks) {
         for (row, weak) in rows.iter_mut().zip(weak) {
             row.off_map |= weak;
         }

@@ -17,8 +17,9 @@
 //! `L` is the confidence's evidence span on both sides (`2 · 5 = 10` rows by default,
 //! [`crate::confidence::ConfidenceParams::evidence_span`]): a detour shorter than that is left to the row's own
 //! test. Measured effect: ARCHITECTURE.md, "Off the map". Cost: one median and one MAD per
-//! matched row (two linear-time selections over at most [`SAMPLE`] of its `D` values), rows in
-//! parallel.
+//! matched row, shared by the hypotheses that match it (two linear-time selections over at most
+//! [`SAMPLE`] of its `D` values, [`RowSpread`]), rows in parallel; trips keep them for the rows
+//! of their lag window (`trip/stretch.rs`).
 
 use rayon::prelude::*;
 
@@ -193,23 +194,44 @@ fn counted(x: f64) -> f64 {
     }
 }
 
-/// The rows of one route (`(row, reference)` of each matched row, in row order) that lie in a
-/// stretch of `len` matched rows whose mean contrast is below `bar` (the chance bar of the
-/// route's fan-out `K`, [`chance_contrast`]`(K + 1)`) and whose own contrast is below
-/// [`OUTLIER_CONTRAST`]. `chat` is the normalised similarity matrix the route was found on.
+/// For each route (`(row, reference)` of each matched row, in row order), the rows that lie in
+/// a stretch of `len` matched rows whose mean contrast is below `bar` (the chance bar of the
+/// routes' fan-out `K`, [`chance_contrast`]`(K + 1)`) and whose own contrast is below
+/// [`OUTLIER_CONTRAST`]. `chat` is the normalised similarity matrix the routes were found on;
+/// every `(row, reference)` must lie in it. A row several routes match (`F > 1`) has its median
+/// and MAD computed once.
 pub fn chance_stretches(
     chat: &Matrix,
-    route: &[(usize, usize)],
+    routes: &[Vec<(usize, usize)>],
     len: usize,
     bar: f64,
-) -> Vec<bool> {
-    let contrast: Vec<f64> = route
+) -> Vec<Vec<bool>> {
+    let mut rows: Vec<usize> = routes.iter().flatten().map(|&(i, _)| i).collect();
+    rows.sort_unstable();
+    rows.dedup();
+    let spreads: Vec<Option<RowSpread>> = rows
         .par_iter()
-        .map_init(Vec::new, |scratch, &(i, j)| {
-            row_contrast(chat.row(i), j, scratch)
-        })
+        .map_init(Vec::new, |scratch, &i| RowSpread::of(chat.row(i), scratch))
         .collect();
-    chance_marks(&contrast, len, bar)
+    routes
+        .iter()
+        .map(|route| {
+            let contrast: Vec<f64> = route
+                .iter()
+                .map(|&(i, j)| {
+                    let spread = rows
+                        .binary_search(&i)
+                        .ok()
+                        .and_then(|k| spreads.get(k).copied().flatten());
+                    match (spread, chat.row(i).get(j)) {
+                        (Some(s), Some(&v)) => s.contrast(v),
+                        _ => 0.0,
+                    }
+                })
+                .collect();
+            chance_marks(&contrast, len, bar)
+        })
+        .collect()
 }
 
 /// The off-the-map marks of a route whose matched rows have these contrasts (in row order):
@@ -352,7 +374,23 @@ mod tests {
                 }
             })
             .collect();
-        let weak = chance_stretches(&chat, &route, 10, chance_contrast(5));
+        let weak =
+            chance_stretches(&chat, std::slice::from_ref(&route), 10, chance_contrast(5)).remove(0);
+        // Routes sharing rows (F > 1) share their spreads and get each their own marks: a
+        // route of the sharp rows alone, and this one again.
+        let sharp_rows: Vec<(usize, usize)> = route
+            .iter()
+            .copied()
+            .filter(|&(i, _)| !(10..20).contains(&i))
+            .collect();
+        let both = chance_stretches(
+            &chat,
+            &[sharp_rows.clone(), route.clone()],
+            10,
+            chance_contrast(5),
+        );
+        assert_eq!(both[1], weak);
+        assert_eq!(both[0], vec![false; sharp_rows.len()]);
         assert!(weak[10..20].iter().all(|&w| w), "{weak:?}");
         assert!(
             weak[..10].iter().chain(&weak[20..]).all(|&w| !w),
@@ -374,8 +412,9 @@ mod tests {
                 sharp.set(i, i + 5, 6.0);
             }
         }
-        assert!(chance_stretches(&sharp, &route, 10, chance_contrast(5))
+        assert!(chance_stretches(&sharp, &[route], 10, chance_contrast(5))
             .iter()
+            .flatten()
             .all(|&w| !w));
     }
 }
