@@ -168,15 +168,15 @@ pub fn score_hypotheses(
     params: &ConfidenceParams,
     claim: usize,
 ) -> Result<Vec<Vec<RowConfidence>>> {
-    let mut scored = read_hypotheses(chat, graph, hypotheses, params, claim)?;
-    // A stretch of a route's matches no more distinct than chance is off the map too
-    // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
-    let len = params.stretch_len();
-    let bar = chance_contrast(graph.fan_out.saturating_add(1));
     let routes: Vec<Vec<(usize, usize)>> = hypotheses
         .iter()
         .map(|h| h.rows.iter().filter_map(predicted_at).collect())
         .collect();
+    let mut scored = read_hypotheses(chat, graph, &routes, params, claim)?;
+    // A stretch of a route's matches no more distinct than chance is off the map too
+    // (`stretch.rs`): rows hidden by the route itself are not part of any stretch.
+    let len = params.stretch_len();
+    let bar = chance_contrast(graph.fan_out.saturating_add(1));
     let marks = chance_stretches(chat, &routes, len, bar);
     for (rows, weak) in scored.iter_mut().zip(marks) {
         for (row, weak) in rows.iter_mut().zip(weak) {
@@ -186,18 +186,16 @@ pub fn score_hypotheses(
     Ok(scored)
 }
 
+/// The confidence readout of each hypothesis's matched rows (`per_hypothesis`: `(row,
+/// reference)` of each, in row order), after checking that they lie in `chat`.
 fn read_hypotheses(
     chat: &Matrix,
     graph: &GraphParams,
-    hypotheses: &[Hypothesis],
+    per_hypothesis: &[Vec<(usize, usize)>],
     params: &ConfidenceParams,
     claim: usize,
 ) -> Result<Vec<Vec<RowConfidence>>> {
     crate::solver::check_hidden_cost(graph.hidden_cost)?;
-    let per_hypothesis: Vec<Vec<(usize, usize)>> = hypotheses
-        .iter()
-        .map(|h| h.rows.iter().filter_map(predicted_at).collect())
-        .collect();
     if let Some(&(i, j)) = per_hypothesis
         .iter()
         .flatten()

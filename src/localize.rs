@@ -116,8 +116,9 @@ fn localize_inspecting<T>(
 /// * and in both cases only when the further hypothesis is a *second visit*, not another
 ///   timing of the first's one: it names a place the first hypothesis does not match
 ///   (within the ratio's radius `r`) on any row within the confidence's evidence span of the
-///   row ([`evidence_span`]). Within that span the ratio cannot tell "the route passes this
-///   place again" from "the route passes it a few frames earlier or later", and between two
+///   row ([`ConfidenceParams::evidence_span`]). Within that span the ratio cannot tell "the
+///   route passes this place again" from "the route passes it a few frames earlier or later",
+///   and between two
 ///   timings of one traversal the first hypothesis, the best complete route, is the better
 ///   supported one.
 ///
@@ -148,7 +149,7 @@ pub fn solve_with_confidence(
         &options.confidence,
         options.claim,
     )?;
-    let span = evidence_span(&options.confidence);
+    let span = options.confidence.evidence_span();
     let first = solution
         .hypotheses
         .first()
@@ -185,12 +186,6 @@ pub fn solve_with_confidence(
         }
     }
     Ok((solution, best.into_iter().flatten().collect()))
-}
-
-/// The rows on each side of a scored row whose evidence its confidence rests on
-/// ([`ConfidenceParams::evidence_span`]).
-pub fn evidence_span(params: &ConfidenceParams) -> usize {
-    params.evidence_span()
 }
 
 /// The references the first hypothesis matches, per query row (all of a row's matches).

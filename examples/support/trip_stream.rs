@@ -1,6 +1,9 @@
 //! Streaming a similarity matrix through an online trip, shared by the examples that score
 //! trips (`trip_nordland`, `cooc_gardens`): the estimates at arrival and after the lag window,
-//! and their predictions for `seasonloc::eval`.
+//! and their predictions for `seasonloc::eval`. The trip tests (`tests/trip_jump/`,
+//! `tests/derived_routes/`) stream through it too.
+
+#![allow(dead_code)] // each includer uses a different part
 
 use seasonloc::eval::Prediction;
 use seasonloc::trip::{FrameEstimate, Trip, TripParams};

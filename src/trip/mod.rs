@@ -382,7 +382,7 @@ impl Trip {
             .copied()
             .ok_or_else(|| Error::Empty("the batch has no frames".into()))?;
         let jumped = found.iter().flatten().any(|(e, _)| e.relocalized);
-        let status = if latest.reference.is_none() || latest.confidence <= LOST_RATIO {
+        let status = if latest.is_lost() {
             TripStatus::Lost
         } else if jumped {
             TripStatus::Relocalized

@@ -116,6 +116,15 @@ pub struct FrameEstimate {
     pub confidence: f64,
 }
 
+impl FrameEstimate {
+    /// Not localized: no reference (hidden, or off the map by the stretch) or a confidence of
+    /// at most [`LOST_RATIO`] (no local evidence for the match). A latest frame that is lost
+    /// makes the trip [`TripStatus::Lost`].
+    pub fn is_lost(&self) -> bool {
+        self.reference.is_none() || self.confidence <= LOST_RATIO
+    }
+}
+
 /// Where the trip stands after a batch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TripStatus {

@@ -13,13 +13,14 @@ mod gardens_point;
 #[path = "../support/nordland.rs"]
 mod nordland;
 mod routes;
+#[path = "../../examples/support/trip_stream.rs"]
+mod trip_stream;
 
 use routes::{Case, Data, Expectation};
 use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
 use seasonloc::localize::{localize, LocalizeOptions, Prediction};
 use seasonloc::solver::SolverParams;
-use seasonloc::trip::{column_prior, FrameEstimate, Trip, TripParams, LOST_RATIO};
-use seasonloc::Matrix;
+use seasonloc::trip::{column_prior, FrameEstimate, TripParams};
 
 fn options(flows: usize) -> LocalizeOptions {
     LocalizeOptions {
@@ -285,35 +286,11 @@ fn gardens_point_a_second_flow_never_lowers_ap_on_a_single_traversal() {
 
 /// What a trip (shipped defaults, batches of 10 frames) reports for each frame of `case`:
 /// when the frame arrives, and last (re-traced while it stayed in the lag window).
-struct TripRun {
-    arrival: Vec<FrameEstimate>,
-    last: Vec<FrameEstimate>,
-}
-
-fn drive_trip(data: &Data, case: &Case) -> TripRun {
+fn drive_trip(data: &Data, case: &Case) -> (Vec<FrameEstimate>, Vec<FrameEstimate>) {
     let queries = data.queries(&case.frames);
     let c = seasonloc::similarity::cosine_matrix(&queries, &data.references).unwrap();
     let prior = column_prior(&data.references).unwrap();
-    let mut trip = Trip::new(prior, TripParams::default()).unwrap();
-    let (mut arrival, mut last) = (Vec::new(), Vec::new());
-    for start in (0..c.rows()).step_by(10) {
-        let rows: Vec<&[f32]> = (start..(start + 10).min(c.rows()))
-            .map(|i| c.row(i))
-            .collect();
-        let u = trip.push_batch(&Matrix::from_rows(&rows).unwrap()).unwrap();
-        arrival.extend(u.estimates.iter().copied());
-        last.extend(u.estimates.iter().copied());
-        for e in u.window {
-            last[e.frame] = e;
-        }
-    }
-    TripRun { arrival, last }
-}
-
-/// A frame the trip reports as not on the map: no reference, or no local support (what makes
-/// the trip's status `lost`).
-fn off(e: &FrameEstimate) -> bool {
-    e.reference.is_none() || e.confidence <= LOST_RATIO
+    trip_stream::stream(&c, &prior, TripParams::default(), 10)
 }
 
 /// How many of `rows` the trip's `estimates` report off the map, and how many it localizes
@@ -324,12 +301,12 @@ fn trip_counts(
     estimates: &[FrameEstimate],
     rows: &[usize],
 ) -> (usize, usize) {
-    let lost = rows.iter().filter(|&&i| off(&estimates[i])).count();
+    let lost = rows.iter().filter(|&&i| estimates[i].is_lost()).count();
     let right = rows
         .iter()
         .filter(|&&i| {
             let e = &estimates[i];
-            !off(e)
+            !e.is_lost()
                 && case.truth[i]
                     .zip(e.reference)
                     .is_some_and(|(t, j)| t.abs_diff(j) <= data.tolerance)
@@ -358,17 +335,17 @@ fn trip_detour(data: &Data) -> TripDetour {
     else {
         unreachable!("a detour case")
     };
-    let run = drive_trip(data, &case);
+    let (arrival, last) = drive_trip(data, &case);
     let straight = routes::straight_case(data);
-    let straight_run = drive_trip(data, &straight);
+    let (_, straight_last) = drive_trip(data, &straight);
     let r = TripDetour {
         off_map: off_map.len(),
-        arrival_off: trip_counts(data, &case, &run.arrival, off_map).0,
-        last_off: trip_counts(data, &case, &run.last, off_map).0,
+        arrival_off: trip_counts(data, &case, &arrival, off_map).0,
+        last_off: trip_counts(data, &case, &last, off_map).0,
         on_map: on_map.len(),
-        last_right: trip_counts(data, &case, &run.last, on_map).1,
-        straight_right: trip_counts(data, &straight, &straight_run.last, on_map).1,
-        bypassed_lost: trip_counts(data, &straight, &straight_run.last, off_map).0,
+        last_right: trip_counts(data, &case, &last, on_map).1,
+        straight_right: trip_counts(data, &straight, &straight_last, on_map).1,
+        bypassed_lost: trip_counts(data, &straight, &straight_last, off_map).0,
     };
     eprintln!(
         "{} / trip: detour frames reported off the map {} of {} on arrival, {} last; \

@@ -5,11 +5,14 @@
 #[path = "../support/nordland.rs"]
 mod nordland;
 mod route;
+#[path = "../../examples/support/trip_stream.rs"]
+mod trip_stream;
 
 use route::{jump_route, relocalization_delays, JumpRoute};
 use seasonloc::similarity;
-use seasonloc::trip::{column_prior, FrameEstimate, Trip, TripParams, LOST_RATIO};
+use seasonloc::trip::{column_prior, TripParams};
 use seasonloc::Matrix;
+use trip_stream::stream;
 
 /// Prints the jump route's delays and the dev-split AP for a grid of `R` (tuning aid).
 #[test]
@@ -25,34 +28,15 @@ fn nordland_relocalization_cost_grid() {
             relocalization: Some(r),
             ..TripParams::default()
         };
-        let arrival = stream(&c, &prior, params);
+        let (arrival, _) = stream(&c, &prior, params, 10);
         let delays = relocalization_delays(&route, &arrival);
         let (a, b) = (route.segments[2].0, route.segments[3].0);
-        let lost = arrival[a..b]
-            .iter()
-            .filter(|e| e.reference.is_none() || e.confidence <= LOST_RATIO)
-            .count();
+        let lost = arrival[a..b].iter().filter(|e| e.is_lost()).count();
         eprintln!(
             "R {r}: delays {delays:?}, off-map frames reported lost {lost}/{}",
             b - a
         );
     }
-}
-
-fn stream(c: &Matrix, prior: &[f32], params: TripParams) -> Vec<FrameEstimate> {
-    let mut trip = Trip::new(prior.to_vec(), params).unwrap();
-    let mut arrival = Vec::new();
-    for start in (0..c.rows()).step_by(10) {
-        let rows: Vec<&[f32]> = (start..(start + 10).min(c.rows()))
-            .map(|i| c.row(i))
-            .collect();
-        arrival.extend(
-            trip.push_batch(&Matrix::from_rows(&rows).unwrap())
-                .unwrap()
-                .estimates,
-        );
-    }
-    arrival
 }
 
 fn nordland_jump_inputs() -> Option<(Matrix, Matrix, JumpRoute)> {
@@ -86,7 +70,7 @@ fn nordland_jump_route_is_relocalized_within_15_frames() {
     };
     let c = similarity::cosine_matrix(&winter, &summer).unwrap();
     let prior = column_prior(&summer).unwrap();
-    let arrival = stream(&c, &prior, TripParams::default());
+    let (arrival, _) = stream(&c, &prior, TripParams::default(), 10);
     let delays = relocalization_delays(&route, &arrival);
     eprintln!("relocalization delays per segment: {delays:?}");
     // The start, the jump back (1499 -> 300), the stretch off the map and the re-entry

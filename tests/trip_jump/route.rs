@@ -4,7 +4,7 @@
 
 #![allow(dead_code)] // each includer uses a different part
 
-use seasonloc::trip::{FrameEstimate, LOST_RATIO};
+use seasonloc::trip::FrameEstimate;
 
 /// The derived route of the relocalization check (README, `docs/parameters.md`): the map is
 /// summer frames `0..map_len`; the vehicle drives winter frames 1200-1499, jumps back to
@@ -45,7 +45,7 @@ pub const FOUND_RUN: usize = 10;
 /// (`estimates[t]` for trip frame `t`) settle: on the map, the first offset from which
 /// [`FOUND_RUN`] consecutive frames are within ±1 frame of the true place; off the map, the
 /// first offset from which [`FOUND_RUN`] consecutive frames are reported as not on the map
-/// (no reference, or confidence at most [`LOST_RATIO`]). `None` when that never happens.
+/// ([`FrameEstimate::is_lost`]). `None` when that never happens.
 pub fn relocalization_delays(route: &JumpRoute, estimates: &[FrameEstimate]) -> Vec<Option<usize>> {
     route
         .segments
@@ -55,7 +55,7 @@ pub fn relocalization_delays(route: &JumpRoute, estimates: &[FrameEstimate]) -> 
                 let truth = route.frames[t];
                 let e = &estimates[t];
                 if truth >= route.map_len {
-                    e.reference.is_none() || e.confidence <= LOST_RATIO
+                    e.is_lost()
                 } else {
                     e.reference.is_some_and(|j| j.abs_diff(truth) <= 1)
                 }
