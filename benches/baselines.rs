@@ -13,13 +13,13 @@ mod fixture;
 use std::path::{Path, PathBuf};
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use seasonloc::baselines::{best_match, seqslam, SeqSlamParams};
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
-use seasonloc::similarity::cosine_matrix;
-use seasonloc::Matrix;
+use seasonloc_core::baselines::{best_match, seqslam, SeqSlamParams};
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth};
+use seasonloc_core::similarity::cosine_matrix;
+use seasonloc_core::Matrix;
 
 fn nordland_dir() -> PathBuf {
-    fixture::shared_root().join("data/nordland_64x32")
+    fixture::data_dir("nordland_64x32")
 }
 
 /// Mean-centred grayscale pixels of every PNG in `dir`, in file-name order.

@@ -12,18 +12,18 @@ use std::time::Duration;
 use criterion::{BenchmarkId, Criterion, Throughput};
 use image::DynamicImage;
 use rayon::prelude::*;
-use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use seasonloc::features::Extractor;
+use seasonloc_core::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use seasonloc_core::features::Extractor;
 
 fn shared_models() -> Option<PathBuf> {
-    let dir = fixture::shared_root().join("models");
+    let dir = fixture::models_dir();
     dir.join("efficientnet-lite0-224.onnx")
         .is_file()
         .then_some(dir)
 }
 
 fn nordland_frame() -> Option<DynamicImage> {
-    let path = fixture::shared_root().join("data/nordland_64x32/winter/images-00010.png");
+    let path = fixture::data_dir("nordland_64x32").join("winter/images-00010.png");
     image::open(path).ok()
 }
 
@@ -97,8 +97,8 @@ fn bench_batch(c: &mut Criterion, dir: &Path, image: &DynamicImage) {
 /// to 224x224 and run to `block10` by `extract_files` on the global rayon pool (both cores).
 /// Compare with `benches/onnxruntime_cnn.py` (same frames, same work, two threads).
 fn bench_nordland400(c: &mut Criterion, dir: &Path) {
-    let folder = fixture::shared_root().join("data/nordland_64x32/winter");
-    let Ok(mut paths) = seasonloc::features::list_images(&folder) else {
+    let folder = fixture::data_dir("nordland_64x32").join("winter");
+    let Ok(mut paths) = seasonloc_core::features::list_images(&folder) else {
         eprintln!("skipping cnn_nordland400: {} not found", folder.display());
         return;
     };
@@ -108,7 +108,7 @@ fn bench_nordland400(c: &mut Criterion, dir: &Path) {
     g.sample_size(10);
     g.throughput(Throughput::Elements(paths.len() as u64));
     g.bench_function("block10_stretch_extract_files", |b| {
-        b.iter(|| seasonloc::features::extract_files(&spec, &paths, &|| {}).expect("extracts"))
+        b.iter(|| seasonloc_core::features::extract_files(&spec, &paths, &|| {}).expect("extracts"))
     });
     g.finish();
 }

@@ -11,12 +11,12 @@ mod fixture;
 use criterion::measurement::WallTime;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, BenchmarkId, Criterion};
 use image::{GrayImage, Luma};
-use seasonloc::cooc::keypoints::{extract, KeypointParams, DESCRIPTOR_DIM};
-use seasonloc::cooc::model::{DriveRecord, LocationMap, Word};
-use seasonloc::cooc::recognition::{recognize_query, Schedule};
-use seasonloc::cooc::spatial::SpatialGrid;
-use seasonloc::cooc::vocabulary::{TreeSpec, Vocabulary};
-use seasonloc::cooc::{CoocMap, CoocParams, Drive};
+use seasonloc_core::cooc::keypoints::{extract, KeypointParams, DESCRIPTOR_DIM};
+use seasonloc_core::cooc::model::{DriveRecord, LocationMap, Word};
+use seasonloc_core::cooc::recognition::{recognize_query, Schedule};
+use seasonloc_core::cooc::spatial::SpatialGrid;
+use seasonloc_core::cooc::vocabulary::{TreeSpec, Vocabulary};
+use seasonloc_core::cooc::{CoocMap, CoocParams, Drive};
 
 /// SplitMix64, so the fixture is identical on every run.
 struct Rng(u64);
@@ -79,9 +79,9 @@ fn fixture() -> (LocationMap, Vec<(usize, Vec<Word>)>) {
     (map, queries)
 }
 
-/// The Nordland folder below the shared data ([`fixture::shared_root`]).
+/// The Nordland folder where the tests find it ([`fixture::data_dir`]).
 fn nordland_dir() -> Option<std::path::PathBuf> {
-    Some(fixture::shared_root().join("data/nordland_64x32")).filter(|d| d.join("summer").is_dir())
+    Some(fixture::data_dir("nordland_64x32")).filter(|d| d.join("summer").is_dir())
 }
 
 fn bench_recognition(c: &mut Criterion) {
@@ -129,7 +129,7 @@ fn bench_recognition(c: &mut Criterion) {
 /// 21 winter queries; skipped when the shared data is absent. Building the map takes ~45 s.
 fn bench_recognition_nordland(c: &mut Criterion) {
     let Some(dir) = nordland_dir() else {
-        eprintln!("../shared/data/nordland_64x32 not found: skipping the Nordland bench");
+        eprintln!("nordland_64x32 not found: skipping the Nordland bench");
         return;
     };
     let load = |season: &str, i: usize| -> GrayImage {
@@ -229,7 +229,7 @@ fn bench_keypoints(c: &mut Criterion) {
 /// generated frame of that size when the shared data is absent), default settings: the frame
 /// is reduced to the 640 px working width first.
 fn bench_keypoints_960x540(c: &mut Criterion) {
-    let path = Some(fixture::shared_root().join("data/gardenspoint_dev/day_right/Image000.jpg"))
+    let path = Some(fixture::data_dir("gardenspoint_dev").join("day_right/Image000.jpg"))
         .filter(|p| p.is_file());
     let image: GrayImage = match path.as_ref().map(image::open) {
         Some(Ok(img)) => img.to_luma8(),
@@ -247,10 +247,9 @@ fn bench_keypoints_960x540(c: &mut Criterion) {
     });
 }
 
-/// The Gardens Point dev folder below the shared data ([`fixture::shared_root`]).
+/// The Gardens Point dev folder where the tests find it ([`fixture::data_dir`]).
 fn gardens_dir() -> Option<std::path::PathBuf> {
-    Some(fixture::shared_root().join("data/gardenspoint_dev"))
-        .filter(|d| d.join("day_right").is_dir())
+    Some(fixture::data_dir("gardenspoint_dev")).filter(|d| d.join("day_right").is_dir())
 }
 
 /// The 3 x 3 non-overlapping tiles of a frame, row by row: nine images that share no pixel.
@@ -272,15 +271,15 @@ fn tiles(img: &GrayImage) -> Vec<GrayImage> {
 /// `50 + k`), places the map holds from the two other walks only. Skipped without the data.
 fn bench_recognition_gardens(c: &mut Criterion) {
     let Some(dir) = gardens_dir() else {
-        eprintln!("../shared/data/gardenspoint_dev not found: skipping the Gardens Point bench");
+        eprintln!("gardenspoint_dev not found: skipping the Gardens Point bench");
         return;
     };
     let walk = |name: &str| -> Vec<GrayImage> {
-        let files = seasonloc::features::list_images(&dir.join(name)).expect("image folder");
+        let files = seasonloc_core::features::list_images(&dir.join(name)).expect("image folder");
         files
             .iter()
             .map(|f| {
-                seasonloc::features::load_image_file(f)
+                seasonloc_core::features::load_image_file(f)
                     .expect("readable frame")
                     .to_luma8()
             })
@@ -296,10 +295,11 @@ fn bench_recognition_gardens(c: &mut Criterion) {
     let place = |l: usize| (l / 9 % 100, l % 9);
     let params = CoocParams::default();
     let started = std::time::Instant::now();
-    let features = seasonloc::cooc::extract_all(&params, 0, &map_images).expect("map features");
+    let features =
+        seasonloc_core::cooc::extract_all(&params, 0, &map_images).expect("map features");
     let extract_s = started.elapsed().as_secs_f64();
     let started = std::time::Instant::now();
-    let drive = seasonloc::cooc::DriveFeatures {
+    let drive = seasonloc_core::cooc::DriveFeatures {
         time: 0.0,
         features: features.clone(),
         locations: (0..map_images.len()).collect(),
@@ -352,16 +352,19 @@ fn bench_recognition_gardens(c: &mut Criterion) {
     group.bench_function("score_rows", |b| {
         b.iter(|| {
             for q in &words {
-                std::hint::black_box(seasonloc::cooc::recognition::scores(map.locations(), q));
+                std::hint::black_box(seasonloc_core::cooc::recognition::scores(
+                    map.locations(),
+                    q,
+                ));
             }
         })
     });
     let scores = map.score_matrix_words(&words);
     group.bench_function("sequence_matching", |b| {
         b.iter(|| {
-            seasonloc::cooc::sequence::match_sequences(
+            seasonloc_core::cooc::sequence::match_sequences(
                 std::hint::black_box(&scores),
-                &seasonloc::cooc::SequenceParams::default(),
+                &seasonloc_core::cooc::SequenceParams::default(),
             )
             .expect("valid scores")
         })
@@ -375,7 +378,7 @@ fn bench_recognition_gardens(c: &mut Criterion) {
         vocabulary_depth: 3,
         ..params.clone()
     };
-    let drive = seasonloc::cooc::DriveFeatures {
+    let drive = seasonloc_core::cooc::DriveFeatures {
         time: 0.0,
         features: features.clone(),
         locations: (0..map_images.len()).collect(),

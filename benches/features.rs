@@ -8,8 +8,8 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use image::DynamicImage;
-use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{
+use seasonloc_core::features::hog::{HogOptions, HogSpec};
+use seasonloc_core::features::{
     extract_batch, extract_files, load_image_file, load_image_file_as, prepare_gray, Extractor,
     Pixels,
 };
@@ -70,12 +70,12 @@ fn single(c: &mut Criterion) {
         // The two stages after decoding, alone (where the time goes).
         let decoded = load_image_file(&path).expect("decodes");
         g.bench_function("gray_only_768x576", |b| {
-            b.iter(|| seasonloc::features::to_gray(&decoded).into_owned())
+            b.iter(|| seasonloc_core::features::to_gray(&decoded).into_owned())
         });
         let gray = prepare_gray(&decoded, None).expect("gray").into_owned();
         g.bench_function("resize_gray_only_768x576_to_1024x768", |b| {
             b.iter(|| {
-                seasonloc::features::resize_gray(&gray, 1024, 768)
+                seasonloc_core::features::resize_gray(&gray, 1024, 768)
                     .expect("resizes")
                     .into_owned()
             })

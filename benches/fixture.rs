@@ -1,4 +1,4 @@
-//! Shared bench inputs: locating `../shared` beside the repository and loading the sample
+//! Shared bench inputs: locating the public datasets and the model and loading the sample
 //! images and Nordland frames (cases whose data is absent print why and are skipped), and
 //! deterministic synthetic matrices.
 #![allow(dead_code)] // each bench uses only some helpers
@@ -7,41 +7,37 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use image::{DynamicImage, GrayImage};
-use seasonloc::Matrix;
+use seasonloc_core::Matrix;
 
-/// Where the shared data lives: `$SEASONLOC_SHARED_DIR` when set, else `../shared` beside the
-/// crate root, else `../../shared` (a worktree one level down); the first of the last two
-/// when neither exists. Every bench reads its data below it.
-pub fn shared_root() -> PathBuf {
-    if let Some(dir) = std::env::var_os("SEASONLOC_SHARED_DIR") {
-        return PathBuf::from(dir);
-    }
-    let crate_root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    ["../shared", "../../shared"]
-        .iter()
-        .map(|s| crate_root.join(s))
-        .find(|d| d.is_dir())
-        .unwrap_or_else(|| crate_root.join("../shared"))
+/// The folder of dataset `name` (`nordland_64x32`, `gardenspoint_dev`) where the test suites
+/// find it (`seasonloc_test_support::datasets`: `$SEASONLOC_DATASETS/<name>`, `data/<name>`, or
+/// the folder CI places beside the repository); a path that does not exist when it is absent,
+/// so the callers' existence checks skip the case.
+pub fn data_dir(name: &str) -> PathBuf {
+    seasonloc_test_support::datasets::dataset(name, &[])
+        .unwrap_or_else(|| PathBuf::from("absent-dataset").join(name))
 }
 
-/// `<shared root>/<rel>` ([`shared_root`]), or `None` with a printed skip message.
+/// The CNN model folder (the ONNX model and `samples/`), or a path that does not exist.
+pub fn models_dir() -> PathBuf {
+    seasonloc_test_support::datasets::model_file("efficientnet-lite0-224.onnx")
+        .and_then(|m| m.parent().map(Path::to_path_buf))
+        .unwrap_or_else(|| PathBuf::from("absent-models"))
+}
+
+/// `rel` below the data (`data/<dataset>/...`) or the model folder (`models/...`), or `None`
+/// with a printed skip message.
 pub fn shared(rel: &str) -> Option<PathBuf> {
-    let path = shared_root().join(rel);
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!("skipping: {} not found", path.display());
-        None
-    }
+    seasonloc_test_support::datasets::resolve(rel)
 }
 
 /// A sample photo (`shared/models/samples/<name>.jpg`) as luma, resized (triangle filter) to
 /// `width x height` by the product's preparation path.
 pub fn sample_gray(name: &str, width: u32, height: u32) -> Option<GrayImage> {
     let path = shared(&format!("models/samples/{name}.jpg"))?;
-    let image = seasonloc::features::load_image_file(&path).expect("sample photo decodes");
+    let image = seasonloc_core::features::load_image_file(&path).expect("sample photo decodes");
     Some(
-        seasonloc::features::prepare_gray(&image, Some((width, height)))
+        seasonloc_core::features::prepare_gray(&image, Some((width, height)))
             .expect("resizes")
             .into_owned(),
     )
@@ -50,7 +46,7 @@ pub fn sample_gray(name: &str, width: u32, height: u32) -> Option<GrayImage> {
 /// The first `n` frames of one Nordland season (`summer` or `winter`), in route order.
 pub fn nordland_paths(season: &str, n: usize) -> Option<Vec<PathBuf>> {
     let dir = shared(&format!("data/nordland_64x32/{season}"))?;
-    let mut paths = seasonloc::features::list_images(&dir).expect("Nordland folder lists");
+    let mut paths = seasonloc_core::features::list_images(&dir).expect("Nordland folder lists");
     paths.truncate(n);
     Some(paths)
 }
@@ -61,7 +57,7 @@ pub fn nordland_images(season: &str, n: usize) -> Option<Vec<DynamicImage>> {
     Some(
         paths
             .iter()
-            .map(|p| seasonloc::features::load_image_file(p).expect("Nordland frame decodes"))
+            .map(|p| seasonloc_core::features::load_image_file(p).expect("Nordland frame decodes"))
             .collect(),
     )
 }

@@ -8,7 +8,7 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use image::{DynamicImage, Rgb, RgbImage};
-use seasonloc::picture::{thumbnail_jpeg, MatrixPicture};
+use seasonloc_core::picture::{thumbnail_jpeg, MatrixPicture};
 
 mod fixture;
 use fixture::uniform_matrix;

@@ -1,6 +1,6 @@
 //! Load benchmark of the HTTP path: images per second ingested and localized through the
 //! running service with 8 concurrent clients, against the same requests made in process to the
-//! use-case layer ([`seasonloc::app::App`] on its own sled store, 8 concurrent tasks, same CPU
+//! use-case layer ([`seasonloc_app::App`] on its own sled store, 8 concurrent tasks, same CPU
 //! pool size), and against the algorithms alone (decode + HOG + localize, batch after batch).
 //!
 //! Run: `cargo bench --bench service` (`SEASONLOC_BENCH_ROUNDS` scales the work). Uses the
@@ -27,12 +27,12 @@ use std::time::Instant;
 use std::sync::Arc;
 
 use http::{Client, Part};
-use seasonloc::app::{App, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries};
-use seasonloc::config::{ServeArgs, Settings};
-use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{decode_image, extract_batch};
-use seasonloc::localize::{localize, LocalizeOptions};
-use seasonloc::solver::{HiddenCost, SolverParams};
+use seasonloc_app::{App, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries};
+use seasonloc_core::features::hog::{HogOptions, HogSpec};
+use seasonloc_core::features::{decode_image, extract_batch};
+use seasonloc_core::localize::{localize, LocalizeOptions};
+use seasonloc_core::solver::{HiddenCost, SolverParams};
+use seasonloc_server::config::{ServeArgs, Settings};
 
 const CLIENTS: usize = 8;
 const BATCH: usize = 50;
@@ -51,7 +51,7 @@ fn median_ms(times: impl Iterator<Item = std::time::Duration>) -> f64 {
 }
 
 fn images() -> (Vec<Vec<u8>>, Vec<Vec<u8>>, &'static str) {
-    let dir = fixture::shared_root().join("data/nordland_64x32");
+    let dir = fixture::data_dir("nordland_64x32");
     let read = |season: &str| -> Option<Vec<Vec<u8>>> {
         let mut files: Vec<_> = std::fs::read_dir(dir.join(season))
             .ok()?
@@ -95,7 +95,7 @@ fn options() -> LocalizeOptions {
             hidden_cost: HiddenCost::Fixed(1.3),
             ..SolverParams::default()
         },
-        normalization: seasonloc::similarity::Normalization::default(),
+        normalization: seasonloc_core::similarity::Normalization::default(),
         ..Default::default()
     }
 }
@@ -122,7 +122,7 @@ fn start_server(
             .expect("runtime");
         rt.block_on(async move {
             let listener = tokio::net::TcpListener::from_std(listener).expect("listener");
-            seasonloc::service::serve(settings, listener, async move {
+            seasonloc_server::service::serve(settings, listener, async move {
                 let _ = rx.await;
             })
             .await
@@ -236,8 +236,8 @@ fn settings(dir: &Path, threads: usize) -> Settings {
 /// `dir`.
 fn use_cases(dir: &Path, threads: usize) -> App {
     let s = settings(dir, threads);
-    let store = seasonloc::store::SledStore::open(&s.data_dir).expect("store");
-    App::new(Arc::new(store), seasonloc::service::app_config(&s)).expect("use cases")
+    let store = seasonloc_store::SledStore::open(&s.data_dir).expect("store");
+    App::new(Arc::new(store), seasonloc_server::service::app_config(&s)).expect("use cases")
 }
 
 /// The parts of a batch as the API hands them to the use cases.
@@ -348,14 +348,14 @@ fn algorithms_alone(w: &Workload) -> (f64, Rates) {
     }
     let no_store = w.rate(&w.refs, t.elapsed().as_secs_f64());
     let store_dir = tempfile::tempdir().expect("tempdir");
-    let store = seasonloc::store::SledStore::open(store_dir.path()).expect("store");
+    let store = seasonloc_store::SledStore::open(store_dir.path()).expect("store");
     let t = Instant::now();
     for _ in 0..w.rounds {
         let map = store
-            .create_map(seasonloc::store::NewMap {
-                id: seasonloc::app::new_id().expect("an id"),
+            .create_map(seasonloc_app::store::NewMap {
+                id: seasonloc_app::new_id().expect("an id"),
                 name: "lib".into(),
-                descriptor: seasonloc::store::DescriptorSettings::Hog {
+                descriptor: seasonloc_app::store::DescriptorSettings::Hog {
                     cell_size: CELL,
                     resize: None,
                 },
@@ -364,9 +364,9 @@ fn algorithms_alone(w: &Workload) -> (f64, Rates) {
             .expect("map");
         for b in w.ingest_batches() {
             let m = extract(b);
-            let metas = vec![seasonloc::store::ImageMeta::default(); m.rows()];
+            let metas = vec![seasonloc_app::store::ImageMeta::default(); m.rows()];
             let batch =
-                seasonloc::store::ImageBatch::new(map.id, m, metas).expect("one meta per row");
+                seasonloc_app::store::ImageBatch::new(map.id, m, metas).expect("one meta per row");
             store.append_images(&batch).expect("append");
         }
     }
@@ -394,7 +394,7 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let hog = || NewMapSpec {
         name: "m".into(),
-        descriptor: DescriptorSpec::Settings(seasonloc::store::DescriptorSettings::Hog {
+        descriptor: DescriptorSpec::Settings(seasonloc_app::store::DescriptorSettings::Hog {
             cell_size: CELL,
             resize: None,
         }),
@@ -406,7 +406,7 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     );
     // Fetched per request, as the API does (the map's image count moves).
     let append = |app: Arc<App>, map: u64, batch: Vec<ImageInput>| async move {
-        let metas = vec![seasonloc::store::ImageMeta::default(); batch.len()];
+        let metas = vec![seasonloc_app::store::ImageMeta::default(); batch.len()];
         let target = app.map_for_images(map).await.expect("map");
         app.append_images(target, batch, metas)
             .await

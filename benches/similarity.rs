@@ -6,7 +6,7 @@
 //! Run: `cargo bench --bench similarity -- --warm-up-time 1 --measurement-time 3`
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use seasonloc::similarity::{cosine_matrix, normalize_columns_in_place};
+use seasonloc_core::similarity::{cosine_matrix, normalize_columns_in_place};
 
 mod fixture;
 use fixture::uniform_matrix;

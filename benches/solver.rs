@@ -13,10 +13,10 @@
 //! Run: `cargo bench --bench solver -- --warm-up-time 1 --measurement-time 3`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use seasonloc::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
-use seasonloc::localize::{solve_with_confidence, LocalizeOptions};
-use seasonloc::solver::{row_alternatives, shortest_path, solve, HiddenCost, SolverParams};
-use seasonloc::Matrix;
+use seasonloc_core::confidence::{score_hypothesis, ConfidenceParams, GraphParams};
+use seasonloc_core::localize::{solve_with_confidence, LocalizeOptions};
+use seasonloc_core::solver::{row_alternatives, shortest_path, solve, HiddenCost, SolverParams};
+use seasonloc_core::Matrix;
 
 struct XorShift(u64);
 

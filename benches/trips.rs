@@ -14,9 +14,9 @@
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 
-use seasonloc::similarity::{cosine_matrix, cosine_matrix_normalized, l2_normalized_rows};
-use seasonloc::trip::{column_prior, Trip, TripParams};
-use seasonloc::Matrix;
+use seasonloc_core::similarity::{cosine_matrix, cosine_matrix_normalized, l2_normalized_rows};
+use seasonloc_core::trip::{column_prior, Trip, TripParams};
+use seasonloc_core::Matrix;
 
 const DIM: usize = 756;
 

@@ -9,14 +9,25 @@
 use std::collections::HashMap;
 use std::time::Duration;
 
-use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use seasonloc_core::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let arg = |i: usize, default: &str| args.get(i).cloned().unwrap_or_else(|| default.into());
-    let model = arg(0, "../shared/models/efficientnet-lite0-224.onnx");
+    let shared = |rel: &str| {
+        seasonloc_test_support::datasets::resolve(rel)
+            .map(|p| p.display().to_string())
+            .unwrap_or_else(|| rel.to_string())
+    };
+    let model = args
+        .first()
+        .cloned()
+        .unwrap_or_else(|| shared("models/efficientnet-lite0-224.onnx"));
     let layer = arg(1, "block10");
-    let image = arg(2, "../shared/data/nordland_64x32/winter/images-00010.png");
+    let image = args
+        .get(2)
+        .cloned()
+        .unwrap_or_else(|| shared("data/nordland_64x32/winter/images-00010.png"));
     let runs: usize = arg(3, "20").parse()?;
 
     let mut options = CnnOptions::efficientnet_lite0(&model);

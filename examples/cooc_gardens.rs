@@ -1,4 +1,4 @@
-//! Measurements of the co-occurrence method on Gardens Point dev (`../shared/data/gardenspoint_dev`,
+//! Measurements of the co-occurrence method on Gardens Point dev (`gardenspoint_dev`,
 //! three traversals of one route: day_left, day_right, night_right; image `k` of every traversal
 //! is location `k`), printed for `docs/cooc.md`: extraction speed, single-drive maps and fused
 //! maps for every query traversal, for `cooc`, `cooc-seq` and `cooc-flow`, scored as spec §4
@@ -38,16 +38,16 @@ use std::time::Instant;
 
 use image::GrayImage;
 use rayon::prelude::*;
-use seasonloc::cooc::keypoints::{Features, KeypointParams};
-use seasonloc::cooc::recognition::{self, Schedule};
-use seasonloc::cooc::sequence::{match_sequences, SequenceParams};
-use seasonloc::cooc::{
+use seasonloc_core::cooc::keypoints::{Features, KeypointParams};
+use seasonloc_core::cooc::recognition::{self, Schedule};
+use seasonloc_core::cooc::sequence::{match_sequences, SequenceParams};
+use seasonloc_core::cooc::{
     extract_all, CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, DriveFeatures,
 };
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
-use seasonloc::features::{list_images, load_image_file_as, Pixels};
-use seasonloc::similarity::Normalization;
-use seasonloc::trip::TripParams;
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth, Prediction};
+use seasonloc_core::features::{list_images, load_image_file_as, Pixels};
+use seasonloc_core::similarity::Normalization;
+use seasonloc_core::trip::TripParams;
 
 #[path = "support/pooled_fusion.rs"]
 mod pooled_fusion;
@@ -136,7 +136,10 @@ fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let (dir, rest) = match args.first() {
         Some(a) if !a.contains('=') => (PathBuf::from(a), &args[1..]),
-        _ => (PathBuf::from("../shared/data/gardenspoint_dev"), &args[..]),
+        _ => (
+            seasonloc_test_support::datasets::gardens_point().unwrap_or_default(),
+            &args[..],
+        ),
     };
     if !dir.join("day_right").is_dir() {
         eprintln!("skipping: {} not found", dir.display());
@@ -309,14 +312,14 @@ fn run(
         if map.locations().sources() > 1 {
             // Session 13: the window over which single-image `cooc` chooses its source (1:
             // the rule before; the whole batch: the shipped one, the table's `cooc` column).
-            let single: Vec<String> = [1, 10, seasonloc::cooc::WHOLE_BATCH]
+            let single: Vec<String> = [1, 10, seasonloc_core::cooc::WHOLE_BATCH]
                 .iter()
                 .map(|&window| {
                     let excl = options.sequence.exclusion;
                     let scores = queries
                         .fused_scores(Normalization::default(), excl, window)
                         .expect("fused");
-                    let preds = seasonloc::cooc::best_per_query(&scores);
+                    let preds = seasonloc_core::cooc::best_per_query(&scores);
                     let m = evaluate(&preds, &gt, n, 2, &Exclusions::none()).expect("metrics");
                     format!("{:.3}", m.ap)
                 })
@@ -408,11 +411,11 @@ fn run(
             let per_source = map.score_matrices_by_source(queries.words());
             let present = map.locations().source_present();
             let l = n;
-            let norm: Vec<seasonloc::Matrix> = per_source
+            let norm: Vec<seasonloc_core::Matrix> = per_source
                 .iter()
                 .map(|m| {
                     seqnorm
-                        .apply(&seasonloc::cooc::flow_similarity(m))
+                        .apply(&seasonloc_core::cooc::flow_similarity(m))
                         .expect("norm")
                 })
                 .collect();
@@ -421,8 +424,9 @@ fn run(
             } else {
                 fusion_window
             };
-            let order = seasonloc::cooc::source_order(&norm, &present, 10, len).expect("order");
-            let top = |m: &seasonloc::Matrix, q: usize| {
+            let order =
+                seasonloc_core::cooc::source_order(&norm, &present, 10, len).expect("order");
+            let top = |m: &seasonloc_core::Matrix, q: usize| {
                 let r = m.row(q);
                 let best = (0..l).fold(0, |b, j| if r[j] > r[b] { j } else { b });
                 best.abs_diff(q) <= 2
@@ -454,7 +458,7 @@ fn run(
 /// window.
 fn trip(
     map: &CoocMap,
-    frames: &[Vec<seasonloc::cooc::Word>],
+    frames: &[Vec<seasonloc_core::cooc::Word>],
     batch: usize,
 ) -> (Vec<Prediction>, Vec<Prediction>) {
     let rows = map.trip_rows(frames);
@@ -469,17 +473,17 @@ fn trip(
 /// own images.
 fn trip_decisive(
     map: &CoocMap,
-    frames: &[Vec<seasonloc::cooc::Word>],
+    frames: &[Vec<seasonloc_core::cooc::Word>],
     batch: usize,
     window: usize,
 ) -> (Vec<Prediction>, Vec<Prediction>) {
-    let rows_of = |words: &[Vec<seasonloc::cooc::Word>], window: usize| {
+    let rows_of = |words: &[Vec<seasonloc_core::cooc::Word>], window: usize| {
         let per_source = map.score_matrices_by_source(words);
         let present = map.locations().source_present();
         let l = map.location_count();
         let order =
-            seasonloc::cooc::source_order(&per_source, &present, 10, window).expect("order");
-        let mut out = seasonloc::Matrix::zeros(words.len(), l);
+            seasonloc_core::cooc::source_order(&per_source, &present, 10, window).expect("order");
+        let mut out = seasonloc_core::Matrix::zeros(words.len(), l);
         for (i, o) in order.iter().enumerate() {
             let scaled: Vec<Vec<f32>> = per_source
                 .iter()
@@ -514,7 +518,7 @@ fn trip_decisive(
 
 /// [`stream`] with the default trip parameters, as predictions.
 fn streamed(
-    rows: &seasonloc::Matrix,
+    rows: &seasonloc_core::Matrix,
     prior: &[f32],
     batch: usize,
 ) -> (Vec<Prediction>, Vec<Prediction>) {
@@ -523,10 +527,10 @@ fn streamed(
 }
 
 fn margin_predictions(
-    scores: &seasonloc::Matrix,
+    scores: &seasonloc_core::Matrix,
     exclusion: usize,
     mode: u8,
-) -> Vec<seasonloc::eval::Prediction> {
+) -> Vec<seasonloc_core::eval::Prediction> {
     (0..scores.rows())
         .filter_map(|q| {
             let row = scores.row(q);
@@ -548,7 +552,7 @@ fn margin_predictions(
                 1 => f64::from(s1 - s2),
                 _ => f64::from(s1) / f64::from(s2.max(1.0)),
             };
-            Some(seasonloc::eval::Prediction {
+            Some(seasonloc_core::eval::Prediction {
                 query: q,
                 reference: best,
                 confidence,
@@ -663,7 +667,7 @@ fn scale(params: &CoocParams, images: &[Vec<GrayImage>], queries: &[Features]) {
         .map(|w| recognition::scores(map.locations(), w))
         .collect();
     let row_ms = started.elapsed().as_secs_f64() * 1000.0 / words.len() as f64;
-    let mut scores = seasonloc::Matrix::zeros(words.len(), n);
+    let mut scores = seasonloc_core::Matrix::zeros(words.len(), n);
     for (i, r) in rows.iter().enumerate() {
         for (o, &v) in scores.row_mut(i).iter_mut().zip(r) {
             *o = v as f32;

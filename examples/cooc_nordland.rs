@@ -4,17 +4,17 @@
 //! for single images, sequences and the flow graph on co-occurrence scores.
 //!
 //! A dataset harness, so it lives here rather than in the algorithm layer.
-//! Run: `cargo run --release --example cooc_nordland [-- ../shared/data/nordland_64x32]`.
+//! Run: `cargo run --release --example cooc_nordland [-- DATA/nordland_64x32]`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use image::GrayImage;
-use seasonloc::cooc::keypoints::{extract, KeypointParams};
-use seasonloc::cooc::SequenceParams;
-use seasonloc::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Prediction};
-use seasonloc::similarity::Normalization;
+use seasonloc_core::cooc::keypoints::{extract, KeypointParams};
+use seasonloc_core::cooc::SequenceParams;
+use seasonloc_core::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth, Prediction};
+use seasonloc_core::similarity::Normalization;
 
 fn frame(dir: &Path, season: &str, i: usize) -> GrayImage {
     let path = dir
@@ -28,8 +28,8 @@ fn frame(dir: &Path, season: &str, i: usize) -> GrayImage {
 /// Fraction of summer keypoints with a winter keypoint within 1 original pixel in the same
 /// frame (frames 17, 27, ..., 2397), against chance (the winter frame 500 frames away).
 fn repeatability(dir: &Path) {
-    let near = |a: &seasonloc::cooc::keypoints::Keypoint,
-                b: &seasonloc::cooc::keypoints::Keypoint| {
+    let near = |a: &seasonloc_core::cooc::keypoints::Keypoint,
+                b: &seasonloc_core::cooc::keypoints::Keypoint| {
         ((a.x - b.x) * 64.0).abs() <= 1.0 && ((a.y - b.y) * 32.0).abs() <= 1.0
     };
     for upsample in [1u32, 2, 4] {
@@ -123,10 +123,11 @@ fn evaluation(dir: &Path) {
 }
 
 fn main() {
-    let dir = std::env::args().nth(1).map_or_else(
-        || PathBuf::from("../shared/data/nordland_64x32"),
-        PathBuf::from,
-    );
+    let dir = std::env::args()
+        .nth(1)
+        .map(PathBuf::from)
+        .or_else(seasonloc_test_support::datasets::nordland)
+        .unwrap_or_default();
     if !dir.join("summer").is_dir() {
         eprintln!("skipping: {} not found", dir.display());
         return;

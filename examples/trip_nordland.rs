@@ -3,17 +3,17 @@
 //! estimates next to the offline result; then the derived jump route (see `docs/parameters.md`)
 //! and how many frames each jump took to relocalize.
 //!
-//! Run: `cargo run --release --example trip_nordland [-- ../shared/data/nordland_64x32]`.
+//! Run: `cargo run --release --example trip_nordland [-- DATA/nordland_64x32]`.
 
 use std::path::{Path, PathBuf};
 
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth, Metrics, Prediction};
-use seasonloc::features::extract_files;
-use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::localize::{localize, LocalizeOptions};
-use seasonloc::similarity::{cosine_matrix, Normalization};
-use seasonloc::trip::{Trip, TripParams};
-use seasonloc::Matrix;
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth, Metrics, Prediction};
+use seasonloc_core::features::extract_files;
+use seasonloc_core::features::hog::{HogOptions, HogSpec};
+use seasonloc_core::localize::{localize, LocalizeOptions};
+use seasonloc_core::similarity::{cosine_matrix, Normalization};
+use seasonloc_core::trip::{Trip, TripParams};
+use seasonloc_core::Matrix;
 
 #[path = "../tests/trip_jump/route.rs"]
 mod route;
@@ -43,7 +43,8 @@ fn main() {
     let dir = std::env::args()
         .nth(1)
         .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from("../shared/data/nordland_64x32"));
+        .or_else(seasonloc_test_support::datasets::nordland)
+        .expect("the Nordland dev folder (give it as the first argument)");
     let spec = HogSpec::new(HogOptions {
         cell_size: 8,
         resize: None,
@@ -65,7 +66,7 @@ fn main() {
     );
 
     let c = cosine_matrix(&winter, &summer).expect("cosine");
-    let prior = seasonloc::trip::column_prior(&summer).expect("prior");
+    let prior = seasonloc_core::trip::column_prior(&summer).expect("prior");
     let defaults = TripParams::default();
     let (arrival, last) = stream(&c, &prior, defaults, 10);
     let mut probe = Trip::new(prior.clone(), defaults).expect("valid parameters");
@@ -137,7 +138,7 @@ fn main() {
     let map = Matrix::from_rows(&map_rows).expect("map");
     let frames: Vec<&[f32]> = route.frames.iter().map(|&i| winter.row(i)).collect();
     let cq = cosine_matrix(&Matrix::from_rows(&frames).expect("frames"), &map).expect("cosine");
-    let prior = seasonloc::trip::column_prior(&map).expect("prior");
+    let prior = seasonloc_core::trip::column_prior(&map).expect("prior");
     let (arrival, _) = stream(&cq, &prior, defaults, 10);
     println!("jump route (summer 0-{} as the map):", route.map_len - 1);
     for (seg, delay) in route

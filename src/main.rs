@@ -5,7 +5,9 @@ use std::process::ExitCode;
 
 use clap::error::ErrorKind;
 use clap::Parser;
-use seasonloc::cli::{self, Cli, Command};
+mod cli;
+
+use cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -15,7 +17,9 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Solve(args) => cli::solve::run(args).map(Some),
         Command::Eval(args) => cli::eval::run(args).map(Some),
-        Command::Serve(args) => seasonloc::service::run_serve(args.as_ref().clone()).map(|()| None),
+        Command::Serve(args) => {
+            seasonloc_server::service::run_serve(args.as_ref().clone()).map(|()| None)
+        }
     };
     match result {
         Ok(Some(json)) => {

@@ -1,21 +1,21 @@
 //! Session 10's alternative fusion rule for maps built from several drives, measured by
 //! `cooc_gardens` against the shipped one and not adopted (`docs/cooc.md`, session 10): instead
 //! of each query window taking the rows of its most decisive source
-//! (`seasonloc::cooc::fused_similarity`), every source's standardised row is combined with the
+//! (`seasonloc_core::cooc::fused_similarity`), every source's standardised row is combined with the
 //! others, weighted by its signal-to-noise estimate (maximum-ratio combining). Kept here so the
 //! session's table can be reproduced. Session 12's variant of the shipped rule (the
 //! decisiveness's spread floor, [`floored_aps`]) is here for the same reason.
 
-use seasonloc::cooc::{
+use seasonloc_core::cooc::{
     best_per_query, check_sources, fuse_rows, normalise_sources, off_peak_noise, off_peak_stats,
     rank_sources, row_peak, source_order, CoocMap, CoocOptions, CoocQueries, SequenceParams,
 };
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
-use seasonloc::similarity::Normalization;
-use seasonloc::{Error, Matrix, Result};
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth};
+use seasonloc_core::similarity::Normalization;
+use seasonloc_core::{Error, Matrix, Result};
 
 /// The noise of one source's row: its peak, the mean and spread of its off-peak scores (as
-/// `seasonloc::cooc::decisiveness` measures them) and the best off-peak score (the runner-up). `None` when the
+/// `seasonloc_core::cooc::decisiveness` measures them) and the best off-peak score (the runner-up). `None` when the
 /// source has no location.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct RowNoise {
@@ -57,7 +57,7 @@ impl RowNoise {
         })
     }
 
-    /// `seasonloc::cooc::decisiveness`: the peak's z-score over the off-peak noise.
+    /// `seasonloc_core::cooc::decisiveness`: the peak's z-score over the off-peak noise.
     fn decisiveness(&self) -> f64 {
         (self.peak - self.mean) / self.sd
     }
@@ -83,7 +83,7 @@ impl RowNoise {
 pub enum PoolWeight {
     /// The peak's margin over the runner-up, in units of the off-peak spread.
     Margin,
-    /// The peak's z-score over the off-peak noise (`seasonloc::cooc::decisiveness`).
+    /// The peak's z-score over the off-peak noise (`seasonloc_core::cooc::decisiveness`).
     Decisiveness,
     /// The margin less its expectation under noise alone (`RowNoise::excess_margin`).
     ExcessMargin,
@@ -91,14 +91,14 @@ pub enum PoolWeight {
 
 /// The maximum-ratio combination of the sources' rows (`docs/cooc.md`, session 10; measured, not adopted): per query
 /// and source, `rows` standardised over their own off-peak noise (`z = (x - mean) / sd`, as
-/// `seasonloc::cooc::decisiveness` measures it), weighted by the source's signal-to-noise ratio `w`, the mean
+/// `seasonloc_core::cooc::decisiveness` measures it), weighted by the source's signal-to-noise ratio `w`, the mean
 /// over `window` queries centred on the query of the peak's margin over its runner-up on the
 /// `ranking` rows ([`RowNoise::margin`]); the fused value `Σ w z / sqrt(Σ w²)` (unit noise when
 /// the sources' noises are independent) is put back on the sources' scale, `mean* + sd* · f`
 /// with `mean*`, `sd*` the sources' means and spreads weighted by `w²`. A location only one
 /// weighted source has takes that source's value as it is, so a query whose weight rests on one
 /// source keeps that source's row exactly; where no source has weight, the most decisive
-/// source's row (as `seasonloc::cooc::source_order`).
+/// source's row (as `seasonloc_core::cooc::source_order`).
 pub fn pooled_rows(
     rows: &[Matrix],
     ranking: &[Matrix],
@@ -214,7 +214,7 @@ pub fn pooled_aps(
     } else {
         pooled(Some(params.normalization), params.normalization, window)
     };
-    let seq = seasonloc::cooc::sequence::match_sequences(
+    let seq = seasonloc_core::cooc::sequence::match_sequences(
         &seq_input,
         &SequenceParams {
             normalization: Normalization::None,
@@ -227,7 +227,8 @@ pub fn pooled_aps(
         options.flow.normalization,
         window,
     );
-    let (_, flow) = seasonloc::localize::solve_with_confidence(&chat, &options.flow).expect("flow");
+    let (_, flow) =
+        seasonloc_core::localize::solve_with_confidence(&chat, &options.flow).expect("flow");
     [single, seq, flow].map(|p| {
         evaluate(&p, gt, n, 2, &Exclusions::none())
             .expect("metrics")
@@ -319,7 +320,7 @@ pub fn floored_aps(
     let (o1, ow) = (rank_sources(&d, 1), rank_sources(&d, window));
     let single = best_per_query(&fuse(&per_source, &o1));
     let params = options.sequence;
-    let seq = seasonloc::cooc::sequence::match_sequences(
+    let seq = seasonloc_core::cooc::sequence::match_sequences(
         &fuse(&normalised, &ow),
         &SequenceParams {
             normalization: Normalization::None,
@@ -330,7 +331,7 @@ pub fn floored_aps(
     let flow_rows =
         normalise_sources(&per_source, &present, options.flow.normalization).expect("normalised");
     let (_, flow) =
-        seasonloc::localize::solve_with_confidence(&fuse(&flow_rows, &ow), &options.flow)
+        seasonloc_core::localize::solve_with_confidence(&fuse(&flow_rows, &ow), &options.flow)
             .expect("flow");
     let aps = [single, seq, flow].map(|p| {
         evaluate(&p, gt, n, 2, &Exclusions::none())

@@ -1,13 +1,13 @@
 //! Streaming a similarity matrix through an online trip, shared by the examples that score
 //! trips (`trip_nordland`, `cooc_gardens`): the estimates at arrival and after the lag window,
-//! and their predictions for `seasonloc::eval`. The trip tests (`tests/trip_jump/`,
+//! and their predictions for `seasonloc_core::eval`. The trip tests (`tests/trip_jump/`,
 //! `tests/derived_routes/`) stream through it too.
 
 #![allow(dead_code)] // each includer uses a different part
 
-use seasonloc::eval::Prediction;
-use seasonloc::trip::{FrameEstimate, Trip, TripParams};
-use seasonloc::Matrix;
+use seasonloc_core::eval::Prediction;
+use seasonloc_core::trip::{FrameEstimate, Trip, TripParams};
+use seasonloc_core::Matrix;
 
 /// Streams `c` (the trip's rows) through a trip in batches of `batch`; returns the estimates
 /// as reported at arrival and as finally kept (after the lag window).

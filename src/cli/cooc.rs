@@ -5,7 +5,7 @@
 //! folder is one mapping drive of the route (image `k` of every drive = location `k`), from
 //! which the vocabulary and the location models are learned ([`build_map`]); the queries are
 //! quantised with that vocabulary and localized by the one co-occurrence entry point
-//! ([`crate::cooc::CoocQueries`]). Every flag left unset keeps the library default
+//! ([`seasonloc_core::cooc::CoocQueries`]). Every flag left unset keeps the library default
 //! ([`CoocParams::default`], [`SequenceParams::default`]), so the CLI never carries a second
 //! copy of the defaults.
 
@@ -15,9 +15,9 @@ use clap::Args;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use crate::cooc::{CoocMap, CoocParams, Drive, SequenceParams};
-use crate::features::{load_image_file_as, Pixels};
-use crate::Result;
+use seasonloc_core::cooc::{CoocMap, CoocParams, Drive, SequenceParams};
+use seasonloc_core::features::{load_image_file_as, Pixels};
+use seasonloc_core::Result;
 
 /// Flags of the co-occurrence methods (all optional; unset = the library default).
 #[derive(Debug, Clone, Default, Args)]
@@ -83,7 +83,7 @@ impl CoocArgs {
         if let Some((c, r)) = self.cooc_grid {
             let cell = |v: u32, name: &str| {
                 u16::try_from(v).map_err(|_| {
-                    crate::Error::param("cooc_grid", format!("{name} {v} is too large"))
+                    seasonloc_core::Error::param("cooc_grid", format!("{name} {v} is too large"))
                 })
             };
             p.grid_cols = cell(c, "columns")?;
@@ -129,7 +129,7 @@ pub fn build_map(
     queries: &[PathBuf],
 ) -> Result<(CoocMap, Vec<GrayImage>)> {
     let Some(((first, time), rest)) = drives.split_first() else {
-        return Err(crate::Error::Empty(
+        return Err(seasonloc_core::Error::Empty(
             "a co-occurrence map needs at least one mapping drive".into(),
         ));
     };

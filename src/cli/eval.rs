@@ -37,11 +37,11 @@ use serde_json::Value;
 
 use super::cooc::CoocArgs;
 use super::{DescriptorArgs, SolverArgs};
-use crate::cooc::CoocMethod;
-use crate::eval::{Exclusions, GroundTruth};
-use crate::features::list_images;
-use crate::similarity::Normalization;
-use crate::Error;
+use seasonloc_core::cooc::CoocMethod;
+use seasonloc_core::eval::{Exclusions, GroundTruth};
+use seasonloc_core::features::list_images;
+use seasonloc_core::similarity::Normalization;
+use seasonloc_core::Error;
 
 mod job;
 mod leave_one_out;
@@ -185,7 +185,7 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value_t = ConfidenceArg::Discounted)]
     pub confidence: ConfidenceArg,
     /// Flow confidence `discounted`: the weight `G` of a row one frame further away, 0 < G < 1.
-    #[arg(long, default_value_t = crate::confidence::DEFAULT_DISCOUNT)]
+    #[arg(long, default_value_t = seasonloc_core::confidence::DEFAULT_DISCOUNT)]
     pub confidence_discount: f64,
     /// Flow, `discounted`: frames a prediction claims on each side of the frame it names. The
     /// frame named is the one within that many frames of the path's match whose neighbourhood

@@ -7,15 +7,16 @@
 pub mod cooc;
 pub mod eval;
 pub mod npy;
+pub mod plot;
 pub mod solve;
 
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
-use crate::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use crate::features::{Extractor, Fit, Fitted};
-use crate::solver::{HiddenCost, SolverParams};
+use seasonloc_core::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use seasonloc_core::features::{Extractor, Fit, Fitted};
+use seasonloc_core::solver::{HiddenCost, SolverParams};
 
 /// Visual localization across seasons.
 #[derive(Debug, Parser)]
@@ -40,7 +41,7 @@ pub enum Command {
     /// Run the HTTP service on the embedded store, or on PostgreSQL with `--database-url`
     /// (see docs/service.md).
     #[command(allow_negative_numbers = true)]
-    Serve(Box<crate::config::ServeArgs>),
+    Serve(Box<seasonloc_server::config::ServeArgs>),
 }
 
 /// Graph and solver flags shared by `solve` and `eval`.
@@ -68,7 +69,7 @@ pub struct SolverArgs {
 
 impl SolverArgs {
     /// Validated solver parameters.
-    pub fn to_params(&self) -> crate::Result<SolverParams> {
+    pub fn to_params(&self) -> seasonloc_core::Result<SolverParams> {
         let params = SolverParams {
             fan_out: self.fan_out,
             hidden_cost: self.hidden_cost,
@@ -175,7 +176,10 @@ impl DescriptorArgs {
     /// (`--resize`, else `first_image`) by `--fit` (`features::geometry`); the CNN to its
     /// network input by `--cnn-resize`. For the CNN this loads the model and checks the layer
     /// and input size, so a bad model fails before any image is read.
-    pub fn to_extractor(&self, first_image: (u32, u32)) -> crate::Result<Box<dyn Extractor>> {
+    pub fn to_extractor(
+        &self,
+        first_image: (u32, u32),
+    ) -> seasonloc_core::Result<Box<dyn Extractor>> {
         match self.descriptor {
             DescriptorKind::Hog => Ok(Box::new(Fitted::hog(
                 self.cell_size,
@@ -184,7 +188,7 @@ impl DescriptorArgs {
             )?)),
             DescriptorKind::Cnn => {
                 if self.fit != FitArg::Stretch {
-                    return Err(crate::Error::param(
+                    return Err(seasonloc_core::Error::param(
                         "fit",
                         "--fit applies to HOG only; the CNN reaches its input size by \
                          --cnn-resize",
@@ -196,15 +200,15 @@ impl DescriptorArgs {
     }
 
     /// The CNN settings these flags describe (not yet checked against the model file).
-    pub fn cnn_options(&self) -> crate::Result<CnnOptions> {
+    pub fn cnn_options(&self) -> seasonloc_core::Result<CnnOptions> {
         let model = self.cnn_model.clone().ok_or_else(|| {
-            crate::Error::param(
+            seasonloc_core::Error::param(
                 "cnn_model",
                 "--descriptor cnn needs --cnn-model PATH.onnx (or SEASONLOC_CNN_MODEL)",
             )
         })?;
         if let Some((w, h)) = self.resize {
-            return Err(crate::Error::param(
+            return Err(seasonloc_core::Error::param(
                 "resize",
                 format!(
                     "--resize {w}x{h} applies to HOG only; the CNN resizes to --cnn-input \

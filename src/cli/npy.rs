@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use npyz::{DType, NpyFile, Order, TypeChar, WriterBuilder};
 
-use crate::Matrix;
+use seasonloc_core::Matrix;
 
 /// Reads a 2-D float32/float64 `.npy` file into a [`Matrix`] (values converted to `f32`).
 pub fn read_matrix(path: &Path) -> Result<Matrix> {

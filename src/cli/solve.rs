@@ -11,10 +11,10 @@ use clap::Args;
 use serde_json::{json, Value};
 
 use super::SolverArgs;
-use crate::localize::Prediction;
-use crate::localize::{solve_with_confidence, LocalizeOptions};
-use crate::similarity::normalize_columns;
-use crate::solver::Solution;
+use seasonloc_core::localize::Prediction;
+use seasonloc_core::localize::{solve_with_confidence, LocalizeOptions};
+use seasonloc_core::similarity::normalize_columns;
+use seasonloc_core::solver::Solution;
 
 /// Flags of `seasonloc solve`.
 #[derive(Debug, Args)]

@@ -19,17 +19,10 @@ impl Dir {
     }
 }
 
-/// `../shared/<rel>` next to the repository, or `None` (with a message) when it is absent.
+/// `rel` of the public data (`data/<dataset>/...`, `models/...`) where the tests find it
+/// (`seasonloc_test_support::datasets`), or `None` (with a message) when it is absent.
 pub fn shared(rel: &str) -> Option<PathBuf> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared")
-        .join(rel);
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!("skipped: {} is absent (real-data test)", path.display());
-        None
-    }
+    seasonloc_test_support::datasets::resolve(rel)
 }
 
 /// The result of one `seasonloc` run.

@@ -17,10 +17,10 @@ mod routes;
 mod trip_stream;
 
 use routes::{Case, Data, Expectation};
-use seasonloc::eval::{evaluate, Exclusions, GroundTruth};
-use seasonloc::localize::{localize, LocalizeOptions, Prediction};
-use seasonloc::solver::SolverParams;
-use seasonloc::trip::{column_prior, FrameEstimate, TripParams};
+use seasonloc_core::eval::{evaluate, Exclusions, GroundTruth};
+use seasonloc_core::localize::{localize, LocalizeOptions, Prediction};
+use seasonloc_core::solver::SolverParams;
+use seasonloc_core::trip::{column_prior, FrameEstimate, TripParams};
 
 fn options(flows: usize) -> LocalizeOptions {
     LocalizeOptions {
@@ -288,7 +288,7 @@ fn gardens_point_a_second_flow_never_lowers_ap_on_a_single_traversal() {
 /// when the frame arrives, and last (re-traced while it stayed in the lag window).
 fn drive_trip(data: &Data, case: &Case) -> (Vec<FrameEstimate>, Vec<FrameEstimate>) {
     let queries = data.queries(&case.frames);
-    let c = seasonloc::similarity::cosine_matrix(&queries, &data.references).unwrap();
+    let c = seasonloc_core::similarity::cosine_matrix(&queries, &data.references).unwrap();
     let prior = column_prior(&data.references).unwrap();
     trip_stream::stream(&c, &prior, TripParams::default(), 10)
 }

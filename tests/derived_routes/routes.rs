@@ -2,9 +2,9 @@
 //! of query frames (frame `f < map_len` shows place `f`, frames from `map_len` on are off the
 //! map) and query drives as lists of pool frames.
 
-use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::features::{extract_files, image_file_size, Fit, Fitted};
-use seasonloc::Matrix;
+use seasonloc_core::features::hog::{HogOptions, HogSpec};
+use seasonloc_core::features::{extract_files, image_file_size, Fit, Fitted};
+use seasonloc_core::Matrix;
 
 /// Places of the Gardens Point map (day_right frames `0..GP_MAP`).
 const GP_MAP: usize = 70;

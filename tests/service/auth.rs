@@ -47,7 +47,7 @@ fn write_keys(path: &Path) {
 
 /// A server with the three keys above.
 fn keyed_server(
-    configure: impl FnOnce(&mut seasonloc::config::ServeArgs),
+    configure: impl FnOnce(&mut seasonloc_server::config::ServeArgs),
 ) -> (Server, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("keys.json");
@@ -128,7 +128,7 @@ fn every_role_against_every_route() {
         .map(|(m, p, _)| (m.to_string(), p.to_string()))
         .collect();
     table.sort();
-    let mut routes: Vec<(String, String)> = seasonloc::api::ROUTES
+    let mut routes: Vec<(String, String)> = seasonloc_server::api::ROUTES
         .iter()
         .map(|(m, p)| (m.to_string(), p.to_string()))
         .collect();

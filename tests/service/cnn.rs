@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{json, Value};
 
-use seasonloc::features::cnn::{CnnOptions, CnnResize, CnnSpec};
-use seasonloc::localize::{localize, LocalizeOptions};
+use seasonloc_core::features::cnn::{CnnOptions, CnnResize, CnnSpec};
+use seasonloc_core::localize::{localize, LocalizeOptions};
 
 use crate::common::{library_descriptors, Route, Server};
 use crate::http::{Client, Part};
@@ -16,20 +16,9 @@ use crate::spec::check;
 
 const MODEL: &str = "models/efficientnet-lite0-224.onnx";
 
-/// The shipped model beside the repository (or a worktree), if present.
+/// The shipped model where the tests find it (`seasonloc_test_support::datasets`), if present.
 fn shipped_model() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let found = ["../shared", "../../shared"]
-        .iter()
-        .map(|s| root.join(s).join(MODEL))
-        .find(|p| p.is_file());
-    if found.is_none() {
-        eprintln!(
-            "SKIPPED: {} not found (CNN service tests need the shipped model)",
-            root.join("../shared").join(MODEL).display()
-        );
-    }
-    found
+    seasonloc_test_support::datasets::resolve(MODEL)
 }
 
 /// A private copy of the model in a temporary folder (the tests overwrite it).
@@ -142,15 +131,15 @@ fn cnn_map_equals_the_library_and_records_the_model_identity() {
     let http = r.json();
 
     let options = LocalizeOptions {
-        solver: seasonloc::solver::SolverParams {
+        solver: seasonloc_core::solver::SolverParams {
             fan_out: 4,
-            hidden_cost: seasonloc::solver::HiddenCost::Fixed(1.5),
+            hidden_cost: seasonloc_core::solver::HiddenCost::Fixed(1.5),
             flows: 1,
             exact: false,
             horizontal: true,
             stop_hidden_fraction: None,
         },
-        normalization: seasonloc::similarity::Normalization::default(),
+        normalization: seasonloc_core::similarity::Normalization::default(),
         ..Default::default()
     };
     let lib = localize(

@@ -7,7 +7,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use seasonloc::config::ServeArgs;
+use seasonloc_server::config::ServeArgs;
 
 use crate::http::Client;
 
@@ -49,7 +49,7 @@ impl Server {
                 .build()?;
             rt.block_on(async move {
                 let listener = tokio::net::TcpListener::from_std(listener)?;
-                seasonloc::service::serve(settings, listener, async move {
+                seasonloc_server::service::serve(settings, listener, async move {
                     let _ = stopped.await;
                 })
                 .await
@@ -105,11 +105,11 @@ pub fn engine_database() -> Option<String> {
     }
     // Skips (ends this test process successfully, after saying why) when PostgreSQL is not
     // installed, except under CI=true, where `require` panics.
-    if seasonloc::store::postgres::testing::require("this service_pg test").is_none() {
+    if seasonloc_test_support::postgres::require("this service_pg test").is_none() {
         std::process::exit(0);
     }
     Some(
-        seasonloc::store::postgres::testing::shared()
+        seasonloc_test_support::postgres::shared()
             .and_then(|s| s.database())
             .unwrap_or_else(|e| panic!("cannot start the test PostgreSQL server: {e}")),
     )
@@ -313,18 +313,20 @@ pub fn within_one_frame(estimates: &[serde_json::Value]) -> usize {
 }
 
 /// The descriptors the library computes for encoded images with `extractor` (each decoded with
-/// [`seasonloc::features::decode_image`], no pixel limit): what the tests compare HTTP answers
+/// [`seasonloc_core::features::decode_image`], no pixel limit): what the tests compare HTTP answers
 /// with.
 pub fn library_descriptors(
-    extractor: &dyn seasonloc::features::Extractor,
+    extractor: &dyn seasonloc_core::features::Extractor,
     encoded: &[Vec<u8>],
-) -> seasonloc::Matrix {
+) -> seasonloc_core::Matrix {
     let images: Vec<_> = encoded
         .iter()
         .enumerate()
-        .map(|(i, b)| seasonloc::features::decode_image(&format!("#{i}"), b, u64::MAX).unwrap())
+        .map(|(i, b)| {
+            seasonloc_core::features::decode_image(&format!("#{i}"), b, u64::MAX).unwrap()
+        })
         .collect();
-    seasonloc::features::extract_batch(extractor, &images).unwrap()
+    seasonloc_core::features::extract_batch(extractor, &images).unwrap()
 }
 
 /// Creates a HOG map and returns its id.

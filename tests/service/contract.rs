@@ -61,7 +61,7 @@ fn the_specs_numeric_bounds_are_the_servers() {
         let f = &schemas[schema]["properties"][field];
         (f["minimum"].as_u64(), f["maximum"].as_u64())
     };
-    use seasonloc::features::hog::{MAX_CELL_SIZE, MIN_CELL_SIZE};
+    use seasonloc_core::features::hog::{MAX_CELL_SIZE, MIN_CELL_SIZE};
     assert_eq!(
         range("HogDescriptor", "cell_size"),
         (Some(MIN_CELL_SIZE.into()), Some(MAX_CELL_SIZE.into()))
@@ -77,7 +77,7 @@ fn the_specs_numeric_bounds_are_the_servers() {
         (Some(1), Some(64))
     );
 
-    use seasonloc::features::cnn::{MAX_INPUT_SIDE, MAX_SHORT_SIDE};
+    use seasonloc_core::features::cnn::{MAX_INPUT_SIDE, MAX_SHORT_SIDE};
     let side = &schemas["CnnDescriptor"]["properties"]["input_size"]["items"];
     assert_eq!(
         (side["minimum"].as_u64(), side["maximum"].as_u64()),
@@ -294,7 +294,7 @@ fn the_specs_numeric_bounds_are_the_servers() {
     let drive = &schemas["Drive"]["properties"]["locations"]["items"];
     assert_eq!(
         drive["maximum"].as_u64(),
-        Some(seasonloc::cooc::model::MAX_LOCATIONS as u64 - 1)
+        Some(seasonloc_core::cooc::model::MAX_LOCATIONS as u64 - 1)
     );
 
     // Dashboard pages: a well-formed id is the page (which asks the API whether it exists);

@@ -166,7 +166,7 @@ fn dashboard_files_are_served_with_types_policies_and_etags() {
     let etag = r.header("etag").unwrap().to_string();
     assert_eq!(
         r.body,
-        include_bytes!("../../assets/dashboard/app.js"),
+        include_bytes!("../../crates/server/assets/dashboard/app.js"),
         "the served file is the embedded one"
     );
     let (code, _) = raw_get(&c, "/assets/app.js", &[("If-None-Match", &etag)]);

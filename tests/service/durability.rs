@@ -123,7 +123,7 @@ fn sigkill_during_uploads_loses_no_acknowledged_batch() {
     assert!(p.terminate());
 
     // Inspect the store: rows form whole batches, and every acknowledged batch is there.
-    let store = seasonloc::store::SledStore::open(&data).unwrap();
+    let store = seasonloc_store::SledStore::open(&data).unwrap();
     let id = u64::from_str_radix(&map, 16).unwrap();
     let (_, m) = store.references(id).unwrap();
     let mut seen = std::collections::HashMap::new();

@@ -4,9 +4,9 @@
 
 use serde_json::{json, Value};
 
-use seasonloc::features::hog::{HogOptions, HogSpec};
-use seasonloc::localize::{localize, LocalizeOptions};
-use seasonloc::solver::{HiddenCost, SolverParams};
+use seasonloc_core::features::hog::{HogOptions, HogSpec};
+use seasonloc_core::localize::{localize, LocalizeOptions};
+use seasonloc_core::solver::{HiddenCost, SolverParams};
 
 use crate::common::{create_hog_map, library_descriptors, nordland, nordland_files, Route, Server};
 use crate::http::{Client, Part};
@@ -18,7 +18,7 @@ fn library(
     queries: &[Vec<u8>],
     cell_size: u32,
     options: &LocalizeOptions,
-) -> seasonloc::localize::Localization {
+) -> seasonloc_core::localize::Localization {
     let spec = HogSpec::new(HogOptions {
         cell_size,
         resize: None,
@@ -32,7 +32,7 @@ fn library(
     .unwrap()
 }
 
-fn assert_same_as_library(http: &Value, lib: &seasonloc::localize::Localization) {
+fn assert_same_as_library(http: &Value, lib: &seasonloc_core::localize::Localization) {
     let preds = http["predictions"].as_array().unwrap();
     assert_eq!(preds.len(), lib.predictions.len());
     for (h, l) in preds.iter().zip(&lib.predictions) {
@@ -368,7 +368,7 @@ fn generated_route_end_to_end() {
             horizontal: true,
             stop_hidden_fraction: None,
         },
-        normalization: seasonloc::similarity::Normalization::default(),
+        normalization: seasonloc_core::similarity::Normalization::default(),
         ..Default::default()
     };
     let ref_bytes: Vec<Vec<u8>> = refs.iter().map(|(_, b)| b.clone()).collect();
@@ -474,14 +474,14 @@ fn precomputed_descriptors_end_to_end() {
             .iter()
             .map(|r| r.iter().map(|v| *v as f32).collect())
             .collect();
-        seasonloc::Matrix::from_rows(&f).unwrap()
+        seasonloc_core::Matrix::from_rows(&f).unwrap()
     };
     let options = LocalizeOptions {
         solver: SolverParams {
             fan_out: 3,
             ..SolverParams::default()
         },
-        normalization: seasonloc::similarity::Normalization::None,
+        normalization: seasonloc_core::similarity::Normalization::None,
         ..Default::default()
     };
     let lib = localize(&to_matrix(&queries), &to_matrix(&refs), &options).unwrap();
@@ -537,7 +537,7 @@ fn nordland_end_to_end() {
             hidden_cost: HiddenCost::Fixed(1.3),
             ..SolverParams::default()
         },
-        normalization: seasonloc::similarity::Normalization::default(),
+        normalization: seasonloc_core::similarity::Normalization::default(),
         ..Default::default()
     };
     let rb: Vec<Vec<u8>> = refs.iter().map(|(_, b)| b.clone()).collect();

@@ -196,7 +196,7 @@ fn documented() -> Vec<(String, String)> {
 
 #[test]
 fn documented_routes_are_exactly_the_routers() {
-    let mut routes: Vec<(String, String)> = seasonloc::api::ROUTES
+    let mut routes: Vec<(String, String)> = seasonloc_server::api::ROUTES
         .iter()
         .map(|(m, p)| (m.to_string(), p.to_string()))
         .collect();

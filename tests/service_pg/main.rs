@@ -1,5 +1,5 @@
 //! The service's integration tests again, with every in-process server on PostgreSQL (a real
-//! server started by `seasonloc::store::postgres::testing`, one database per server), plus the
+//! server started by `seasonloc_test_support::postgres`, one database per server), plus the
 //! tests only a shared database has: several replicas on one database, and faults of the
 //! database under a replica ([`replicas`]), and a replica started from the Kubernetes manifests
 //! ([`deploy`]).

@@ -7,7 +7,7 @@ use serde_json::{json, Value};
 use crate::common::{create_hog_map, engine_database, Route, Server};
 use crate::http::{Client, Part};
 use crate::spec::check;
-use seasonloc::store::postgres::testing;
+use seasonloc_test_support::postgres as testing;
 
 fn body(r: &crate::http::Response) -> String {
     String::from_utf8_lossy(&r.body).into_owned()

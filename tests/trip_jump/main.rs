@@ -9,9 +9,9 @@ mod route;
 mod trip_stream;
 
 use route::{jump_route, relocalization_delays, JumpRoute};
-use seasonloc::similarity;
-use seasonloc::trip::{column_prior, TripParams};
-use seasonloc::Matrix;
+use seasonloc_core::similarity;
+use seasonloc_core::trip::{column_prior, TripParams};
+use seasonloc_core::Matrix;
 use trip_stream::stream;
 
 /// Prints the jump route's delays and the dev-split AP for a grid of `R` (tuning aid).
@@ -40,8 +40,8 @@ fn nordland_relocalization_cost_grid() {
 }
 
 fn nordland_jump_inputs() -> Option<(Matrix, Matrix, JumpRoute)> {
-    use seasonloc::features::extract_files;
-    use seasonloc::features::hog::{HogOptions, HogSpec};
+    use seasonloc_core::features::extract_files;
+    use seasonloc_core::features::hog::{HogOptions, HogSpec};
     let dir = nordland::nordland()?;
     let files = |season: &str| nordland::nordland_files(&dir.join(season));
     let route = jump_route();

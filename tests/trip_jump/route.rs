@@ -4,7 +4,7 @@
 
 #![allow(dead_code)] // each includer uses a different part
 
-use seasonloc::trip::FrameEstimate;
+use seasonloc_core::trip::FrameEstimate;
 
 /// The derived route of the relocalization check (README, `docs/parameters.md`): the map is
 /// summer frames `0..map_len`; the vehicle drives winter frames 1200-1499, jumps back to

@@ -14,16 +14,17 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{json, Value};
 
 use super::{ConfidenceArg, EvalArgs, Method, ReferenceDrive};
-use crate::baselines::{best_match, seqslam, SeqSlamParams};
-use crate::confidence::ConfidenceParams;
-use crate::cooc::{CoocMethod, CoocOptions, CoocQueries};
-use crate::eval::{
-    evaluate, plot_pr, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+use crate::cli::plot::plot_pr;
+use seasonloc_core::baselines::{best_match, seqslam, SeqSlamParams};
+use seasonloc_core::confidence::ConfidenceParams;
+use seasonloc_core::cooc::{CoocMethod, CoocOptions, CoocQueries};
+use seasonloc_core::eval::{
+    evaluate, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
 };
-use crate::features::{extract_files, image_file_size, Extractor};
-use crate::localize::{solve_with_confidence, LocalizeOptions};
-use crate::similarity::{cosine_matrix, Normalization};
-use crate::Matrix;
+use seasonloc_core::features::{extract_files, image_file_size, Extractor};
+use seasonloc_core::localize::{solve_with_confidence, LocalizeOptions};
+use seasonloc_core::similarity::{cosine_matrix, Normalization};
+use seasonloc_core::Matrix;
 
 /// What the methods are computed from: descriptor similarity matrices and/or a co-occurrence map.
 struct Inputs<'m> {
@@ -115,7 +116,7 @@ pub(super) fn run_job(
         if args.descriptor.descriptor == crate::cli::DescriptorKind::Hog {
             let (w, h) = args.descriptor.resize.unwrap_or(first);
             shapes["input_geometry"] = json!([w, h]);
-            shapes["fit"] = json!(crate::features::Fit::from(args.descriptor.fit).name());
+            shapes["fit"] = json!(seasonloc_core::features::Fit::from(args.descriptor.fit).name());
         }
         let ts = Instant::now();
         let c = cosine_matrix(&queries, &references)?;
@@ -266,7 +267,7 @@ fn run_method(
     options: &LocalizeOptions,
     cooc_options: &CoocOptions,
 ) -> Result<(Vec<Prediction>, Value)> {
-    let flow_params = |solution: &crate::solver::Solution| {
+    let flow_params = |solution: &seasonloc_core::solver::Solution| {
         json!({
             "hidden_cost": solution.hidden_cost,
             "fan_out": options.solver.fan_out,

@@ -13,7 +13,7 @@ use serde_json::{json, Value};
 
 use super::job::{run_job, Job};
 use super::{check_ground_truth, EvalArgs, ReferenceDrive};
-use crate::eval::GroundTruth;
+use seasonloc_core::eval::GroundTruth;
 
 /// Metric fields averaged over the folds of `--leave-one-out`.
 const METRIC_FIELDS: [&str; 5] = [

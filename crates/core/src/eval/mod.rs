@@ -1,0 +1,18 @@
+//! Evaluation protocol of `spec.md` §4: ground truth, query exclusions, precision-recall
+//! metrics and prediction CSVs (the PR plots are drawn by the binary, `src/cli/plot.rs`).
+//!
+//! Every method reduces its result to at most one [`Prediction`] per query; [`evaluate`] sweeps
+//! the confidence threshold over them. The protocol is method-agnostic: it only sees
+//! `(query, reference, confidence)` triples.
+
+mod ground_truth;
+mod metrics;
+mod predictions;
+
+pub use ground_truth::{Exclusions, GroundTruth};
+pub use metrics::{evaluate, Metrics, PrPoint};
+pub use predictions::write_predictions_csv;
+
+/// Every method's output type lives in the core next to [`crate::localize::localize`]; it is
+/// re-exported here because the protocol consumes it.
+pub use crate::localize::Prediction;

@@ -1,0 +1,216 @@
+//! `seasonloc serve`: start-up (logging, store, CPU pool, listener), the one log line with the
+//! bound address, and graceful shutdown on SIGTERM/Ctrl-C.
+//!
+//! With `--api-keys`, SIGHUP re-reads the key file (rotation without restart); a file that does
+//! not load keeps the previous keys and logs why.
+//!
+//! Connections are served by hyper's HTTP/1.1 server directly (not `axum::serve`) so that the
+//! header read timeout applies: a client gets `header_read_timeout` to send a request's header,
+//! then it is disconnected (slowloris); a stalled body is cut off by the router's body read
+//! timeout (408).
+//!
+//! Shutdown stops accepting connections, lets in-flight requests finish for at most
+//! `shutdown_timeout`, then flushes the store. Every acknowledged write was already flushed, so
+//! the final flush only covers the store's own bookkeeping.
+
+use std::future::Future;
+use std::sync::Arc;
+
+use anyhow::Context;
+use tokio::net::TcpListener;
+
+use crate::api::{self, AppState};
+use crate::config::{ServeArgs, Settings};
+use seasonloc_app::store::Store;
+use seasonloc_app::{App, AppConfig};
+use seasonloc_store::{PgStore, SledStore};
+
+/// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
+/// `info`), and serves until SIGTERM or Ctrl-C.
+pub fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
+    init_tracing();
+    let settings = args.validate()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("seasonloc-http")
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(async move {
+        let listener = TcpListener::bind(settings.addr)
+            .await
+            .with_context(|| format!("cannot listen on {}", settings.addr))?;
+        serve(settings, listener, shutdown_signal()).await
+    })
+}
+
+/// Installs the stderr logger unless one is installed already.
+pub fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
+}
+
+/// The use-case layer's settings from the service's.
+pub fn app_config(settings: &Settings) -> AppConfig {
+    AppConfig {
+        worker_threads: settings.worker_threads,
+        max_image_pixels: settings.max_image_pixels,
+        default_cnn_model: settings.default_cnn_model.clone(),
+        max_descriptor_len: settings.max_descriptor_len,
+        models: seasonloc_app::ModelPolicy {
+            dir: settings.model_dir.clone(),
+            max_bytes: settings.max_model_bytes,
+        },
+    }
+}
+
+/// Serves on `listener` until `shutdown` completes, then drains and flushes the store.
+pub async fn serve(
+    settings: Settings,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    // The key file first: a deployment that forgot to mount it fails before touching the store.
+    let auth = AppState::load_auth(&settings)?;
+    let store: Arc<dyn Store> = match &settings.database_url {
+        Some(url) => Arc::new(PgStore::connect(&url.0).await?),
+        None => {
+            let dir = settings.data_dir.clone();
+            Arc::new(
+                tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
+                    std::fs::create_dir_all(&dir).with_context(|| {
+                        format!("cannot create the data folder {}", dir.display())
+                    })?;
+                    Ok(SledStore::open(&dir)?)
+                })
+                .await??,
+            )
+        }
+    };
+    let drain = settings.shutdown_timeout;
+    let use_cases = Arc::new(App::new(store, app_config(&settings))?);
+    let state = AppState::new(Arc::clone(&use_cases), settings, auth)?;
+    match &state.auth {
+        Some(auth) => {
+            tracing::info!(
+                keys = auth.ring().len(),
+                file = %auth.path().display(),
+                "access control on: API keys loaded (SIGHUP re-reads the file)"
+            );
+            reload_keys_on_sighup(Arc::clone(auth));
+        }
+        None => tracing::warn!("access control off: no --api-keys, every request is let through"),
+    }
+    let header_timeout = state.settings.header_read_timeout;
+    let app = api::app(state);
+    let addr = listener.local_addr()?;
+    tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
+
+    let http = http1_builder(header_timeout);
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let (stream, _) = tokio::select! {
+            () = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok(conn) => conn,
+                Err(e) => {
+                    // Out of file descriptors and the like: wait instead of spinning.
+                    tracing::error!("accepting a connection: {e}");
+                    tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+                    continue;
+                }
+            },
+        };
+        // Small answers go out at once instead of waiting for Nagle's algorithm.
+        let _ = stream.set_nodelay(true);
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let conn = http.serve_connection(hyper_util::rt::TokioIo::new(stream), service);
+        let conn = graceful.watch(conn);
+        tokio::spawn(async move {
+            // Clients that hang up, send garbage or are too slow with their header end here.
+            if let Err(e) = conn.await {
+                tracing::debug!("connection closed: {e}");
+            }
+        });
+    }
+    tracing::info!("shutdown requested: draining in-flight requests");
+    tokio::select! {
+        () = graceful.shutdown() => {}
+        () = tokio::time::sleep(drain) => {
+            tracing::warn!("drain timeout elapsed; exiting with requests in flight");
+        }
+    }
+    use_cases.flush().await?;
+    tracing::info!("store flushed; stopped");
+    Ok(())
+}
+
+/// HTTP/1.1 connections whose request header must arrive within `header_timeout` (from the
+/// connection's start, or from the end of the previous response on a kept-alive connection);
+/// a client that is slower (half a header, then nothing) is disconnected.
+fn http1_builder(header_timeout: std::time::Duration) -> hyper::server::conn::http1::Builder {
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(hyper_util::rt::TokioTimer::new())
+        .header_read_timeout(header_timeout);
+    http
+}
+
+/// Spawns the task that re-reads the key file on each SIGHUP.
+fn reload_keys_on_sighup(auth: Arc<api::auth::Auth>) {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut hangups = match signal(SignalKind::hangup()) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!("cannot listen for SIGHUP (API keys will not be reloaded): {e}");
+                return;
+            }
+        };
+        tokio::spawn(async move {
+            while hangups.recv().await.is_some() {
+                let a = Arc::clone(&auth);
+                match tokio::task::spawn_blocking(move || a.reload()).await {
+                    Ok(Ok(n)) => tracing::info!(keys = n, "SIGHUP: API keys reloaded"),
+                    Ok(Err(e)) => tracing::error!("SIGHUP: keeping the previous API keys: {e}"),
+                    Err(e) => tracing::error!("SIGHUP: keeping the previous API keys: {e}"),
+                }
+            }
+        });
+    }
+    #[cfg(not(unix))]
+    let _ = auth;
+}
+
+/// Completes on Ctrl-C or (on Unix) SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!("cannot listen for Ctrl-C: {e}");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!("cannot listen for SIGTERM: {e}");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = terminate => {},
+    }
+}

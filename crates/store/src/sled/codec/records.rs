@@ -1,0 +1,223 @@
+//! The records besides maps and images: localizations (ids, time, the stored document's
+//! JSON), trips (record and status code), per-frame estimates, and the idempotency records
+//! of requests sent with an `Idempotency-Key`.
+
+use super::value::{Reader, Writer};
+use seasonloc_app::store::{
+    FrameRecord, IdempotencyRecord, LocalizationDocument, LocalizationRecord, StoreError,
+    TripParamsDocument, TripRecord,
+};
+use seasonloc_core::trip::TripStatus;
+
+/// Encodes an idempotency record (its scope and key are in the record's key).
+pub fn encode_idempotency(r: &IdempotencyRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.bytes(&r.fingerprint);
+    w.bytes(&r.response);
+    match &r.indices {
+        None => w.u8(0),
+        Some(range) => {
+            w.u8(1);
+            w.u32(range.start);
+            w.u32(range.end);
+        }
+    }
+    w.into_bytes()
+}
+
+/// Decodes the idempotency record of `scope` and `key` stored under `k`.
+pub fn decode_idempotency(
+    k: &[u8],
+    scope: &str,
+    key: &str,
+    value: &[u8],
+) -> Result<IdempotencyRecord, StoreError> {
+    let mut r = Reader::new(k, value)?;
+    let fingerprint = r.bytes()?.to_vec();
+    let response = r.bytes()?.to_vec();
+    let indices = match r.u8()? {
+        0 => None,
+        1 => Some(r.u32()?..r.u32()?),
+        t => return Err(StoreError::corrupt(k, format!("bad option tag {t}"))),
+    };
+    r.finish()?;
+    Ok(IdempotencyRecord {
+        scope: scope.to_string(),
+        key: key.to_string(),
+        fingerprint,
+        response,
+        indices,
+    })
+}
+
+/// Encodes a localization record: ids and time, then the document's JSON
+/// ([`LocalizationDocument::to_json`]).
+pub fn encode_localization(l: &LocalizationRecord) -> Result<Vec<u8>, StoreError> {
+    let mut w = Writer::new();
+    w.u64(l.id);
+    w.u64(l.map_id);
+    w.u64(l.created_ms);
+    w.bytes(&l.document.to_json()?);
+    Ok(w.into_bytes())
+}
+
+/// The stored code of a trip status (0: no batch yet).
+fn status_code(s: Option<TripStatus>) -> u8 {
+    match s {
+        None => 0,
+        Some(TripStatus::Localized) => 1,
+        Some(TripStatus::Lost) => 2,
+        Some(TripStatus::Relocalized) => 3,
+    }
+}
+
+fn status_of(key: &[u8], code: u8) -> Result<Option<TripStatus>, StoreError> {
+    match code {
+        0 => Ok(None),
+        1 => Ok(Some(TripStatus::Localized)),
+        2 => Ok(Some(TripStatus::Lost)),
+        3 => Ok(Some(TripStatus::Relocalized)),
+        c => Err(StoreError::corrupt(key, format!("unknown trip status {c}"))),
+    }
+}
+
+/// Encodes a trip record (its parameters as [`TripParamsDocument::to_json`]).
+pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
+    let mut w = Writer::new();
+    w.u64(t.id);
+    w.u64(t.map_id);
+    w.u64(t.created_ms);
+    match t.closed_ms {
+        None => w.u8(0),
+        Some(ms) => {
+            w.u8(1);
+            w.u64(ms);
+        }
+    }
+    w.u64(t.frame_count);
+    w.u32(t.reference_count);
+    w.u8(status_code(t.status));
+    w.bytes(&t.params.to_json()?);
+    Ok(w.into_bytes())
+}
+
+/// Decodes a trip record.
+pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let id = r.u64()?;
+    let map_id = r.u64()?;
+    let created_ms = r.u64()?;
+    let closed_ms = match r.u8()? {
+        0 => None,
+        1 => Some(r.u64()?),
+        t => return Err(StoreError::corrupt(key, format!("bad option tag {t}"))),
+    };
+    let frame_count = r.u64()?;
+    let reference_count = r.u32()?;
+    let status = status_of(key, r.u8()?)?;
+    let params = TripParamsDocument::from_json(key, r.bytes()?)?;
+    r.finish()?;
+    Ok(TripRecord {
+        id,
+        map_id,
+        created_ms,
+        closed_ms,
+        frame_count,
+        reference_count,
+        status,
+        params,
+    })
+}
+
+/// Encodes a frame's estimate.
+pub fn encode_frame(f: &FrameRecord) -> Vec<u8> {
+    let mut w = Writer::new();
+    match f.reference {
+        None => w.u8(0),
+        Some(j) => {
+            w.u8(1);
+            w.u32(j);
+        }
+    }
+    w.f64(f.confidence);
+    w.into_bytes()
+}
+
+/// Decodes a frame's estimate stored under `key` (the frame index comes from the key).
+pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameRecord, StoreError> {
+    let frame = key
+        .get(9..13)
+        .and_then(|b| b.try_into().ok())
+        .map(u32::from_be_bytes)
+        .ok_or_else(|| StoreError::corrupt(key, "key too short for a frame"))?;
+    let mut r = Reader::new(key, value)?;
+    let reference = match r.u8()? {
+        0 => None,
+        1 => Some(r.u32()?),
+        t => return Err(StoreError::corrupt(key, format!("bad option tag {t}"))),
+    };
+    let confidence = r.f64()?;
+    r.finish()?;
+    Ok(FrameRecord {
+        frame,
+        reference,
+        confidence,
+    })
+}
+
+/// The id and map id of a localization record, without decoding its document.
+pub fn decode_localization_ids(key: &[u8], value: &[u8]) -> Result<(u64, u64), StoreError> {
+    let mut r = Reader::new(key, value)?;
+    Ok((r.u64()?, r.u64()?))
+}
+
+/// Decodes a localization record.
+pub fn decode_localization(key: &[u8], value: &[u8]) -> Result<LocalizationRecord, StoreError> {
+    let mut r = Reader::new(key, value)?;
+    let id = r.u64()?;
+    let map_id = r.u64()?;
+    let created_ms = r.u64()?;
+    let document = LocalizationDocument::from_json(key, r.bytes()?)?;
+    r.finish()?;
+    Ok(LocalizationRecord {
+        id,
+        map_id,
+        created_ms,
+        document,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn localization_round_trip(
+            queries in 0usize..10_000,
+            cost in -1e6f64..1e6,
+            confidences in proptest::collection::vec(0.0f64..1e3, 0..20),
+            id in any::<u64>(),
+        ) {
+            use seasonloc_app::store::document::{LocalizationResult, StoredParams, StoredPrediction, StoredTimings};
+            let result = LocalizationResult {
+                query_count: queries,
+                reference_count: 3,
+                params: StoredParams::new(&seasonloc_core::localize::LocalizeOptions::default(), cost.abs(), None),
+                total_cost: cost,
+                hypotheses: Vec::new(),
+                predictions: confidences
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &c)| StoredPrediction { query: k, reference: k + 1, confidence: c })
+                    .collect(),
+                timings: StoredTimings::default(),
+                picture: None,
+            };
+            let document = LocalizationDocument { id, map_id: 3, created_at_ms: 4, result };
+            let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document };
+            prop_assert_eq!(decode_localization(b"L", &encode_localization(&l).unwrap()).unwrap(), l);
+        }
+    }
+}

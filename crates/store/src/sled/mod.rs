@@ -1,0 +1,412 @@
+//! The embedded engine: one sled database in a data folder (the default; the README's first
+//! command needs nothing but the binary).
+//!
+//! Only this module knows sled. It owns the key layout and value encodings ([`codec`]), the
+//! layout version and its upgrades ([`migrate`]), and the write rules of [`crate::store`]:
+//!
+//! * every change that spans several keys (a batch of images plus the map's `image_count`, a
+//!   localization plus its index entry, a trip batch, a map and everything under it) is one
+//!   `sled::Batch`, applied atomically, so a crash leaves either all of it or none of it;
+//! * every write is flushed to disk before the call returns, so whatever the API acknowledged
+//!   survives a crash;
+//! * writes go through one mutex, so read-modify-write cycles (`image_count`, a trip's frame
+//!   count, a co-occurrence map) never interleave and conditional writes are checked and
+//!   applied as one step.
+//!
+//! The inherent methods of [`SledStore`] are blocking (for tools, tests and benches); the
+//! service uses the [`Store`] implementation, which runs each of them on tokio's blocking
+//! threads.
+
+pub mod codec;
+mod cooc;
+#[cfg(test)]
+mod golden;
+mod localizations;
+mod maps;
+pub mod migrate;
+mod trips;
+
+use crate::OrStore;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use async_trait::async_trait;
+
+use seasonloc_app::store::{
+    CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
+    MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
+    TripBatch, TripRecord, TripState,
+};
+use seasonloc_core::Matrix;
+
+/// How long [`SledStore::open`] waits for a data folder locked by a handle that is closing.
+pub const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// Whether sled failed to open because another handle holds the folder's lock; every other
+/// error is reported at once. sled 0.34 reports it as an `Other` I/O error whose message
+/// starts "could not acquire lock" (`open_tests` pins this against the sled in use).
+fn is_lock_contention(e: &sled::Error) -> bool {
+    if let sled::Error::Io(io) = e {
+        io.kind() == std::io::ErrorKind::WouldBlock
+            || io.to_string().starts_with("could not acquire lock")
+    } else {
+        false
+    }
+}
+
+/// The sled engine. Cheap to clone (clones share the database and its write lock).
+#[derive(Clone)]
+pub struct SledStore {
+    db: sled::Db,
+    path: Arc<PathBuf>,
+    write: Arc<Mutex<()>>,
+}
+
+impl SledStore {
+    /// Opens (or creates) the store in `dir` and upgrades its layout to
+    /// [`migrate::CURRENT_VERSION`].
+    ///
+    /// sled locks the folder for as long as a database handle (or its background flusher
+    /// thread) lives, and dropping a handle releases the lock only when that thread has
+    /// exited, a moment later. An open that finds the folder locked therefore waits up to
+    /// [`LOCK_WAIT`] for the lock before it fails, so a store closed and reopened at once (a
+    /// restart in the same process, tests) opens, while a folder held by another running
+    /// process still fails with [`StoreError::Open`] after that bound.
+    pub fn open(dir: &Path) -> StoreResult<SledStore> {
+        let config = sled::Config::new().path(dir);
+        let started = std::time::Instant::now();
+        let mut pause = std::time::Duration::from_millis(5);
+        let db = loop {
+            match config.open() {
+                Ok(db) => break db,
+                Err(e) if is_lock_contention(&e) && started.elapsed() < LOCK_WAIT => {
+                    std::thread::sleep(pause);
+                    pause = (pause * 2).min(std::time::Duration::from_millis(100));
+                }
+                Err(source) => {
+                    return Err(StoreError::Open {
+                        location: dir.display().to_string(),
+                        source: Box::new(source),
+                    })
+                }
+            }
+        };
+        migrate::migrate(&db)?;
+        Ok(SledStore {
+            db,
+            path: Arc::new(dir.to_path_buf()),
+            write: Arc::new(Mutex::new(())),
+        })
+    }
+
+    /// The data folder.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The layout version on disk.
+    pub fn schema_version(&self) -> StoreResult<u32> {
+        migrate::read_version(&self.db)?.ok_or_else(|| {
+            StoreError::corrupt(codec::SCHEMA_VERSION_KEY, "schema_version is missing")
+        })
+    }
+
+    /// Checks that the store answers reads.
+    pub fn check(&self) -> StoreResult<()> {
+        self.schema_version().map(|_| ())
+    }
+
+    /// Flushes everything to disk (at shutdown; every write already flushes).
+    pub fn flush(&self) -> StoreResult<()> {
+        self.db.flush().or_store()?;
+        Ok(())
+    }
+
+    fn lock(&self) -> MutexGuard<'_, ()> {
+        // A panic while holding the lock cannot leave sled half-written (batches are
+        // atomic), so a poisoned lock is safe to reuse.
+        self.write.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The newest-first page of the index keys in `lo..hi` (each holding an id at
+    /// `key[at..at + 8]`): at most `limit` records read with `get`, and the `before` of the
+    /// next page. `hi` is exclusive, so an id of `u64::MAX` (never issued) is never listed.
+    fn page<T>(
+        &self,
+        lo: &[u8],
+        hi: &[u8],
+        at: usize,
+        limit: usize,
+        get: impl Fn(u64) -> StoreResult<T>,
+    ) -> StoreResult<Page<T>> {
+        let mut ids = Vec::with_capacity(limit + 1);
+        for kv in self.db.range(lo..hi).rev().take(limit + 1) {
+            ids.push(codec::id_at(&kv.or_store()?.0, at)?);
+        }
+        let next = if ids.len() > limit {
+            ids.truncate(limit);
+            ids.last().copied()
+        } else {
+            None
+        };
+        let items = ids.into_iter().map(get).collect::<StoreResult<Vec<_>>>()?;
+        Ok(Page { items, next })
+    }
+
+    /// The record stored under an idempotency key, if any.
+    pub fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>> {
+        let k = codec::idempotency_key(scope, key);
+        self.db
+            .get(&k)
+            .or_store()?
+            .map(|v| codec::decode_idempotency(&k, scope, key, &v))
+            .transpose()
+    }
+
+    /// Adds `record` (with `indices`, for appends) to `batch`; fails when its key is stored
+    /// already. Call under the write lock.
+    fn claim_key(
+        &self,
+        record: Option<&IdempotencyRecord>,
+        indices: Option<Range<u32>>,
+        batch: &mut sled::Batch,
+    ) -> StoreResult<()> {
+        let Some(record) = record else {
+            return Ok(());
+        };
+        let k = codec::idempotency_key(&record.scope, &record.key);
+        if self.db.contains_key(&k).or_store()? {
+            return Err(StoreError::IdempotencyKeyTaken {
+                scope: record.scope.clone(),
+                key: record.key.clone(),
+            });
+        }
+        let stored = IdempotencyRecord {
+            indices,
+            ..record.clone()
+        };
+        batch.insert(k, codec::encode_idempotency(&stored));
+        Ok(())
+    }
+
+    /// Adds the removal of the record of the key that created map `id`, if any, to `batch`
+    /// (creations share one scope; the record's response names the map).
+    fn remove_creation_key(&self, id: u64, batch: &mut sled::Batch) -> StoreResult<()> {
+        let scope = IdempotencyRecord::maps_scope();
+        let prefix = codec::idempotency_prefix(&scope);
+        for kv in self.db.scan_prefix(&prefix) {
+            let (k, v) = kv.or_store()?;
+            let key = String::from_utf8_lossy(&k[prefix.len()..]).into_owned();
+            if codec::decode_idempotency(&k, &scope, &key, &v)?.response == id.to_le_bytes() {
+                batch.remove(k);
+            }
+        }
+        Ok(())
+    }
+
+    /// Adds the removal of every idempotency record of `scope` to `batch`.
+    fn remove_keys(&self, scope: &str, batch: &mut sled::Batch) -> StoreResult<()> {
+        for kv in self.db.scan_prefix(codec::idempotency_prefix(scope)) {
+            batch.remove(kv.or_store()?.0);
+        }
+        Ok(())
+    }
+
+    /// Runs a blocking method on tokio's blocking threads.
+    async fn run<T, F>(&self, job: F) -> StoreResult<T>
+    where
+        T: Send + 'static,
+        F: FnOnce(&SledStore) -> StoreResult<T> + Send + 'static,
+    {
+        let store = self.clone();
+        tokio::task::spawn_blocking(move || job(&store))
+            .await
+            .map_err(|e| StoreError::Backend(format!("store task failed: {e}").into()))?
+    }
+}
+
+#[async_trait]
+impl Store for SledStore {
+    fn location(&self) -> String {
+        self.path.display().to_string()
+    }
+
+    async fn check(&self) -> StoreResult<()> {
+        self.run(SledStore::check).await
+    }
+
+    async fn flush(&self) -> StoreResult<()> {
+        self.run(SledStore::flush).await
+    }
+
+    async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
+        self.run(move |s| s.create_map(new)).await
+    }
+
+    async fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
+        self.run(move |s| s.get_map(id)).await
+    }
+
+    async fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
+        self.run(SledStore::list_maps).await
+    }
+
+    async fn delete_map(&self, id: u64) -> StoreResult<()> {
+        self.run(move |s| s.delete_map(id)).await
+    }
+
+    async fn append_images(&self, batch: ImageBatch) -> StoreResult<Range<u32>> {
+        self.run(move |s| s.append_images(&batch)).await
+    }
+
+    async fn descriptors(&self, map: u64, rows: Range<u32>) -> StoreResult<Matrix> {
+        self.run(move |s| s.descriptors(map, rows)).await
+    }
+
+    async fn image_metadata(&self, map: u64, rows: Range<u32>) -> StoreResult<Vec<ImageMeta>> {
+        self.run(move |s| s.image_metadata(map, rows)).await
+    }
+
+    async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.thumbnail(map, index)).await
+    }
+
+    async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.cooc_map(map)).await
+    }
+
+    async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>> {
+        self.run(move |s| s.put_cooc_map(write)).await
+    }
+
+    async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
+        self.run(move |s| s.create_localization(new)).await
+    }
+
+    async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
+        self.run(move |s| s.get_localization(id)).await
+    }
+
+    async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
+        self.run(move |s| s.localization_picture(id)).await
+    }
+
+    async fn list_localizations(
+        &self,
+        map: Option<u64>,
+        page: PageRequest,
+    ) -> StoreResult<Page<LocalizationRecord>> {
+        self.run(move |s| s.list_localizations(map, page)).await
+    }
+
+    async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
+        self.run(move |s| s.create_trip(new)).await
+    }
+
+    async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        self.run(move |s| s.get_trip(id)).await
+    }
+
+    async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
+        self.run(move |s| s.trip_state(id)).await
+    }
+
+    async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
+        self.run(move |s| s.put_trip_batch(id, batch)).await
+    }
+
+    async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
+        self.run(move |s| s.close_trip(id)).await
+    }
+
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+        self.run(move |s| s.trip_estimates(id, from)).await
+    }
+
+    async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
+        self.run(move |s| s.list_trips(map, page)).await
+    }
+
+    async fn idempotency_record(
+        &self,
+        scope: &str,
+        key: &str,
+    ) -> StoreResult<Option<IdempotencyRecord>> {
+        let (scope, key) = (scope.to_string(), key.to_string());
+        self.run(move |s| s.idempotency_record(&scope, &key)).await
+    }
+}
+
+/// A new empty map of 1-D precomputed descriptors, for the engine's unit tests.
+#[cfg(test)]
+pub(crate) fn test_map(store: &SledStore) -> u64 {
+    store
+        .create_map(NewMap {
+            id: crate::test_id(),
+            name: "m".into(),
+            descriptor: seasonloc_app::store::DescriptorSettings::Precomputed { dim: 1 },
+            idempotency: None,
+        })
+        .expect("a new map in a fresh store")
+        .id
+}
+
+#[cfg(test)]
+mod open_tests {
+    use super::*;
+
+    /// A folder held by a live handle is recognised as locked (and so waited for), and the
+    /// wait ends in a clear `Open` error while the other handle stays open.
+    #[test]
+    fn a_folder_held_open_is_contention_and_fails_after_the_wait() {
+        let dir = tempfile::tempdir().unwrap();
+        let held = SledStore::open(dir.path()).unwrap();
+        let e = sled::Config::new().path(dir.path()).open().unwrap_err();
+        assert!(is_lock_contention(&e), "{e}");
+        match SledStore::open(dir.path()) {
+            Err(StoreError::Open { location, source }) => {
+                assert_eq!(location, dir.path().display().to_string());
+                assert!(source.to_string().contains("lock"), "{source}");
+            }
+            Err(other) => panic!("expected Open, got {other}"),
+            Ok(_) => panic!("a folder held open was opened twice"),
+        }
+        drop(held);
+    }
+
+    /// Closing a store and reopening it at once works every time, although sled releases
+    /// the folder's lock a moment after the handle is dropped.
+    #[test]
+    fn a_store_reopens_at_once_after_it_is_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        for round in 0..20u32 {
+            let store = SledStore::open(dir.path()).unwrap();
+            store
+                .create_map(NewMap {
+                    id: u64::from(round) + 1,
+                    name: format!("m{round}"),
+                    descriptor: seasonloc_app::store::DescriptorSettings::Precomputed { dim: 2 },
+                    idempotency: None,
+                })
+                .unwrap();
+            drop(store);
+        }
+        let store = SledStore::open(dir.path()).unwrap();
+        assert_eq!(store.get_map(20).unwrap().name, "m19");
+    }
+
+    /// Other errors are not waited for.
+    #[test]
+    fn other_open_errors_are_not_contention() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("a-file");
+        std::fs::write(&file, b"x").unwrap();
+        let e = sled::Config::new().path(&file).open().unwrap_err();
+        assert!(!is_lock_contention(&e), "{e}");
+    }
+}
