@@ -61,7 +61,7 @@ pub struct CoocArgs {
     /// the flow method's floored Eq. 2 on `s + 1`, as `cooc-flow`; eq2 = Eq. 2 exactly; none =
     /// raw scores) [default: floored].
     #[arg(long, value_enum)]
-    pub seq_normalization: Option<super::eval::NormalizationArg>,
+    pub seq_normalization: Option<super::NormalizationArg>,
 }
 
 impl CoocArgs {

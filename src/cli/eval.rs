@@ -31,6 +31,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use super::NormalizationArg;
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 use serde_json::Value;
@@ -40,7 +41,6 @@ use super::{DescriptorArgs, SolverArgs};
 use seasonloc_core::cooc::CoocMethod;
 use seasonloc_core::eval::{Exclusions, GroundTruth};
 use seasonloc_core::features::list_images;
-use seasonloc_core::similarity::Normalization;
 use seasonloc_core::Error;
 
 mod job;
@@ -101,27 +101,6 @@ pub enum ConfidenceArg {
     Discounted,
     /// The local min-marginal ratio on the 11-row box window (the default of earlier versions).
     Window,
-}
-
-/// `--normalization` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum NormalizationArg {
-    /// Eq. 2 with the column mean floored at half the median column mean (default).
-    Floored,
-    /// The paper's Eq. 2 exactly.
-    Eq2,
-    /// Raw cosine similarities.
-    None,
-}
-
-impl From<NormalizationArg> for Normalization {
-    fn from(n: NormalizationArg) -> Self {
-        match n {
-            NormalizationArg::Floored => Normalization::FlooredColumns,
-            NormalizationArg::Eq2 => Normalization::Columns,
-            NormalizationArg::None => Normalization::None,
-        }
-    }
 }
 
 /// Flags of `seasonloc eval`.

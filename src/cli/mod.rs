@@ -12,10 +12,11 @@ pub mod solve;
 
 use std::path::PathBuf;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use seasonloc_core::features::cnn::{CnnOptions, CnnResize, CnnSpec};
 use seasonloc_core::features::{Extractor, Fit, Fitted};
+use seasonloc_core::similarity::Normalization;
 use seasonloc_core::solver::{HiddenCost, SolverParams};
 
 /// Visual localization across seasons.
@@ -369,5 +370,26 @@ mod tests {
             .cnn_options()
             .unwrap_err();
         assert!(err.to_string().contains("HOG only"), "{err}");
+    }
+}
+
+/// `--normalization` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum NormalizationArg {
+    /// Eq. 2 with the column mean floored at half the median column mean (default).
+    Floored,
+    /// The paper's Eq. 2 exactly.
+    Eq2,
+    /// Raw cosine similarities.
+    None,
+}
+
+impl From<NormalizationArg> for Normalization {
+    fn from(n: NormalizationArg) -> Self {
+        match n {
+            NormalizationArg::Floored => Normalization::FlooredColumns,
+            NormalizationArg::Eq2 => Normalization::Columns,
+            NormalizationArg::None => Normalization::None,
+        }
     }
 }

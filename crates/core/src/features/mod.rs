@@ -18,6 +18,7 @@ use rayon::prelude::*;
 use crate::{Error, Matrix, Result};
 
 mod bilinear;
+#[cfg(feature = "cnn")]
 pub mod cnn;
 pub mod geometry;
 pub mod hog;
