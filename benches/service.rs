@@ -355,7 +355,7 @@ fn algorithms_alone(w: &Workload) -> (f64, Rates) {
             .create_map(seasonloc_app::store::NewMap {
                 id: seasonloc_app::new_id().expect("an id"),
                 name: "lib".into(),
-                descriptor: seasonloc_app::store::DescriptorSettings::Hog {
+                descriptor: seasonloc_app::model::DescriptorSettings::Hog {
                     cell_size: CELL,
                     resize: None,
                 },
@@ -364,7 +364,7 @@ fn algorithms_alone(w: &Workload) -> (f64, Rates) {
             .expect("map");
         for b in w.ingest_batches() {
             let m = extract(b);
-            let metas = vec![seasonloc_app::store::ImageMeta::default(); m.rows()];
+            let metas = vec![seasonloc_app::model::ImageMeta::default(); m.rows()];
             let batch =
                 seasonloc_app::store::ImageBatch::new(map.id, m, metas).expect("one meta per row");
             store.append_images(&batch).expect("append");
@@ -394,7 +394,7 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let hog = || NewMapSpec {
         name: "m".into(),
-        descriptor: DescriptorSpec::Settings(seasonloc_app::store::DescriptorSettings::Hog {
+        descriptor: DescriptorSpec::Settings(seasonloc_app::model::DescriptorSettings::Hog {
             cell_size: CELL,
             resize: None,
         }),
@@ -406,7 +406,7 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     );
     // Fetched per request, as the API does (the map's image count moves).
     let append = |app: Arc<App>, map: u64, batch: Vec<ImageInput>| async move {
-        let metas = vec![seasonloc_app::store::ImageMeta::default(); batch.len()];
+        let metas = vec![seasonloc_app::model::ImageMeta::default(); batch.len()];
         let target = app.map_for_images(map).await.expect("map");
         app.append_images(target, batch, metas)
             .await

@@ -19,5 +19,6 @@ mod hardening;
 mod http;
 mod idempotency;
 mod spec;
+mod stored;
 mod trips;
 mod views;

@@ -16,7 +16,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use super::error::{AppError, AppResult};
 use super::pool::CpuPool;
-use crate::store::{MapRecord, Store};
+use crate::model::MapRecord;
+use crate::store::Store;
 use seasonloc_core::trip::Trip;
 use seasonloc_core::Matrix;
 

@@ -2,7 +2,7 @@
 //! settings into an extractor for its images, shared by appends, localizations and trips.
 
 use super::error::{AppError, AppResult};
-use crate::store::{DescriptorSettings, MapRecord};
+use crate::model::{DescriptorSettings, MapRecord};
 use seasonloc_core::features::cnn::CnnSpec;
 use seasonloc_core::features::hog::{HogOptions, HogSpec};
 use seasonloc_core::features::Extractor;

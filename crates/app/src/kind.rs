@@ -6,7 +6,7 @@
 //! Adding a kind: a variant of `store::DescriptorSettings` (with its stored encoding), an arm
 //! here, and one module beside `cooc.rs` implementing its appends and localization.
 
-use crate::store::{DescriptorSettings, MapRecord};
+use crate::model::{DescriptorSettings, MapRecord};
 use seasonloc_core::cooc::CoocParams;
 
 /// What a map is, for the use cases.

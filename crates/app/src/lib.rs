@@ -27,6 +27,7 @@ mod images;
 pub mod kind;
 mod localize;
 mod maps;
+pub mod model;
 pub mod models;
 pub mod pool;
 pub mod store;

@@ -12,11 +12,10 @@ use super::idempotency::{answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
-use crate::store::document::{StoredMethod, StoredParams, StoredTimings};
-use crate::store::{
-    IdempotencyRecord, LocalizationRecord, LocalizationResult, NewLocalization, Page, PageRequest,
-    StoredPicture,
+use crate::model::{
+    LocalizationParams, LocalizationRecord, LocalizationResult, LocalizationTimings, PictureInfo,
 };
+use crate::store::{IdempotencyRecord, NewLocalization, Page, PageRequest};
 use seasonloc_core::cooc::CoocMethod;
 use seasonloc_core::localize::{localize_with_picture, Localization, LocalizeOptions};
 use seasonloc_core::picture::MatrixPicture;
@@ -41,14 +40,6 @@ pub struct LocalizeInput {
     /// For co-occurrence maps, the method (default [`CoocMethod::Flow`]); must be `None` for
     /// other maps.
     pub method: Option<CoocMethod>,
-}
-
-fn stored_method(m: CoocMethod) -> StoredMethod {
-    match m {
-        CoocMethod::Flow => StoredMethod::Flow,
-        CoocMethod::Single => StoredMethod::Cooc,
-        CoocMethod::Sequence => StoredMethod::CoocSeq,
-    }
 }
 
 /// The name the service's clients use for a method (`params.method`): `flow`, `cooc`,
@@ -237,21 +228,17 @@ impl App {
         let result = LocalizationResult {
             query_count,
             reference_count,
-            params: StoredParams::new(
-                &options,
-                result.solution.hidden_cost,
-                method.map(stored_method),
-            ),
+            params: LocalizationParams::new(&options, result.solution.hidden_cost, method),
             total_cost,
-            hypotheses: result.solution.hypotheses.iter().map(Into::into).collect(),
-            predictions: result.predictions.iter().map(Into::into).collect(),
-            timings: StoredTimings {
+            hypotheses: result.solution.hypotheses,
+            predictions: result.predictions,
+            timings: LocalizationTimings {
                 load_references,
                 features,
                 similarity: result.timings.similarity,
                 solve: result.timings.solve,
             },
-            picture: picture.as_ref().map(|(p, _)| StoredPicture {
+            picture: picture.as_ref().map(|(p, _)| PictureInfo {
                 rows: p.rows,
                 cols: p.cols,
                 lo: p.lo,

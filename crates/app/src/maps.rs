@@ -12,9 +12,8 @@ use super::idempotency::{answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
-use crate::store::{
-    CnnSettings, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord, NewMap,
-};
+use crate::model::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord};
+use crate::store::{IdempotencyRecord, ImageBatch, NewMap};
 use seasonloc_core::features::cnn::{CnnOptions, CnnSpec};
 use seasonloc_core::features::hog::{HogOptions, HogSpec};
 use seasonloc_core::features::Extractor;

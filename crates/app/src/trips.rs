@@ -23,12 +23,12 @@ use super::idempotency::{self, answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
 use super::kind::{kind, Kind};
 use super::{ids, map_extractor, App};
+use crate::model::{MapRecord, TripRecord};
 use crate::store::{
-    FrameRecord, IdempotencyRecord, MapRecord, NewTrip, Page, PageRequest, StoreError, TripBatch,
-    TripParamsDocument, TripRecord, TripState, TripStateWrite,
+    IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripState, TripStateWrite,
 };
 use seasonloc_core::similarity;
-use seasonloc_core::trip::{column_prior, BatchUpdate, Trip, TripParams};
+use seasonloc_core::trip::{column_prior, BatchUpdate, FrameEstimate, Trip, TripParams};
 
 /// How often a batch is recomputed when another process changed the trip meanwhile.
 pub const CONFLICT_RETRIES: usize = 4;
@@ -146,7 +146,7 @@ impl App {
             id: 0,
             map_id: id,
             reference_count: count,
-            params: TripParamsDocument::from(&params),
+            params,
             base: state.base,
             snapshot: state.snapshot,
             idempotency,
@@ -328,19 +328,12 @@ impl App {
                 Ok((update, trip, delta, hidden_cost, timings))
             })
             .await?;
-        let estimates = update
+        let estimates: Vec<FrameEstimate> = update
             .window
             .iter()
             .chain(&update.estimates)
-            .map(|e| {
-                Ok(FrameRecord {
-                    frame: u32::try_from(e.frame)
-                        .map_err(|_| AppError::Internal("frame index over 2^32".into()))?,
-                    reference: e.reference.map(|j| j as u32),
-                    confidence: e.confidence,
-                })
-            })
-            .collect::<AppResult<Vec<_>>>()?;
+            .copied()
+            .collect();
         let frame_count = record.frame_count + update.estimates.len() as u64;
         let state = TripStateWrite {
             base: delta.base,
@@ -399,7 +392,11 @@ impl App {
     /// A trip and the latest estimate of every frame from `since` on (0: all of them). A live
     /// view polls with `since` = the frames it has minus the lag window, since estimates in
     /// the window may still be revised.
-    pub async fn get_trip(&self, id: u64, since: u32) -> AppResult<(TripRecord, Vec<FrameRecord>)> {
+    pub async fn get_trip(
+        &self,
+        id: u64,
+        since: u32,
+    ) -> AppResult<(TripRecord, Vec<FrameEstimate>)> {
         let record = self.store.get_trip(id).await?;
         let estimates = self.store.trip_estimates(id, since).await?;
         Ok((record, estimates))

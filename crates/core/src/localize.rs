@@ -14,10 +14,12 @@ use crate::{Matrix, Result};
 
 /// One method's answer for one query: at most one per query, higher confidence = more certain.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Prediction {
     /// Query index `i`.
     pub query: usize,
     /// Predicted reference index `j`.
+    #[cfg_attr(feature = "serde", serde(rename = "ref"))]
     pub reference: usize,
     /// Higher = more certain. Finite.
     pub confidence: f64,

@@ -8,6 +8,7 @@
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 #![warn(missing_docs)]
 
+pub mod document;
 pub mod postgres;
 pub mod sled;
 

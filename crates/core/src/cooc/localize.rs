@@ -42,13 +42,17 @@ use crate::{Error, Matrix, Result};
 
 /// The co-occurrence localization methods.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum CoocMethod {
     /// Single-image recognition (`cooc`).
+    #[cfg_attr(feature = "serde", serde(rename = "cooc"))]
     Single,
     /// The paper's sequence matching (`cooc-seq`).
+    #[cfg_attr(feature = "serde", serde(rename = "cooc-seq"))]
     Sequence,
     /// The co-occurrence scores in the flow graph (`cooc-flow`; the service's default).
     #[default]
+    #[cfg_attr(feature = "serde", serde(rename = "flow"))]
     Flow,
 }
 

@@ -116,8 +116,10 @@ impl SolverParams {
 
 /// One matched reference image in a row of a hypothesis.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Match {
     /// Reference (column) index `j`.
+    #[cfg_attr(feature = "serde", serde(rename = "ref"))]
     pub reference: usize,
     /// `ĉ_ij` of the matching node.
     pub similarity: f32,
@@ -125,6 +127,7 @@ pub struct Match {
 
 /// What a hypothesis says about one query row.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct RowAssignment {
     /// Query (row) index `i`.
     pub query: usize,
@@ -135,6 +138,7 @@ pub struct RowAssignment {
 
 /// A route hypothesis: one source-to-sink path.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Hypothesis {
     /// 1-based rank (order found for greedy, increasing cost for exact).
     pub rank: usize,

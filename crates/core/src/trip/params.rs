@@ -15,18 +15,22 @@ pub const LOST_RATIO: f64 = 1.0;
 /// Largest accepted confidence half window `L` and radius `r`.
 pub const MAX_CONFIDENCE_WINDOW: usize = 1000;
 
-/// Parameters of a trip.
+/// Parameters of a trip. Its serde form (feature `serde`) is what a trip's record stores: the
+/// fields in this order, `relocalization` named `relocalization_cost`, the confidence's
+/// settings not stored (a trip always scores with [`TripParams::default`]'s).
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct TripParams {
     /// Fan-out `K`.
     pub fan_out: usize,
-    /// Horizontal edges.
-    pub horizontal: bool,
     /// `W`, or `None` to resolve it from the first batch.
     pub hidden_cost: Option<f64>,
+    /// Horizontal edges.
+    pub horizontal: bool,
     /// Rows whose back-pointers are kept (older estimates are final).
     pub lag: usize,
     /// Cost `R` of re-entering the map anywhere; `None` disables relocalization.
+    #[cfg_attr(feature = "serde", serde(rename = "relocalization_cost"))]
     pub relocalization: Option<f64>,
     /// Frames' worth of weight given to the map's prior column means.
     pub prior_weight: f64,
@@ -34,6 +38,10 @@ pub struct TripParams {
     pub normalize: bool,
     /// The confidence: radius `r` and discount `g` (`None`: `g = 1 - 1/(L+1)` from the half
     /// window `L`, as the offline default relates them).
+    #[cfg_attr(
+        feature = "serde",
+        serde(skip, default = "TripParams::default_confidence")
+    )]
     pub confidence: ConfidenceParams,
 }
 
@@ -92,10 +100,17 @@ impl Default for TripParams {
             relocalization: Some(DEFAULT_RELOCALIZATION_COST),
             prior_weight: 100.0,
             normalize: true,
-            confidence: ConfidenceParams {
-                discount: Some(DEFAULT_DISCOUNT),
-                ..ConfidenceParams::default()
-            },
+            confidence: TripParams::default_confidence(),
+        }
+    }
+}
+
+impl TripParams {
+    /// The confidence every trip scores with: the offline default's radius and discount.
+    pub fn default_confidence() -> ConfidenceParams {
+        ConfidenceParams {
+            discount: Some(DEFAULT_DISCOUNT),
+            ..ConfidenceParams::default()
         }
     }
 }

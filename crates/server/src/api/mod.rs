@@ -45,5 +45,7 @@ mod views;
 mod router;
 
 pub use error::ApiError;
+/// The wire form of a stored localization (what `GET /v1/localizations/{id}` answers).
+pub use localize::dto::LocalizationResponse;
 pub use router::{app, ROUTES};
 pub use state::AppState;

@@ -14,9 +14,9 @@ use tokio_postgres::Row;
 
 use super::{corrupt, db_id, small, unsigned, PgStore};
 use crate::sled::codec;
+use seasonloc_app::model::{DescriptorSettings, ImageMeta, MapRecord};
 use seasonloc_app::store::{
-    append_end, now_ms, CoocWrite, DescriptorSettings, ImageBatch, ImageMeta, MapRecord, NewMap,
-    StoreError, StoreResult,
+    append_end, now_ms, CoocWrite, ImageBatch, NewMap, StoreError, StoreResult,
 };
 use seasonloc_core::Matrix;
 

@@ -38,11 +38,12 @@ use deadpool_postgres::{Manager, ManagerConfig, Pool, PoolError, RecyclingMethod
 use tokio_postgres::error::SqlState;
 use tokio_postgres::NoTls;
 
+use seasonloc_app::model::{ImageMeta, LocalizationRecord, MapRecord, TripRecord};
 use seasonloc_app::store::{
-    now_ms, CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
-    MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
-    TripBatch, TripRecord, TripState,
+    now_ms, CoocWrite, IdempotencyRecord, ImageBatch, NewLocalization, NewMap, NewTrip, Page,
+    PageRequest, Store, StoreError, StoreResult, TripBatch, TripState,
 };
+use seasonloc_core::trip::FrameEstimate;
 use seasonloc_core::Matrix;
 
 /// How long a request waits for a pooled connection, and a new connection to be made, before
@@ -424,7 +425,7 @@ impl Store for PgStore {
         self.close(id).await
     }
 
-    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         self.estimates(id, from).await
     }
 

@@ -13,11 +13,13 @@ use tokio_postgres::Row;
 
 use super::maps::{is_duplicate, is_missing_parent};
 use super::{before, corrupt, db_id, fetch, paged, small, unsigned, PgStore};
+use crate::document;
+use seasonloc_app::model::{LocalizationRecord, TripRecord};
 use seasonloc_app::store::{
-    now_ms, FrameRecord, LocalizationDocument, LocalizationRecord, NewLocalization, NewTrip, Page,
-    PageRequest, StoreError, StoreResult, TripBatch, TripParamsDocument, TripRecord, TripState,
+    now_ms, NewLocalization, NewTrip, Page, PageRequest, StoreError, StoreResult, TripBatch,
+    TripState,
 };
-use seasonloc_core::trip::TripStatus;
+use seasonloc_core::trip::{FrameEstimate, TripStatus};
 
 /// The stored code of a trip status (0: no batch yet).
 fn status_code(s: Option<TripStatus>) -> i16 {
@@ -59,7 +61,7 @@ fn trip_from_row(row: &Row) -> StoreResult<TripRecord> {
         frame_count: unsigned("trips", id, row.get(4))?,
         reference_count: small("trips", id, row.get(5))?,
         status: status_of(id, row.get(6))?,
-        params: TripParamsDocument::from_json(format!("trips/{id}").as_bytes(), params)?,
+        params: document::trip_params_from_json(format!("trips/{id}").as_bytes(), params)?,
     })
 }
 
@@ -67,15 +69,12 @@ fn trip_from_row(row: &Row) -> StoreResult<TripRecord> {
 fn localization_from_row(row: &Row) -> StoreResult<LocalizationRecord> {
     let id: i64 = row.get(0);
     let document: &[u8] = row.get(3);
-    Ok(LocalizationRecord {
-        id: unsigned("localizations", id, id)?,
-        map_id: unsigned("localizations", id, row.get(1))?,
-        created_ms: unsigned("localizations", id, row.get(2))?,
-        document: LocalizationDocument::from_json(
-            format!("localizations/{id}").as_bytes(),
-            document,
-        )?,
-    })
+    document::localization_checked(
+        format!("localizations/{id}").as_bytes(),
+        document,
+        unsigned("localizations", id, id)?,
+        unsigned("localizations", id, row.get(1))?,
+    )
 }
 
 impl PgStore {
@@ -101,14 +100,9 @@ impl PgStore {
             id: unsigned("localizations", id, id)?,
             map_id: new.map_id,
             created_ms,
-            document: LocalizationDocument {
-                id: unsigned("localizations", id, id)?,
-                map_id: new.map_id,
-                created_at_ms: created_ms,
-                result: new.result,
-            },
+            result: new.result,
         };
-        let json = record.document.to_json()?;
+        let json = document::localization_json(&record)?;
         // One transaction: the result and, for a keyed request, its idempotency record.
         let tx = client.transaction().await.or_store()?;
         let stmt = tx
@@ -193,7 +187,7 @@ impl PgStore {
         let map = db_id(new.map_id).ok_or(StoreError::MapNotFound(new.map_id))?;
         let id = db_id(new.id).ok_or(StoreError::IdTaken(new.id))?;
         let created_ms = now_ms();
-        let params = new.params.to_json()?;
+        let params = document::trip_params_json(&new.params)?;
         let mut client = self.client().await?;
         // One transaction: the trip and, for a keyed request, its idempotency record.
         let tx = client.transaction().await.or_store()?;
@@ -312,13 +306,11 @@ impl PgStore {
         let count = i64::try_from(batch.frame_count).unwrap_or(i64::MAX);
         // A frame may appear twice (the lag window and the batch's own estimates); the later
         // one wins, as in a sequence of writes (one upsert cannot touch a row twice).
-        let latest: std::collections::BTreeMap<u32, &FrameRecord> =
+        let latest: std::collections::BTreeMap<usize, &FrameEstimate> =
             batch.estimates.iter().map(|e| (e.frame, e)).collect();
-        let frames: Vec<i64> = latest.keys().map(|&f| i64::from(f)).collect();
-        let references: Vec<Option<i64>> = latest
-            .values()
-            .map(|e| e.reference.map(i64::from))
-            .collect();
+        let frames: Vec<i64> = latest.keys().map(|&f| index(f)).collect();
+        let references: Vec<Option<i64>> =
+            latest.values().map(|e| e.reference.map(index)).collect();
         let confidences: Vec<f64> = latest.values().map(|e| e.confidence).collect();
         let mut client = self.client().await?;
         let tx = client.transaction().await.or_store()?;
@@ -447,7 +439,7 @@ impl PgStore {
         }
     }
 
-    pub(super) async fn estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+    pub(super) async fn estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         let key = db_id(id).ok_or(StoreError::TripNotFound(id))?;
         let client = self.client().await?;
         let stmt = client
@@ -470,10 +462,10 @@ impl PgStore {
                 let frame: Option<i64> = row.get(1);
                 frame.map(|f| {
                     let reference: Option<i64> = row.get(2);
-                    Ok(FrameRecord {
-                        frame: small("trip_frames", key, f)?,
+                    Ok(FrameEstimate {
+                        frame: small("trip_frames", key, f)? as usize,
                         reference: reference
-                            .map(|r| small("trip_frames", key, r))
+                            .map(|r| small("trip_frames", key, r).map(|r| r as usize))
                             .transpose()?,
                         confidence: row.get(3),
                     })
@@ -501,4 +493,9 @@ impl PgStore {
             .collect::<StoreResult<Vec<_>>>()?;
         Ok(paged(items, page.limit, |t| t.id))
     }
+}
+
+/// A frame or reference index as stored (`BIGINT`; every index a trip can reach fits).
+fn index(i: usize) -> i64 {
+    i64::try_from(i).unwrap_or(i64::MAX)
 }

@@ -4,7 +4,8 @@
 //! too: `seasonloc_app::tests`, `tests/service_pg`.)
 
 use super::*;
-use seasonloc_app::store::{DescriptorSettings, TripParamsDocument, TripStateWrite};
+use seasonloc_app::model::DescriptorSettings;
+use seasonloc_app::store::TripStateWrite;
 use seasonloc_core::trip::{TripParams, TripStatus};
 use seasonloc_test_support::postgres as testing;
 
@@ -176,7 +177,7 @@ async fn batches_read_back_across_their_boundaries() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thumbnails_and_pictures_ride_in_their_writes() {
-    use seasonloc_app::store::document::{LocalizationResult, StoredParams, StoredTimings};
+    use seasonloc_app::model::{LocalizationParams, LocalizationResult, LocalizationTimings};
     let Some(url) = database("pictures").await else {
         return;
     };
@@ -218,7 +219,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
     let result = LocalizationResult {
         query_count: 1,
         reference_count: 4,
-        params: StoredParams::new(
+        params: LocalizationParams::new(
             &seasonloc_core::localize::LocalizeOptions::default(),
             1.0,
             None,
@@ -226,7 +227,7 @@ async fn thumbnails_and_pictures_ride_in_their_writes() {
         total_cost: 0.0,
         hypotheses: Vec::new(),
         predictions: Vec::new(),
-        timings: StoredTimings::default(),
+        timings: LocalizationTimings::default(),
         picture: None,
     };
     let plain = store
@@ -278,7 +279,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             id: crate::test_id(),
             map_id: map.id,
             reference_count: 5,
-            params: TripParamsDocument::from(&TripParams::default()),
+            params: TripParams::default(),
             base: vec![b'B'; 3000],
             snapshot: vec![0],
             idempotency: None,
@@ -300,9 +301,9 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             drop_log_before: state.is_multiple_of(2).then_some(expected),
         },
         estimates: (expected.saturating_sub(1)..expected + n)
-            .map(|f| FrameRecord {
-                frame: f as u32,
-                reference: (f % 2 == 0).then_some(f as u32 + state as u32),
+            .map(|f| FrameEstimate {
+                frame: f as usize,
+                reference: (f % 2 == 0).then_some(f as usize + state as usize),
                 confidence: f as f64,
             })
             .collect(),
@@ -345,7 +346,7 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
             id: crate::test_id(),
             map_id: other.id,
             reference_count: 5,
-            params: TripParamsDocument::from(&TripParams::default()),
+            params: TripParams::default(),
             base: vec![1],
             snapshot: vec![2],
             idempotency: None,

@@ -6,19 +6,19 @@
 //! | key | value |
 //! | --- | --- |
 //! | `meta/schema_version` | layout version, `u32` big-endian |
-//! | `M` + map id (`u64` BE) | [`MapRecord`](seasonloc_app::store::MapRecord) |
-//! | `I` + map id (`u64` BE) + index (`u32` BE) | an image record ([`encode_image`]: [`ImageMeta`](seasonloc_app::store::ImageMeta), then the descriptor as raw LE `f32`) |
-//! | `L` + localization id (`u64` BE) | [`LocalizationRecord`](seasonloc_app::store::LocalizationRecord) |
+//! | `M` + map id (`u64` BE) | [`MapRecord`](seasonloc_app::model::MapRecord) |
+//! | `I` + map id (`u64` BE) + index (`u32` BE) | an image record ([`encode_image`]: [`ImageMeta`](seasonloc_app::model::ImageMeta), then the descriptor as raw LE `f32`) |
+//! | `L` + localization id (`u64` BE) | [`LocalizationRecord`](seasonloc_app::model::LocalizationRecord) |
 //! | `l` + map id (`u64` BE) + localization id (`u64` BE) | empty (index, layout >= 2) |
 //! | `P` + localization id (`u64` BE) | the PNG of its similarity picture (layout >= 5) |
 //! | `J` + map id (`u64` BE) + index (`u32` BE) | the image's JPEG thumbnail (layout >= 5) |
 //! | `C` + map id (`u64` BE) | `CoocMap::to_bytes` of a `cooc` map (layout >= 3) |
-//! | `T` + trip id (`u64` BE) | [`TripRecord`](seasonloc_app::store::TripRecord) (layout >= 4) |
+//! | `T` + trip id (`u64` BE) | [`TripRecord`](seasonloc_app::model::TripRecord) (layout >= 4) |
 //! | `S` + trip id (`u64` BE) | a trip's solver state in one blob (format 1, layouts 4-5), opaque bytes from `seasonloc_core::trip`; replaced by `b`/`s`/`r` at the trip's next batch |
 //! | `b` + trip id (`u64` BE) | the trip state's base (layout >= 6; `seasonloc_core::trip::persist`) |
 //! | `s` + trip id (`u64` BE) | the trip state's latest snapshot (layout >= 6) |
 //! | `r` + trip id (`u64` BE) + frame (`u32` BE) | one log row of the trip state: the frame's raw cosine row (layout >= 6) |
-//! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameRecord`](seasonloc_app::store::FrameRecord): the frame's latest estimate |
+//! | `F` + trip id (`u64` BE) + frame (`u32` BE) | [`FrameEstimate`](seasonloc_core::trip::FrameEstimate): the frame's latest estimate |
 //! | `t` + map id (`u64` BE) + trip id (`u64` BE) | empty (index of a map's trips) |
 //! | `K` + scope + `0x00` + key | [`IdempotencyRecord`](seasonloc_app::store::IdempotencyRecord) of a request sent with an `Idempotency-Key` (additive: older stores have none) |
 //!
@@ -36,5 +36,5 @@ pub use keys::*;
 pub use map::{decode_image_into, decode_map, encode_image, encode_map};
 pub use records::{
     decode_frame, decode_idempotency, decode_localization, decode_localization_ids, decode_trip,
-    encode_frame, encode_idempotency, encode_localization, encode_trip,
+    encode_frame, encode_idempotency, encode_localization, encode_trip, small_index,
 };

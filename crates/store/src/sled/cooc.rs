@@ -66,7 +66,8 @@ impl SledStore {
 #[cfg(test)]
 mod tests {
     use crate::sled::SledStore;
-    use seasonloc_app::store::{CoocWrite, DescriptorSettings, ImageMeta, NewMap, StoreError};
+    use seasonloc_app::model::{DescriptorSettings, ImageMeta};
+    use seasonloc_app::store::{CoocWrite, NewMap, StoreError};
 
     fn write(map: u64, previous: Option<&[u8]>, encoded: &[u8], n: usize) -> CoocWrite {
         CoocWrite {

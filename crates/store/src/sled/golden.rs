@@ -12,11 +12,12 @@
 use std::sync::Arc;
 
 use super::*;
-use seasonloc_app::store::document::{StoredMethod, StoredParams, StoredTimings};
-use seasonloc_app::store::{
-    CnnSettings, DescriptorSettings, LocalizationDocument, LocalizationResult, TripParamsDocument,
-    TripStateWrite,
+use seasonloc_app::model::{
+    CnnSettings, DescriptorSettings, LocalizationRecord, LocalizationResult,
 };
+use seasonloc_app::model::{LocalizationParams, LocalizationTimings};
+use seasonloc_app::store::TripStateWrite;
+use seasonloc_core::cooc::CoocMethod;
 use seasonloc_core::features::cnn::{CnnOptions, CnnResize, ModelIdentity};
 use seasonloc_core::localize::{localize, LocalizeOptions};
 use seasonloc_core::trip::{column_prior, Trip, TripParams, TripStatus};
@@ -173,7 +174,10 @@ fn every_golden_record_is_rewritten_byte_for_byte() {
                 let r = codec::decode_trip(k, v).unwrap();
                 assert_eq!(&codec::encode_trip(&r).unwrap(), v);
             }
-            b'F' => assert_eq!(&codec::encode_frame(&codec::decode_frame(k, v).unwrap()), v),
+            b'F' => assert_eq!(
+                &codec::encode_frame(&codec::decode_frame(k, v).unwrap()).unwrap(),
+                v
+            ),
             // Format-1 trip states are read (layout 6 replaces them by parts at the trip's
             // next batch; `the_pre_refactor_store_reads_back_through_the_trait`).
             b'S' => assert!(Trip::from_legacy_bytes(v).is_ok()),
@@ -264,11 +268,8 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
     let locs = store.list_localizations(None, page).await.unwrap().items;
     assert_eq!(locs.len(), 2);
     let (seq, flow) = (&locs[0], &locs[1]);
-    assert_eq!(
-        seq.document.result.params.method,
-        Some(StoredMethod::CoocSeq)
-    );
-    assert_eq!(flow.document.result.params.method, None);
+    assert_eq!(seq.result.params.method, Some(CoocMethod::Sequence));
+    assert_eq!(flow.result.params.method, None);
     // The stored result was computed when the box window was the default confidence (today
     // the discounted ratio); recomputed with the same confidence it is the same document.
     let options = LocalizeOptions {
@@ -276,18 +277,18 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
         ..LocalizeOptions::default()
     };
     let result = localize(&rows(3, 2, 5), &refs, &options).unwrap();
-    let today = LocalizationDocument {
+    let today = LocalizationRecord {
         id: flow.id,
         map_id: pre.id,
-        created_at_ms: flow.document.created_at_ms,
+        created_ms: flow.created_ms,
         result: LocalizationResult {
             query_count: 3,
             reference_count: 4,
-            params: StoredParams::new(&options, result.solution.hidden_cost, None),
+            params: LocalizationParams::new(&options, result.solution.hidden_cost, None),
             total_cost: result.solution.total_cost(),
-            hypotheses: result.solution.hypotheses.iter().map(Into::into).collect(),
-            predictions: result.predictions.iter().map(Into::into).collect(),
-            timings: StoredTimings {
+            hypotheses: result.solution.hypotheses.clone(),
+            predictions: result.predictions.clone(),
+            timings: LocalizationTimings {
                 load_references: 0.000125,
                 features: 0.0,
                 similarity: 1.0 / 3.0,
@@ -302,7 +303,10 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
         .unwrap()
         .1;
     let stored_doc = &stored[1 + 8 + 8 + 8 + 4..];
-    assert_eq!(today.to_json().unwrap(), stored_doc);
+    assert_eq!(
+        crate::document::localization_json(&today).unwrap(),
+        stored_doc
+    );
 
     // Trips: records, estimates, and the states today's trip code computes from the inputs.
     let trips = store.list_trips(hog.id, page).await.unwrap().items;
@@ -312,14 +316,8 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
     assert_eq!((driven.frame_count, closed.frame_count), (7, 0));
     assert_eq!(closed.status, None);
     assert!(driven.status.is_some());
-    assert_eq!(
-        driven.params,
-        TripParamsDocument::from(&TripParams::default())
-    );
-    assert_eq!(
-        closed.params,
-        TripParamsDocument::from(&trip_params_custom())
-    );
+    assert_eq!(driven.params, TripParams::default());
+    assert_eq!(closed.params, trip_params_custom());
     let estimates = store.trip_estimates(driven.id, 0).await.unwrap();
     assert_eq!(
         estimates.iter().map(|e| e.frame).collect::<Vec<_>>(),

@@ -3,10 +3,8 @@
 
 use super::{codec, SledStore};
 use crate::OrStore;
-use seasonloc_app::store::{
-    now_ms, LocalizationDocument, LocalizationRecord, NewLocalization, Page, PageRequest,
-    StoreError, StoreResult,
-};
+use seasonloc_app::model::LocalizationRecord;
+use seasonloc_app::store::{now_ms, NewLocalization, Page, PageRequest, StoreError, StoreResult};
 
 impl SledStore {
     /// Stores a result for its map under a new id, atomically with its index entry, flushed.
@@ -27,12 +25,7 @@ impl SledStore {
             id,
             map_id: new.map_id,
             created_ms,
-            document: LocalizationDocument {
-                id,
-                map_id: new.map_id,
-                created_at_ms: created_ms,
-                result: new.result,
-            },
+            result: new.result,
         };
         let mut batch = sled::Batch::default();
         batch.insert(
@@ -97,14 +90,14 @@ impl SledStore {
 mod tests {
     use super::*;
     use crate::sled::test_map as map;
-    use seasonloc_app::store::document::{LocalizationResult, StoredParams, StoredTimings};
+    use seasonloc_app::model::{LocalizationParams, LocalizationResult, LocalizationTimings};
 
     /// A result whose `query_count` tells results apart.
     fn result(k: u8) -> LocalizationResult {
         LocalizationResult {
             query_count: usize::from(k),
             reference_count: 1,
-            params: StoredParams::new(
+            params: LocalizationParams::new(
                 &seasonloc_core::localize::LocalizeOptions::default(),
                 1.0,
                 None,
@@ -112,7 +105,7 @@ mod tests {
             total_cost: 0.0,
             hypotheses: Vec::new(),
             predictions: Vec::new(),
-            timings: StoredTimings::default(),
+            timings: LocalizationTimings::default(),
             picture: None,
         }
     }
@@ -145,7 +138,7 @@ mod tests {
         let docs: Vec<u8> = p1
             .items
             .iter()
-            .map(|r| r.document.result.query_count as u8)
+            .map(|r| r.result.query_count as u8)
             .collect();
         assert_eq!(docs, vec![4, 3]);
         let p2 = store.list_localizations(Some(a), page(p1.next, 2)).unwrap();
@@ -164,8 +157,15 @@ mod tests {
         let store = SledStore::open(dir.path()).unwrap();
         let a = map(&store);
         let r = put(&store, a, 7).unwrap();
+        // The stored document itself names the record: its id, map and creation time.
+        let raw = store
+            .db
+            .get(codec::localization_key(r.id))
+            .unwrap()
+            .unwrap();
+        let doc = crate::document::localization_from_json(b"L", &raw[1 + 8 + 8 + 8 + 4..]).unwrap();
         assert_eq!(
-            (r.document.id, r.document.map_id, r.document.created_at_ms),
+            (doc.id, doc.map_id, doc.created_ms),
             (r.id, a, r.created_ms)
         );
         assert_eq!(store.get_localization(r.id).unwrap(), r);

@@ -5,9 +5,9 @@ use crate::OrStore;
 use std::ops::Range;
 
 use super::{codec, SledStore};
+use seasonloc_app::model::{DescriptorSettings, ImageMeta, MapRecord};
 use seasonloc_app::store::{
-    append_end, now_ms, DescriptorSettings, IdempotencyRecord, ImageBatch, ImageMeta, MapRecord,
-    NewMap, StoreError, StoreResult,
+    append_end, now_ms, IdempotencyRecord, ImageBatch, NewMap, StoreError, StoreResult,
 };
 use seasonloc_core::Matrix;
 

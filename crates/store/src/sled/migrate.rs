@@ -120,11 +120,9 @@ fn localizations_by_map(db: &sled::Db, batch: &mut sled::Batch) -> StoreResult<(
 mod tests {
     use super::*;
     use crate::sled::SledStore;
-    use seasonloc_app::store::document::{LocalizationResult, StoredParams, StoredTimings};
-    use seasonloc_app::store::{
-        DescriptorSettings, ImageMeta, LocalizationDocument, LocalizationRecord, MapRecord,
-        NewTrip, PageRequest, TripParamsDocument,
-    };
+    use seasonloc_app::model::{DescriptorSettings, ImageMeta, LocalizationRecord, MapRecord};
+    use seasonloc_app::model::{LocalizationParams, LocalizationResult, LocalizationTimings};
+    use seasonloc_app::store::{NewTrip, PageRequest};
 
     #[test]
     fn steps_are_consecutive_and_documented() {
@@ -176,23 +174,18 @@ mod tests {
                 let result = LocalizationResult {
                     query_count: 1,
                     reference_count: 2,
-                    params: StoredParams::new(&Default::default(), 1.0, None),
+                    params: LocalizationParams::new(&Default::default(), 1.0, None),
                     total_cost: 1.0,
                     hypotheses: Vec::new(),
                     predictions: Vec::new(),
-                    timings: StoredTimings::default(),
+                    timings: LocalizationTimings::default(),
                     picture: None,
                 };
                 let rec = LocalizationRecord {
                     id,
                     map_id: 5,
                     created_ms: id,
-                    document: LocalizationDocument {
-                        id,
-                        map_id: 5,
-                        created_at_ms: id,
-                        result,
-                    },
+                    result,
                 };
                 db.insert(
                     codec::localization_key(id),
@@ -219,7 +212,7 @@ mod tests {
         assert_eq!(ids, locs.iter().rev().copied().collect::<Vec<_>>());
         assert_eq!(store.references(map_id).unwrap().1.row(1), &[1.0, 1.0]);
         // The upgraded store holds the newer descriptor kinds next to the old maps (layout 3).
-        let cnn = DescriptorSettings::Cnn(Box::new(seasonloc_app::store::CnnSettings {
+        let cnn = DescriptorSettings::Cnn(Box::new(seasonloc_app::model::CnnSettings {
             options: seasonloc_core::features::cnn::CnnOptions::efficientnet_lite0("m.onnx"),
             identity: seasonloc_core::features::cnn::ModelIdentity {
                 sha256: "00".repeat(32),
@@ -243,7 +236,7 @@ mod tests {
                 id: 0x1001,
                 map_id,
                 reference_count: 2,
-                params: TripParamsDocument::from(&seasonloc_core::trip::TripParams::default()),
+                params: seasonloc_core::trip::TripParams::default(),
                 base: vec![7],
                 snapshot: vec![8],
                 idempotency: None,

@@ -33,11 +33,12 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use async_trait::async_trait;
 
+use seasonloc_app::model::{ImageMeta, LocalizationRecord, MapRecord, TripRecord};
 use seasonloc_app::store::{
-    CoocWrite, FrameRecord, IdempotencyRecord, ImageBatch, ImageMeta, LocalizationRecord,
-    MapRecord, NewLocalization, NewMap, NewTrip, Page, PageRequest, Store, StoreError, StoreResult,
-    TripBatch, TripRecord, TripState,
+    CoocWrite, IdempotencyRecord, ImageBatch, NewLocalization, NewMap, NewTrip, Page, PageRequest,
+    Store, StoreError, StoreResult, TripBatch, TripState,
 };
+use seasonloc_core::trip::FrameEstimate;
 use seasonloc_core::Matrix;
 
 /// How long [`SledStore::open`] waits for a data folder locked by a handle that is closing.
@@ -324,7 +325,7 @@ impl Store for SledStore {
         self.run(move |s| s.close_trip(id)).await
     }
 
-    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         self.run(move |s| s.trip_estimates(id, from)).await
     }
 
@@ -349,7 +350,7 @@ pub(crate) fn test_map(store: &SledStore) -> u64 {
         .create_map(NewMap {
             id: crate::test_id(),
             name: "m".into(),
-            descriptor: seasonloc_app::store::DescriptorSettings::Precomputed { dim: 1 },
+            descriptor: seasonloc_app::model::DescriptorSettings::Precomputed { dim: 1 },
             idempotency: None,
         })
         .expect("a new map in a fresh store")
@@ -390,7 +391,7 @@ mod open_tests {
                 .create_map(NewMap {
                     id: u64::from(round) + 1,
                     name: format!("m{round}"),
-                    descriptor: seasonloc_app::store::DescriptorSettings::Precomputed { dim: 2 },
+                    descriptor: seasonloc_app::model::DescriptorSettings::Precomputed { dim: 2 },
                     idempotency: None,
                 })
                 .unwrap();

@@ -11,10 +11,12 @@
 
 use super::{codec, SledStore};
 use crate::OrStore;
+use seasonloc_app::model::TripRecord;
 use seasonloc_app::store::{
-    now_ms, FrameRecord, IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, StoreResult,
-    TripBatch, TripRecord, TripState, TripStateWrite,
+    now_ms, IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, StoreResult, TripBatch,
+    TripState, TripStateWrite,
 };
+use seasonloc_core::trip::FrameEstimate;
 
 /// A log row's frame as a key part.
 fn log_frame(id: u64, frame: u64) -> StoreResult<u32> {
@@ -149,7 +151,10 @@ impl SledStore {
         batch.insert(&codec::trip_key(id), codec::encode_trip(&record)?);
         self.write_state(id, write.state, &mut batch)?;
         for e in &write.estimates {
-            batch.insert(&codec::trip_frame_key(id, e.frame), codec::encode_frame(e));
+            batch.insert(
+                &codec::trip_frame_key(id, codec::small_index(e.frame)?),
+                codec::encode_frame(e)?,
+            );
         }
         self.claim_key(write.idempotency.as_ref(), None, &mut batch)?;
         self.db.apply_batch(batch).or_store()?;
@@ -172,7 +177,7 @@ impl SledStore {
     }
 
     /// Every frame's latest estimate, in frame order.
-    pub fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+    pub fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         self.get_trip(id)?;
         self.db
             .range(codec::trip_frame_key(id, from)..=codec::trip_frame_key(id, u32::MAX))
@@ -217,7 +222,6 @@ impl SledStore {
 mod tests {
     use super::*;
     use crate::sled::test_map as map;
-    use seasonloc_app::store::TripParamsDocument;
     use seasonloc_core::trip::{TripParams, TripStatus};
 
     fn new_trip(map_id: u64, reference_count: u32, state: u8) -> NewTrip {
@@ -225,7 +229,7 @@ mod tests {
             id: crate::test_id(),
             map_id,
             reference_count,
-            params: TripParamsDocument::from(&TripParams::default()),
+            params: TripParams::default(),
             base: vec![b'B', state],
             snapshot: vec![b'S', state],
             idempotency: None,
@@ -252,9 +256,9 @@ mod tests {
                 drop_log_before: snapshot.map(|_| expected),
             },
             estimates: (expected..expected + n)
-                .map(|f| FrameRecord {
-                    frame: f as u32,
-                    reference: (f % 2 == 0).then_some(f as u32 * 2),
+                .map(|f| FrameEstimate {
+                    frame: f as usize,
+                    reference: (f % 2 == 0).then_some(f as usize * 2),
                     confidence: f as f64 / 10.0,
                 })
                 .collect(),

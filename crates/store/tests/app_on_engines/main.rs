@@ -11,9 +11,11 @@ use std::sync::Arc;
 use async_trait::async_trait;
 use bytes::Bytes;
 
+use seasonloc_app::model::*;
 use seasonloc_app::store::*;
 use seasonloc_app::*;
 use seasonloc_core::localize::LocalizeOptions;
+use seasonloc_core::trip::FrameEstimate;
 use seasonloc_core::trip::TripParams;
 use seasonloc_core::Matrix;
 use seasonloc_store::{PgStore, SledStore};
@@ -209,26 +211,19 @@ async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine
     let map = hog_map(&a, 0..20).await;
     // B caches the 20-image matrix.
     let first = b.localize(map.id, queries(5..15)).await.unwrap();
-    assert_eq!(first.document.result.reference_count, 20);
+    assert_eq!(first.result.reference_count, 20);
     // A appends; B's next localization uses all 40 images, exactly as a fresh process does.
     append(&a, map.id, 20..40).await;
     let second = b.localize(map.id, queries(25..35)).await.unwrap();
-    assert_eq!(second.document.result.reference_count, 40);
+    assert_eq!(second.result.reference_count, 40);
     let fresh = app(Arc::clone(&store))
         .localize(map.id, queries(25..35))
         .await
         .unwrap();
-    assert_eq!(
-        second.document.result.hypotheses,
-        fresh.document.result.hypotheses
-    );
-    assert_eq!(
-        second.document.result.predictions,
-        fresh.document.result.predictions
-    );
+    assert_eq!(second.result.hypotheses, fresh.result.hypotheses);
+    assert_eq!(second.result.predictions, fresh.result.predictions);
     // The queries are frames 25..35 of the route: the appended part was used.
     let refs: Vec<usize> = second
-        .document
         .result
         .predictions
         .iter()
@@ -373,7 +368,7 @@ impl Store for Probed {
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
         self.inner.close_trip(id).await
     }
-    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>> {
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         self.inner.trip_estimates(id, from).await
     }
     async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {

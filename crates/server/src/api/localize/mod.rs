@@ -25,7 +25,8 @@ use crate::api::state::AppState;
 use crate::api::views;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
 use crate::api::{idempotency, upload};
-use seasonloc_app::store::{LocalizationRecord, PageRequest};
+use seasonloc_app::model::LocalizationRecord;
+use seasonloc_app::store::PageRequest;
 use seasonloc_app::{Idempotency, LocalizeInput, Queries};
 
 /// The routes of this resource.
@@ -118,7 +119,7 @@ async fn run(
     if replayed {
         return json_document(&record, true);
     }
-    let r = &record.document.result;
+    let r = &record.result;
     let m = &state.metrics;
     m.observe_stage("load_references", r.timings.load_references);
     m.observe_stage("features", r.timings.features);
@@ -155,7 +156,7 @@ fn refused(state: &AppState, refusal: Refusal) -> ApiError {
 /// store keeps (a test checks it on the golden store).
 /// `replayed` adds `Idempotent-Replayed: true`.
 fn json_document(record: &LocalizationRecord, replayed: bool) -> Result<Response, ApiError> {
-    let bytes = serde_json::to_vec(&LocalizationResponse::from(&record.document))
+    let bytes = serde_json::to_vec(&LocalizationResponse::from(record))
         .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
     let mut r = Body::from(bytes).into_response();
     r.headers_mut().insert(
@@ -207,7 +208,7 @@ async fn list(
         items: page
             .items
             .iter()
-            .map(|r| LocalizationResponse::from(&r.document))
+            .map(|r| LocalizationResponse::from(r))
             .collect(),
         next: page.next.map(format_id),
     }))

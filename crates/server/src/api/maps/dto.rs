@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::api::error::ApiError;
 use crate::api::wire::format_id;
-use seasonloc_app::store::{DescriptorSettings, ImageMeta, MapRecord};
+use seasonloc_app::model::{DescriptorSettings, ImageMeta, MapRecord};
 use seasonloc_core::features::cnn::CnnResize;
 
 /// Longest accepted map name, in characters (as the OpenAPI `maxLength` counts).

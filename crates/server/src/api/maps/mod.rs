@@ -25,7 +25,7 @@ use crate::api::error::ApiError;
 use crate::api::extract::{bytes_rejection, map_id, parse_json, parse_json_object, ApiJsonBody};
 use crate::api::state::AppState;
 use crate::api::{idempotency, upload, views};
-use seasonloc_app::store::{DescriptorSettings, ImageMeta};
+use seasonloc_app::model::{DescriptorSettings, ImageMeta};
 use seasonloc_app::{AppendOutcome, DescriptorSpec, NewMapSpec};
 use seasonloc_core::cooc::CoocParams;
 use seasonloc_core::features::cnn::{CnnOptions, CnnResize};

@@ -1,10 +1,9 @@
 //! Wire types of online trips (`/v1/maps/{id}/trips`, `/v1/trips/...`) and their conversions
-//! from the trip's core and stored types.
+//! from the trip's core types.
 
 use serde::{Deserialize, Serialize};
 
 use crate::api::error::ApiError;
-use seasonloc_app::store::{FrameRecord, TripParamsDocument};
 use seasonloc_core::trip::{FrameEstimate, TripParams};
 
 /// Optional parameters of a trip (JSON body of `POST /v1/maps/{id}/trips`).
@@ -103,14 +102,14 @@ pub struct TripParamsUsed {
     pub normalize: bool,
 }
 
-impl From<&TripParamsDocument> for TripParamsUsed {
-    fn from(p: &TripParamsDocument) -> Self {
+impl From<&TripParams> for TripParamsUsed {
+    fn from(p: &TripParams) -> Self {
         TripParamsUsed {
             fan_out: p.fan_out,
             hidden_cost: p.hidden_cost,
             horizontal: p.horizontal,
             lag: p.lag,
-            relocalization_cost: p.relocalization_cost,
+            relocalization_cost: p.relocalization,
             prior_weight: p.prior_weight,
             normalize: p.normalize,
         }
@@ -134,16 +133,6 @@ impl From<&FrameEstimate> for FrameEstimateDto {
         FrameEstimateDto {
             frame: e.frame,
             reference: e.reference,
-            confidence: e.confidence,
-        }
-    }
-}
-
-impl From<&FrameRecord> for FrameEstimateDto {
-    fn from(e: &FrameRecord) -> Self {
-        FrameEstimateDto {
-            frame: e.frame as usize,
-            reference: e.reference.map(|j| j as usize),
             confidence: e.confidence,
         }
     }

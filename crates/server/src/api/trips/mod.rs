@@ -27,7 +27,8 @@ use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
 use crate::api::{idempotency, upload};
-use seasonloc_app::store::{PageRequest, TripRecord};
+use seasonloc_app::model::TripRecord;
+use seasonloc_app::store::PageRequest;
 use seasonloc_core::trip::TripStatus;
 
 /// The routes of this resource.

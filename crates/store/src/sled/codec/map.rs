@@ -4,7 +4,8 @@
 //! store, one tagged variant per map kind; a new map kind adds its tag here.
 
 use super::value::{Reader, Writer};
-use seasonloc_app::store::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord, StoreError};
+use seasonloc_app::model::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord};
+use seasonloc_app::store::StoreError;
 use seasonloc_core::cooc::keypoints::KeypointParams;
 use seasonloc_core::cooc::CoocParams;
 use seasonloc_core::features::cnn::{CnnOptions, CnnResize, ModelIdentity};

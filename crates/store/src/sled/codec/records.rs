@@ -3,10 +3,9 @@
 //! of requests sent with an `Idempotency-Key`.
 
 use super::value::{Reader, Writer};
-use seasonloc_app::store::{
-    FrameRecord, IdempotencyRecord, LocalizationDocument, LocalizationRecord, StoreError,
-    TripParamsDocument, TripRecord,
-};
+use seasonloc_app::model::{LocalizationRecord, TripRecord};
+use seasonloc_app::store::{IdempotencyRecord, StoreError};
+use seasonloc_core::trip::FrameEstimate;
 use seasonloc_core::trip::TripStatus;
 
 /// Encodes an idempotency record (its scope and key are in the record's key).
@@ -51,13 +50,13 @@ pub fn decode_idempotency(
 }
 
 /// Encodes a localization record: ids and time, then the document's JSON
-/// ([`LocalizationDocument::to_json`]).
+/// ([`LocalizationRecord::to_json`]).
 pub fn encode_localization(l: &LocalizationRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(l.id);
     w.u64(l.map_id);
     w.u64(l.created_ms);
-    w.bytes(&l.document.to_json()?);
+    w.bytes(&crate::document::localization_json(l)?);
     Ok(w.into_bytes())
 }
 
@@ -81,7 +80,7 @@ fn status_of(key: &[u8], code: u8) -> Result<Option<TripStatus>, StoreError> {
     }
 }
 
-/// Encodes a trip record (its parameters as [`TripParamsDocument::to_json`]).
+/// Encodes a trip record (its parameters as [`TripParams::to_json`]).
 pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(t.id);
@@ -97,7 +96,7 @@ pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
     w.u64(t.frame_count);
     w.u32(t.reference_count);
     w.u8(status_code(t.status));
-    w.bytes(&t.params.to_json()?);
+    w.bytes(&crate::document::trip_params_json(&t.params)?);
     Ok(w.into_bytes())
 }
 
@@ -115,7 +114,7 @@ pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
     let frame_count = r.u64()?;
     let reference_count = r.u32()?;
     let status = status_of(key, r.u8()?)?;
-    let params = TripParamsDocument::from_json(key, r.bytes()?)?;
+    let params = crate::document::trip_params_from_json(key, r.bytes()?)?;
     r.finish()?;
     Ok(TripRecord {
         id,
@@ -129,22 +128,28 @@ pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
     })
 }
 
+/// A frame or reference index as the layout stores it (`u32`; a map holds at most
+/// `u32::MAX` images and a trip's frames are counted in a `u32` by the layout too).
+pub fn small_index(i: usize) -> Result<u32, StoreError> {
+    u32::try_from(i).map_err(|_| StoreError::Backend(format!("index {i} is over 2^32").into()))
+}
+
 /// Encodes a frame's estimate.
-pub fn encode_frame(f: &FrameRecord) -> Vec<u8> {
+pub fn encode_frame(f: &FrameEstimate) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     match f.reference {
         None => w.u8(0),
         Some(j) => {
             w.u8(1);
-            w.u32(j);
+            w.u32(small_index(j)?);
         }
     }
     w.f64(f.confidence);
-    w.into_bytes()
+    Ok(w.into_bytes())
 }
 
 /// Decodes a frame's estimate stored under `key` (the frame index comes from the key).
-pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameRecord, StoreError> {
+pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameEstimate, StoreError> {
     let frame = key
         .get(9..13)
         .and_then(|b| b.try_into().ok())
@@ -158,9 +163,9 @@ pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameRecord, StoreError>
     };
     let confidence = r.f64()?;
     r.finish()?;
-    Ok(FrameRecord {
-        frame,
-        reference,
+    Ok(FrameEstimate {
+        frame: frame as usize,
+        reference: reference.map(|j| j as usize),
         confidence,
     })
 }
@@ -171,20 +176,16 @@ pub fn decode_localization_ids(key: &[u8], value: &[u8]) -> Result<(u64, u64), S
     Ok((r.u64()?, r.u64()?))
 }
 
-/// Decodes a localization record.
+/// Decodes a localization record: its document, checked against the ids beside it (the
+/// creation time clients see is the document's).
 pub fn decode_localization(key: &[u8], value: &[u8]) -> Result<LocalizationRecord, StoreError> {
     let mut r = Reader::new(key, value)?;
     let id = r.u64()?;
     let map_id = r.u64()?;
-    let created_ms = r.u64()?;
-    let document = LocalizationDocument::from_json(key, r.bytes()?)?;
+    let _created_ms = r.u64()?;
+    let record = crate::document::localization_checked(key, r.bytes()?, id, map_id)?;
     r.finish()?;
-    Ok(LocalizationRecord {
-        id,
-        map_id,
-        created_ms,
-        document,
-    })
+    Ok(record)
 }
 
 #[cfg(test)]
@@ -193,31 +194,31 @@ mod tests {
     use proptest::prelude::*;
 
     proptest! {
-        #[test]
-        fn localization_round_trip(
-            queries in 0usize..10_000,
-            cost in -1e6f64..1e6,
-            confidences in proptest::collection::vec(0.0f64..1e3, 0..20),
-            id in any::<u64>(),
-        ) {
-            use seasonloc_app::store::document::{LocalizationResult, StoredParams, StoredPrediction, StoredTimings};
-            let result = LocalizationResult {
-                query_count: queries,
-                reference_count: 3,
-                params: StoredParams::new(&seasonloc_core::localize::LocalizeOptions::default(), cost.abs(), None),
-                total_cost: cost,
-                hypotheses: Vec::new(),
-                predictions: confidences
-                    .iter()
-                    .enumerate()
-                    .map(|(k, &c)| StoredPrediction { query: k, reference: k + 1, confidence: c })
-                    .collect(),
-                timings: StoredTimings::default(),
-                picture: None,
-            };
-            let document = LocalizationDocument { id, map_id: 3, created_at_ms: 4, result };
-            let l = LocalizationRecord { id, map_id: 3, created_ms: 5, document };
-            prop_assert_eq!(decode_localization(b"L", &encode_localization(&l).unwrap()).unwrap(), l);
+            #[test]
+            fn localization_round_trip(
+                queries in 0usize..10_000,
+                cost in -1e6f64..1e6,
+                confidences in proptest::collection::vec(0.0f64..1e3, 0..20),
+                id in any::<u64>(),
+            ) {
+                use seasonloc_app::model::{LocalizationParams, LocalizationResult, LocalizationTimings};
+    use seasonloc_core::localize::Prediction;
+                let result = LocalizationResult {
+                    query_count: queries,
+                    reference_count: 3,
+                    params: LocalizationParams::new(&seasonloc_core::localize::LocalizeOptions::default(), cost.abs(), None),
+                    total_cost: cost,
+                    hypotheses: Vec::new(),
+                    predictions: confidences
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &c)| Prediction { query: k, reference: k + 1, confidence: c })
+                        .collect(),
+                    timings: LocalizationTimings::default(),
+                    picture: None,
+                };
+                let l = LocalizationRecord { id, map_id: 3, created_ms: 5, result };
+                prop_assert_eq!(decode_localization(b"L", &encode_localization(&l).unwrap()).unwrap(), l);
+            }
         }
-    }
 }

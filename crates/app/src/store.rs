@@ -1,7 +1,7 @@
-//! The service's storage seam: the [`Store`] trait, the records it reads and writes, and its one
-//! error type. Engines live in submodules ([`sled`], the embedded default; [`postgres`], shared by
-//! any number of replicas); the use-case layer
-//! (`crate`) holds an `Arc<dyn Store>` and is the only caller.
+//! The service's storage port: the [`Store`] trait, the writes it takes and its one error
+//! type. The engines implement it in `seasonloc-store` (sled, the embedded default;
+//! PostgreSQL, shared by any number of replicas); the use cases ([`crate::App`]) hold an
+//! `Arc<dyn Store>` and are its only caller.
 //!
 //! The trait is shaped for engines shared by many processes at once (a PostgreSQL database
 //! behind several replicas), not only for the embedded one:
@@ -27,24 +27,23 @@
 //!   [`StoreError::Unavailable`] means "the engine cannot be reached now" (the API answers 503)
 //!   and every other engine failure is [`StoreError::Backend`] or [`StoreError::Corrupt`].
 //!
-//! Stored documents (a localization's result, a trip's parameters) have their own types in
-//! [`document`], separate from the API's wire DTOs, so a wire change cannot silently change
-//! stored data.
+//! What the store keeps is the domain model ([`crate::model`]); the engines (in
+//! `seasonloc-store`) encode it, the API converts it to its own wire types, so a wire change
+//! cannot silently change stored data.
 
 // Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
 // new enum variant must be handled explicitly rather than fall into `_` (CI denies warnings).
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
-pub mod document;
-
 use std::ops::Range;
 
 use async_trait::async_trait;
 
-use seasonloc_core::trip::TripStatus;
+use crate::model::{
+    DescriptorSettings, ImageMeta, LocalizationRecord, LocalizationResult, MapRecord, TripRecord,
+};
+use seasonloc_core::trip::{FrameEstimate, TripParams, TripStatus};
 use seasonloc_core::Matrix;
-
-pub use document::{LocalizationDocument, LocalizationResult, StoredPicture, TripParamsDocument};
 
 /// A boxed engine error, kept as the source of [`StoreError::Backend`] and
 /// [`StoreError::Open`] without naming the engine's type.
@@ -153,39 +152,6 @@ impl StoreError {
 /// Result alias of the store layer.
 pub type StoreResult<T> = Result<T, StoreError>;
 
-/// How a map's descriptors are computed.
-#[derive(Clone, Debug, PartialEq)]
-pub enum DescriptorSettings {
-    /// HOG of `features::hog` with these options.
-    Hog {
-        /// Cell side in pixels.
-        cell_size: u32,
-        /// Optional resize before extraction.
-        resize: Option<(u32, u32)>,
-    },
-    /// Descriptors computed by the client, of a fixed length.
-    Precomputed {
-        /// Descriptor length.
-        dim: u32,
-    },
-    /// One layer of an ONNX model (`features::cnn`), with the identity of the model the map
-    /// was created with (layout >= 3).
-    Cnn(Box<CnnSettings>),
-    /// A feature co-occurrence map (`cooc`) with these parameters (layout >= 3). Its images
-    /// have no descriptor rows; the encoded `CoocMap` is stored beside the map.
-    Cooc(Box<seasonloc_core::cooc::CoocParams>),
-}
-
-/// The CNN descriptor of a map: the settings to rebuild the extractor, and what the model was
-/// when the map was created, so that a changed model file is detected, never silently used.
-#[derive(Clone, Debug, PartialEq)]
-pub struct CnnSettings {
-    /// Model path, layer and preprocessing.
-    pub options: seasonloc_core::features::cnn::CnnOptions,
-    /// File hash, layer and preprocessing summary at creation.
-    pub identity: seasonloc_core::features::cnn::ModelIdentity,
-}
-
 /// What a client gives to create a map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewMap {
@@ -200,37 +166,6 @@ pub struct NewMap {
     /// [`StoreError::IdempotencyKeyTaken`] when the key is stored already. Deleting the map
     /// deletes it.
     pub idempotency: Option<IdempotencyRecord>,
-}
-
-/// A stored map.
-#[derive(Clone, Debug, PartialEq)]
-pub struct MapRecord {
-    /// Map id.
-    pub id: u64,
-    /// User-given name.
-    pub name: String,
-    /// Descriptor settings.
-    pub descriptor: DescriptorSettings,
-    /// Descriptor length, fixed by the first stored batch (or at creation for precomputed).
-    pub dim: Option<u32>,
-    /// Number of reference images; their indices are `0..image_count`. Images are
-    /// append-only, so this is also the version of the map's descriptor matrix.
-    pub image_count: u32,
-    /// Creation time, milliseconds since the Unix epoch.
-    pub created_ms: u64,
-}
-
-/// Optional per-image metadata.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct ImageMeta {
-    /// Capture time as given by the client.
-    pub timestamp: Option<String>,
-    /// Latitude in degrees.
-    pub latitude: Option<f64>,
-    /// Longitude in degrees.
-    pub longitude: Option<f64>,
-    /// Free-form label.
-    pub label: Option<String>,
 }
 
 /// What a request sent with an `Idempotency-Key` did (decision D5), stored in the same atomic
@@ -387,19 +322,6 @@ pub struct CoocWrite {
     pub idempotency: Option<IdempotencyRecord>,
 }
 
-/// A stored localization result.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LocalizationRecord {
-    /// Localization id (growing with creation time).
-    pub id: u64,
-    /// The map it was computed against.
-    pub map_id: u64,
-    /// Creation time of the record, milliseconds since the Unix epoch.
-    pub created_ms: u64,
-    /// The stored result document.
-    pub document: LocalizationDocument,
-}
-
 /// A result to store with [`Store::create_localization`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewLocalization {
@@ -418,27 +340,6 @@ pub struct NewLocalization {
     pub idempotency: Option<IdempotencyRecord>,
 }
 
-/// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct TripRecord {
-    /// Trip id (growing with creation time).
-    pub id: u64,
-    /// The map it localizes against.
-    pub map_id: u64,
-    /// Creation time, milliseconds since the Unix epoch.
-    pub created_ms: u64,
-    /// When it was closed, if it was.
-    pub closed_ms: Option<u64>,
-    /// Frames consumed so far: also the version of the trip's state (see [`TripBatch`]).
-    pub frame_count: u64,
-    /// The map's image count when the trip was opened: the trip localizes against those.
-    pub reference_count: u32,
-    /// Status after the last batch (`None` before the first).
-    pub status: Option<TripStatus>,
-    /// The parameters the trip uses.
-    pub params: TripParamsDocument,
-}
-
 /// A trip to open with [`Store::create_trip`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewTrip {
@@ -449,7 +350,7 @@ pub struct NewTrip {
     /// The map's image count the trip localizes against.
     pub reference_count: u32,
     /// Its parameters.
-    pub params: TripParamsDocument,
+    pub params: TripParams,
     /// Its initial state's constant part (opaque bytes owned by `seasonloc_core::trip`).
     pub base: Vec<u8>,
     /// Its initial snapshot (opaque bytes owned by `seasonloc_core::trip`); the log starts empty.
@@ -513,20 +414,9 @@ pub struct TripBatch {
     /// The change of the solver state (a delta: new log rows, sometimes a snapshot).
     pub state: TripStateWrite,
     /// New or revised estimates (the batch's frames and the re-traced lag window).
-    pub estimates: Vec<FrameRecord>,
+    pub estimates: Vec<FrameEstimate>,
     /// Stored in the same write, when the request had an idempotency key.
     pub idempotency: Option<IdempotencyRecord>,
-}
-
-/// The latest estimate of one frame of a trip.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FrameRecord {
-    /// Frame index since the trip started.
-    pub frame: u32,
-    /// Estimated reference, `None` when not on the map.
-    pub reference: Option<u32>,
-    /// Confidence of the estimate.
-    pub confidence: f64,
 }
 
 /// Which page of a listing to read: records with ids below `before` (all when `None`), at
@@ -640,7 +530,7 @@ pub trait Store: Send + Sync + 'static {
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord>;
 
     /// The latest estimate of every frame from `from` on, in frame order (`from` 0: all).
-    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameRecord>>;
+    async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>>;
 
     /// A page of `map`'s trips, newest first (the map must exist).
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>>;
