@@ -208,7 +208,7 @@ async fn list(
         items: page
             .items
             .iter()
-            .map(|r| LocalizationResponse::from(r))
+            .map(LocalizationResponse::from)
             .collect(),
         next: page.next.map(format_id),
     }))
