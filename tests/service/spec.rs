@@ -228,6 +228,23 @@ fn every_documented_route_is_served() {
     assert_eq!((r.status, r.code().as_str()), (405, "method_not_allowed"));
 }
 
+/// The error codes the document lists are exactly the one table's (`seasonloc_app::ErrorCode`).
+#[test]
+fn documented_error_codes_are_exactly_the_tables() {
+    let listed: std::collections::BTreeSet<String> = doc()["components"]["schemas"]["Error"]
+        ["properties"]["error"]["properties"]["code"]["enum"]
+        .as_array()
+        .expect("openapi.yaml lists the error codes")
+        .iter()
+        .map(|c| c.as_str().unwrap().to_string())
+        .collect();
+    let table: std::collections::BTreeSet<String> = seasonloc_app::ErrorCode::ALL
+        .iter()
+        .map(|c| c.as_str().to_string())
+        .collect();
+    assert_eq!(listed, table);
+}
+
 #[test]
 fn served_openapi_json_is_the_shipped_yaml() {
     let server = Server::start();

@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use super::error::{AppError, AppResult};
 use super::App;
 use crate::store::IdempotencyRecord;
+use crate::ErrorCode;
 use seasonloc_core::trip::{BatchUpdate, FrameEstimate, TripStatus};
 
 /// Longest accepted key.
@@ -99,7 +100,7 @@ impl App {
     /// key `run(None)` just runs. With one whose record is stored, `replay(record)` answers and
     /// nothing runs. Otherwise `run` gets the record to store in the same write as its change
     /// (it may fill in the record's `response`); if a concurrent request with the same key
-    /// stored first, the write fails ([`AppError::MapChanged`]) and that request's record is
+    /// stored first, the write fails (code `map_changed`) and that request's record is
     /// replayed.
     pub(super) async fn once<T, R, RFut, F, FFut>(
         &self,
@@ -122,10 +123,12 @@ impl App {
             return Ok((replay(record).await?, true));
         }
         match run(Some(key.record(scope.clone(), Vec::new()))).await {
-            Err(e @ AppError::MapChanged(_)) => match self.stored_answer(&key, &scope).await? {
-                Some(record) => Ok((replay(record).await?, true)),
-                None => Err(e),
-            },
+            Err(e) if e.code() == ErrorCode::MapChanged => {
+                match self.stored_answer(&key, &scope).await? {
+                    Some(record) => Ok((replay(record).await?, true)),
+                    None => Err(e),
+                }
+            }
             other => other.map(|answer| (answer, false)),
         }
     }

@@ -40,7 +40,7 @@ use crate::store::Store;
 
 pub use cooc::{DriveInput, DriveOutcome};
 pub use descriptors::map_extractor;
-pub use error::{AppError, AppResult};
+pub use error::{AppError, AppResult, ErrorCode};
 pub use idempotency::Idempotency;
 pub use ids::new_id;
 pub use images::ImageInput;

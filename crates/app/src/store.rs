@@ -85,10 +85,10 @@ pub enum StoreError {
         supported: u32,
     },
     /// No map with this id.
-    #[error("map {0:016x} does not exist")]
+    #[error("map `{0:016x}` does not exist")]
     MapNotFound(u64),
     /// No localization with this id.
-    #[error("localization {0:016x} does not exist")]
+    #[error("localization `{0:016x}` does not exist")]
     LocalizationNotFound(u64),
     /// Descriptors of a batch do not have the map's descriptor length.
     #[error(
@@ -106,10 +106,10 @@ pub enum StoreError {
     #[error("map {0:016x} was changed by another request; retry")]
     Conflict(u64),
     /// No trip with this id.
-    #[error("trip {0:016x} does not exist")]
+    #[error("trip `{0:016x}` does not exist")]
     TripNotFound(u64),
     /// The trip was closed; it accepts no more frames.
-    #[error("trip {0:016x} is closed")]
+    #[error("trip `{0:016x}` is closed; open a new trip")]
     TripClosed(u64),
     /// A batch was computed from a state that is no longer the stored one.
     #[error("trip {id:016x} has {stored} frames, the batch was computed after {expected}")]
@@ -126,7 +126,7 @@ pub enum StoreError {
     #[error("id {0:016x} is taken")]
     IdTaken(u64),
     /// A map cannot grow further (more than `u32::MAX` images).
-    #[error("map {0:016x} is full")]
+    #[error("map `{0:016x}` cannot hold more images")]
     MapFull(u64),
     /// A write carried an [`IdempotencyRecord`] whose key another write stored first (a
     /// concurrent retry): nothing was written; read the stored record and answer from it.
@@ -140,6 +140,29 @@ pub enum StoreError {
 }
 
 impl StoreError {
+    /// The code of this error in the one table ([`crate::ErrorCode`]): what a client can act
+    /// on keeps its own code; every failure of the engine itself is `internal`, except an
+    /// engine that cannot be reached now (`not_ready`, retry later).
+    pub fn code(&self) -> crate::ErrorCode {
+        use crate::ErrorCode as C;
+        match self {
+            StoreError::MapNotFound(_) => C::MapNotFound,
+            StoreError::LocalizationNotFound(_) => C::LocalizationNotFound,
+            StoreError::TripNotFound(_) => C::TripNotFound,
+            StoreError::TripClosed(_) => C::TripClosed,
+            StoreError::TripConflict { .. } => C::TripConflict,
+            StoreError::MapFull(_) => C::MapFull,
+            StoreError::DimensionMismatch { .. } => C::DescriptorLength,
+            StoreError::Conflict(_) | StoreError::IdempotencyKeyTaken { .. } => C::MapChanged,
+            StoreError::Unavailable(_) => C::NotReady,
+            StoreError::Open { .. }
+            | StoreError::IdTaken(_)
+            | StoreError::Backend(_)
+            | StoreError::Corrupt { .. }
+            | StoreError::UnsupportedSchema { .. } => C::Internal,
+        }
+    }
+
     /// [`StoreError::Corrupt`] for the record under `key`.
     pub fn corrupt(key: &[u8], reason: impl Into<String>) -> Self {
         StoreError::Corrupt {

@@ -234,7 +234,7 @@ impl App {
         let started = Instant::now();
         let mut record = self.store.get_trip(id).await?;
         if record.closed_ms.is_some() {
-            return Err(AppError::TripClosed(id));
+            return Err(AppError::Store(StoreError::TripClosed(id)));
         }
         // The common path: this process applied the trip's previous batch.
         let cached = self.open_trips.take(id, record.frame_count);
@@ -243,7 +243,7 @@ impl App {
             None => {
                 let (fresh, state) = self.store.trip_state(id).await?;
                 if fresh.closed_ms.is_some() {
-                    return Err(AppError::TripClosed(id));
+                    return Err(AppError::Store(StoreError::TripClosed(id)));
                 }
                 record = fresh;
                 Some(state)

@@ -1,76 +1,60 @@
-//! The API's one error type: every failure of a request becomes an [`ApiError`], which maps to
-//! an HTTP status and a JSON body `{"error": {"code", "message"}}` in one exhaustive match.
+//! The API's one error type: every failure of a request becomes an [`ApiError`], answered as
+//! its code's HTTP status and a JSON body `{"error": {"code", "message"}}`. The codes, their
+//! statuses and `Retry-After` are the application's one table ([`ErrorCode`]); `ApiError` is
+//! the application's error plus what only HTTP has.
 //!
-//! Codes are stable snake_case strings that clients may match on (they are listed in
-//! `openapi/openapi.yaml`). Messages of 4xx errors name the offending input; 5xx bodies say
-//! nothing internal (the cause is logged instead).
+//! Codes are stable snake_case strings that clients may match on (`openapi/openapi.yaml`
+//! lists them; a test checks the list against the table). Messages of 4xx errors name the
+//! offending input; the bodies of `internal` and `not_ready` say nothing internal (the cause is
+//! logged instead).
 
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 
-use seasonloc_app::AppError;
+use seasonloc_app::store::StoreError;
+use seasonloc_app::{AppError, ErrorCode};
 
 /// Seconds a client is asked to wait after a 503.
 pub const RETRY_AFTER_SECS: u64 = 1;
 
-/// Every way a request can fail. The doc line of each variant gives its status and code.
+/// Every way a request can fail: what the use cases say ([`ApiError::App`], with their
+/// codes), plus what only HTTP has. Each variant's code is in [`ApiError::code`]; status,
+/// `Retry-After` and whether the message is shown come from the one table ([`ErrorCode`]).
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
-    /// 404 `map_not_found`.
-    #[error("map `{0}` does not exist")]
-    MapNotFound(String),
-    /// 404 `localization_not_found`.
-    #[error("localization `{0}` does not exist")]
-    LocalizationNotFound(String),
-    /// 404 `trip_not_found`.
-    #[error("trip `{0}` does not exist")]
-    TripNotFound(String),
-    /// 409 `trip_closed`: frames posted to a closed trip.
-    #[error("trip `{0}` is closed; open a new trip")]
-    TripClosed(String),
-    /// 409 `trip_conflict`: the trip changed while a batch was computed (retry the batch).
-    #[error("{0}")]
-    TripConflict(String),
-    /// 404 `thumbnail_not_found`: no such image, or an image stored without a thumbnail.
+    /// A use case failed: its code and message as the application layer says them.
+    #[error(transparent)]
+    App(#[from] AppError),
+    /// `map_not_found`, `localization_not_found` or `trip_not_found` for a path id that is not
+    /// an id at all (no object can have it).
+    #[error("{what} `{id}` does not exist")]
+    NoSuchId {
+        /// The not-found code of the kind of object.
+        code: ErrorCode,
+        /// "map", "localization" or "trip".
+        what: &'static str,
+        /// The id as the client wrote it.
+        id: String,
+    },
+    /// `thumbnail_not_found`: no such image, or an image stored without a thumbnail.
     #[error("{0}")]
     ThumbnailNotFound(String),
-    /// 404 `picture_not_found`: a localization stored without a similarity picture.
+    /// `picture_not_found`: a localization stored without a similarity picture.
     #[error("{0}")]
     PictureNotFound(String),
-    /// 404 `asset_not_found`: a dashboard file that does not exist.
+    /// `asset_not_found`: a dashboard file that does not exist.
     #[error("no dashboard file `{0}`")]
     AssetNotFound(String),
-    /// 404 `route_not_found`.
+    /// `route_not_found`.
     #[error("no route for {0}")]
     RouteNotFound(String),
-    /// 405 `method_not_allowed`.
+    /// `method_not_allowed`.
     #[error("method not allowed on this route")]
     MethodNotAllowed,
-    /// 400 `invalid_parameter`: an unknown, missing or out-of-range parameter.
-    #[error("invalid parameter `{name}`: {reason}")]
-    InvalidParameter {
-        /// The parameter, e.g. `fan_out` or `descriptor.cell_size`.
-        name: String,
-        /// Why it was rejected.
-        reason: String,
-    },
-    /// 422 `inconsistent_parameter`: a parameter valid on its own (by the published schema)
-    /// that does not fit the request's other parameters, the server's limits or the model it
-    /// names.
-    #[error("invalid parameter `{name}`: {reason}")]
-    InconsistentParameter {
-        /// The parameter, e.g. `relocalization_cost`.
-        name: String,
-        /// What it does not fit, and why.
-        reason: String,
-    },
-    /// 400 `bad_request`: a malformed body (JSON syntax, multipart framing, unknown part).
+    /// `bad_request`: a malformed body (JSON syntax, multipart framing, unknown part).
     #[error("{0}")]
     BadRequest(String),
-    /// 400 `empty_batch`.
-    #[error("empty batch: {0}")]
-    EmptyBatch(String),
-    /// 400 `batch_too_large`.
+    /// `batch_too_large`.
     #[error("batch has more than {limit} {what} (the configured limit)")]
     BatchTooLarge {
         /// "images" or "descriptors".
@@ -78,79 +62,26 @@ pub enum ApiError {
         /// The configured limit.
         limit: usize,
     },
-    /// 409 `map_empty`: localizing against a map without reference images.
-    #[error("map `{0}` has no reference images yet")]
-    MapEmpty(String),
-    /// 409 `model_mismatch`: a CNN map's model file is no longer the model the map was
-    /// created with (changed, truncated or removed).
-    #[error("{0}")]
-    ModelMismatch(String),
-    /// 409 `map_kind`: the request does not apply to this kind of map (e.g. a second batch of
-    /// reference images on a `cooc` map, drives on a non-`cooc` map).
-    #[error("{0}")]
-    MapKind(String),
-    /// 409 `map_changed`: a concurrent request changed the map first; retrying is safe.
-    #[error("{0}")]
-    MapChanged(String),
-    /// 409 `map_full`.
-    #[error("map `{0}` cannot hold more images")]
-    MapFull(String),
-    /// 409 `idempotency_key_reused`: an `Idempotency-Key` sent again with a different request.
-    #[error("{0}")]
-    IdempotencyKeyReused(String),
-    /// 413 `payload_too_large`: the body exceeds the configured size limit.
+    /// `payload_too_large`: the body exceeds the configured size limit.
     #[error("request body is larger than the configured limit of {0} bytes")]
     PayloadTooLarge(usize),
-    /// 413 `image_too_large`: an image exceeds the configured pixel limit.
-    #[error(
-        "{part} is {width}x{height} = {pixels} pixels, more than the configured limit of {limit}"
-    )]
-    ImageTooLarge {
-        /// The part, e.g. `image #2 ("a.png")`.
-        part: String,
-        /// Width in pixels.
-        width: u32,
-        /// Height in pixels.
-        height: u32,
-        /// `width * height`.
-        pixels: u64,
-        /// The configured limit.
-        limit: u64,
-    },
-    /// 415 `unsupported_media_type`.
+    /// `unsupported_media_type`.
     #[error("{0}")]
     UnsupportedMediaType(String),
-    /// 422 `invalid_image`: a part that is not a decodable JPEG/PNG.
-    #[error("{part}: {reason}")]
-    InvalidImage {
-        /// The part.
-        part: String,
-        /// What is wrong with it.
-        reason: String,
-    },
-    /// 422 `descriptor_length`: descriptors (or images giving them) do not fit the map.
-    #[error("{0}")]
-    DescriptorLength(String),
-    /// 422 `non_finite`: NaN or infinity in a descriptor.
-    #[error("{0}")]
-    NonFinite(String),
-    /// 422 `shape_mismatch`: inputs whose shapes do not fit together.
-    #[error("{0}")]
-    ShapeMismatch(String),
-    /// 401 `unauthorized` with `WWW-Authenticate: Bearer`: no key, or a key the service does
-    /// not know.
+    /// `unauthorized` with `WWW-Authenticate: Bearer`: no key, or a key the service does not
+    /// know.
     #[error("{0}")]
     Unauthorized(String),
-    /// 403 `forbidden`: a known key whose role does not allow the request.
+    /// `forbidden`: a known key whose role does not allow the request.
     #[error("{0}")]
     Forbidden(String),
-    /// 421 `misdirected_request`: a `Host` header that is not in `--allowed-host`.
+    /// `misdirected_request`: a `Host` header that is not in `--allowed-host`.
     #[error("{0}")]
     MisdirectedRequest(String),
-    /// 429 `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
+    /// `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
     #[error("{0}")]
     TooManyRequests(String),
-    /// 503 `queue_full` with `Retry-After`: the localize queue is full, or the request would
+    /// `queue_full` with `Retry-After`: the localize queue is full, or the request would
     /// wait (or has waited) longer than `--localize-max-wait-secs` for a CPU.
     #[error("{message}")]
     QueueFull {
@@ -159,76 +90,54 @@ pub enum ApiError {
         /// Seconds to send in `Retry-After`.
         retry_after: u64,
     },
-    /// 408 `body_timeout`: the request body stalled longer than `--body-read-timeout-secs`.
+    /// `body_timeout`: the request body stalled longer than `--body-read-timeout-secs`.
     #[error("the request body stalled longer than the server's body read timeout")]
     BodyTimeout,
-    /// 503 `overloaded` with `Retry-After`: the concurrency limit is reached.
+    /// `overloaded` with `Retry-After`: the concurrency limit is reached.
     #[error("the server is at its concurrency limit; retry later")]
     Overloaded,
-    /// 503 `timeout`: the request took longer than the configured timeout.
+    /// `timeout`: the request took longer than the configured timeout.
     #[error("the request took longer than the configured timeout")]
     Timeout,
-    /// 503 `not_ready` with `Retry-After`: the store is not usable (it cannot be reached).
+    /// `not_ready` with `Retry-After`: the readiness probe found the store unusable.
     #[error("the store is not ready")]
     NotReady(String),
-    /// 500 `internal`: the message is logged, never sent.
-    #[error("internal error: {0}")]
-    Internal(String),
 }
 
 impl ApiError {
-    /// Status, machine-readable code, and whether to send `Retry-After`.
-    pub fn parts(&self) -> (StatusCode, &'static str, bool) {
-        use StatusCode as S;
+    /// The code of this error in the one table.
+    pub fn code(&self) -> ErrorCode {
+        use ErrorCode as C;
         match self {
-            ApiError::MapNotFound(_) => (S::NOT_FOUND, "map_not_found", false),
-            ApiError::LocalizationNotFound(_) => (S::NOT_FOUND, "localization_not_found", false),
-            ApiError::RouteNotFound(_) => (S::NOT_FOUND, "route_not_found", false),
-            ApiError::AssetNotFound(_) => (S::NOT_FOUND, "asset_not_found", false),
-            ApiError::ThumbnailNotFound(_) => (S::NOT_FOUND, "thumbnail_not_found", false),
-            ApiError::PictureNotFound(_) => (S::NOT_FOUND, "picture_not_found", false),
-            ApiError::TripNotFound(_) => (S::NOT_FOUND, "trip_not_found", false),
-            ApiError::TripClosed(_) => (S::CONFLICT, "trip_closed", false),
-            ApiError::TripConflict(_) => (S::CONFLICT, "trip_conflict", false),
-            ApiError::MethodNotAllowed => (S::METHOD_NOT_ALLOWED, "method_not_allowed", false),
-            ApiError::InvalidParameter { .. } => (S::BAD_REQUEST, "invalid_parameter", false),
-            ApiError::InconsistentParameter { .. } => {
-                (S::UNPROCESSABLE_ENTITY, "inconsistent_parameter", false)
-            }
-            ApiError::BadRequest(_) => (S::BAD_REQUEST, "bad_request", false),
-            ApiError::EmptyBatch(_) => (S::BAD_REQUEST, "empty_batch", false),
-            ApiError::BatchTooLarge { .. } => (S::BAD_REQUEST, "batch_too_large", false),
-            ApiError::MapEmpty(_) => (S::CONFLICT, "map_empty", false),
-            ApiError::MapFull(_) => (S::CONFLICT, "map_full", false),
-            ApiError::ModelMismatch(_) => (S::CONFLICT, "model_mismatch", false),
-            ApiError::MapKind(_) => (S::CONFLICT, "map_kind", false),
-            ApiError::MapChanged(_) => (S::CONFLICT, "map_changed", false),
-            ApiError::IdempotencyKeyReused(_) => (S::CONFLICT, "idempotency_key_reused", false),
-            ApiError::PayloadTooLarge(_) => (S::PAYLOAD_TOO_LARGE, "payload_too_large", false),
-            ApiError::ImageTooLarge { .. } => (S::PAYLOAD_TOO_LARGE, "image_too_large", false),
-            ApiError::UnsupportedMediaType(_) => {
-                (S::UNSUPPORTED_MEDIA_TYPE, "unsupported_media_type", false)
-            }
-            ApiError::InvalidImage { .. } => (S::UNPROCESSABLE_ENTITY, "invalid_image", false),
-            ApiError::DescriptorLength(_) => (S::UNPROCESSABLE_ENTITY, "descriptor_length", false),
-            ApiError::NonFinite(_) => (S::UNPROCESSABLE_ENTITY, "non_finite", false),
-            ApiError::ShapeMismatch(_) => (S::UNPROCESSABLE_ENTITY, "shape_mismatch", false),
-            ApiError::Unauthorized(_) => (S::UNAUTHORIZED, "unauthorized", false),
-            ApiError::Forbidden(_) => (S::FORBIDDEN, "forbidden", false),
-            ApiError::MisdirectedRequest(_) => {
-                (S::MISDIRECTED_REQUEST, "misdirected_request", false)
-            }
-            ApiError::TooManyRequests(_) => (S::TOO_MANY_REQUESTS, "too_many_requests", true),
-            ApiError::QueueFull { .. } => (S::SERVICE_UNAVAILABLE, "queue_full", true),
-            ApiError::BodyTimeout => (S::REQUEST_TIMEOUT, "body_timeout", false),
-            ApiError::Overloaded => (S::SERVICE_UNAVAILABLE, "overloaded", true),
-            ApiError::Timeout => (S::SERVICE_UNAVAILABLE, "timeout", true),
-            ApiError::NotReady(_) => (S::SERVICE_UNAVAILABLE, "not_ready", true),
-            ApiError::Internal(_) => (S::INTERNAL_SERVER_ERROR, "internal", false),
+            ApiError::App(e) => e.code(),
+            ApiError::NoSuchId { code, .. } => *code,
+            ApiError::ThumbnailNotFound(_) => C::ThumbnailNotFound,
+            ApiError::PictureNotFound(_) => C::PictureNotFound,
+            ApiError::AssetNotFound(_) => C::AssetNotFound,
+            ApiError::RouteNotFound(_) => C::RouteNotFound,
+            ApiError::MethodNotAllowed => C::MethodNotAllowed,
+            ApiError::BadRequest(_) => C::BadRequest,
+            ApiError::BatchTooLarge { .. } => C::BatchTooLarge,
+            ApiError::PayloadTooLarge(_) => C::PayloadTooLarge,
+            ApiError::UnsupportedMediaType(_) => C::UnsupportedMediaType,
+            ApiError::Unauthorized(_) => C::Unauthorized,
+            ApiError::Forbidden(_) => C::Forbidden,
+            ApiError::MisdirectedRequest(_) => C::MisdirectedRequest,
+            ApiError::TooManyRequests(_) => C::TooManyRequests,
+            ApiError::QueueFull { .. } => C::QueueFull,
+            ApiError::BodyTimeout => C::BodyTimeout,
+            ApiError::Overloaded => C::Overloaded,
+            ApiError::Timeout => C::Timeout,
+            ApiError::NotReady(_) => C::NotReady,
         }
     }
 
-    /// Seconds to send in `Retry-After` (when [`ApiError::parts`] says to send it).
+    /// The HTTP status of this error (from the table).
+    pub fn status(&self) -> StatusCode {
+        StatusCode::from_u16(self.code().status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR)
+    }
+
+    /// Seconds to send in `Retry-After` (when the code asks for it).
     pub fn retry_after(&self) -> u64 {
         if let ApiError::QueueFull { retry_after, .. } = self {
             (*retry_after).max(1)
@@ -237,44 +146,55 @@ impl ApiError {
         }
     }
 
-    /// Shorthand for [`ApiError::InvalidParameter`].
+    /// `invalid_parameter` (see [`AppError::param`]).
     pub fn param(name: impl Into<String>, reason: impl Into<String>) -> Self {
-        ApiError::InvalidParameter {
-            name: name.into(),
-            reason: reason.into(),
-        }
+        ApiError::App(AppError::param(name, reason))
     }
 
-    /// Shorthand for [`ApiError::InconsistentParameter`].
+    /// `inconsistent_parameter` (see [`AppError::inconsistent`]).
     pub fn inconsistent(name: impl Into<String>, reason: impl Into<String>) -> Self {
-        ApiError::InconsistentParameter {
-            name: name.into(),
-            reason: reason.into(),
+        ApiError::App(AppError::inconsistent(name, reason))
+    }
+
+    /// `internal`: the cause is logged, never sent.
+    pub fn internal(cause: impl Into<String>) -> Self {
+        ApiError::App(AppError::Internal(cause.into()))
+    }
+
+    /// A path id of `code`'s kind (`map_not_found`, ...) that no object can have.
+    pub fn no_such_id(code: ErrorCode, id: impl Into<String>) -> Self {
+        let what = match code {
+            ErrorCode::LocalizationNotFound => "localization",
+            ErrorCode::TripNotFound => "trip",
+            _ => "map",
+        };
+        ApiError::NoSuchId {
+            code,
+            what,
+            id: id.into(),
         }
     }
 }
 
 impl IntoResponse for ApiError {
-    #[allow(
-        clippy::wildcard_enum_match_arm,
-        reason = "every variant but the two logged ones is a client error whose Display is its message"
-    )]
     fn into_response(self) -> Response {
-        let (status, code, retry) = self.parts();
-        let message = match &self {
-            ApiError::Internal(cause) => {
+        let code = self.code();
+        let status = self.status();
+        let message = if code.hides_message() {
+            let cause = self.to_string();
+            if status == StatusCode::INTERNAL_SERVER_ERROR {
                 tracing::error!(%code, %cause, "request failed");
                 "internal server error".to_string()
-            }
-            ApiError::NotReady(cause) => {
+            } else {
                 tracing::warn!(%code, %cause, "store not ready");
                 "the store is not ready".to_string()
             }
-            other => other.to_string(),
+        } else {
+            self.to_string()
         };
-        let body = serde_json::json!({"error": {"code": code, "message": message}});
+        let body = serde_json::json!({"error": {"code": code.as_str(), "message": message}});
         let mut response = (status, axum::Json(body)).into_response();
-        if retry {
+        if code.retry_after() {
             response
                 .headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(self.retry_after()));
@@ -292,52 +212,14 @@ impl IntoResponse for ApiError {
 /// Core errors reach the wire the way the use-case layer classifies them (one mapping).
 impl From<seasonloc_core::Error> for ApiError {
     fn from(e: seasonloc_core::Error) -> Self {
-        ApiError::from(AppError::from(e))
+        ApiError::App(AppError::from(e))
     }
 }
 
-impl From<AppError> for ApiError {
-    fn from(e: AppError) -> Self {
-        use super::wire::format_id as id;
-        match e {
-            AppError::MapNotFound(m) => ApiError::MapNotFound(id(m)),
-            AppError::LocalizationNotFound(l) => ApiError::LocalizationNotFound(id(l)),
-            AppError::TripNotFound(t) => ApiError::TripNotFound(id(t)),
-            AppError::TripClosed(t) => ApiError::TripClosed(id(t)),
-            AppError::TripConflict(m) => ApiError::TripConflict(m),
-            AppError::InvalidParameter { name, reason } => {
-                ApiError::InvalidParameter { name, reason }
-            }
-            AppError::InconsistentParameter { name, reason } => {
-                ApiError::InconsistentParameter { name, reason }
-            }
-            AppError::EmptyBatch(m) => ApiError::EmptyBatch(m),
-            AppError::MapEmpty(m) => ApiError::MapEmpty(id(m)),
-            AppError::ModelMismatch(m) => ApiError::ModelMismatch(m),
-            AppError::MapKind(m) => ApiError::MapKind(m),
-            AppError::MapChanged(m) => ApiError::MapChanged(m),
-            AppError::MapFull(m) => ApiError::MapFull(id(m)),
-            AppError::ImageTooLarge {
-                part,
-                width,
-                height,
-                pixels,
-                limit,
-            } => ApiError::ImageTooLarge {
-                part,
-                width,
-                height,
-                pixels,
-                limit,
-            },
-            AppError::InvalidImage { part, reason } => ApiError::InvalidImage { part, reason },
-            AppError::DescriptorLength(m) => ApiError::DescriptorLength(m),
-            AppError::NonFinite(m) => ApiError::NonFinite(m),
-            AppError::ShapeMismatch(m) => ApiError::ShapeMismatch(m),
-            AppError::IdempotencyKeyReused(m) => ApiError::IdempotencyKeyReused(m),
-            AppError::Unavailable(cause) => ApiError::NotReady(cause),
-            AppError::Internal(cause) => ApiError::Internal(cause),
-        }
+/// Store errors reach the wire with the store's codes.
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        ApiError::App(AppError::Store(e))
     }
 }
 
@@ -355,7 +237,7 @@ mod tests {
 
     #[tokio::test]
     async fn internal_errors_say_nothing_internal() {
-        let (status, body, _) = body_of(ApiError::Internal("sled: /secret/path".into())).await;
+        let (status, body, _) = body_of(ApiError::internal("sled: /secret/path")).await;
         assert_eq!(status, StatusCode::INTERNAL_SERVER_ERROR);
         assert_eq!(body["error"]["code"], "internal");
         assert!(!body.to_string().contains("secret"));
@@ -394,7 +276,7 @@ mod tests {
             reason: "truncated".into(),
         }
         .into();
-        assert_eq!(e.parts().0, StatusCode::UNPROCESSABLE_ENTITY);
+        assert_eq!(e.status(), StatusCode::UNPROCESSABLE_ENTITY);
         let e: ApiError = AppError::from(seasonloc_app::store::StoreError::MapNotFound(255)).into();
         assert_eq!(e.to_string(), "map `00000000000000ff` does not exist");
     }

@@ -5,6 +5,7 @@ use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{FromRequest, Request};
 use axum::http::{header, HeaderMap, StatusCode};
+use seasonloc_app::ErrorCode;
 use serde::de::DeserializeOwned;
 
 use super::error::ApiError;
@@ -89,7 +90,7 @@ pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
 
 /// Parses a map id from a path or query; ids that cannot exist are 404.
 pub fn map_id(s: &str) -> Result<u64, ApiError> {
-    parse_id(s).ok_or_else(|| ApiError::MapNotFound(s.to_string()))
+    parse_id(s).ok_or_else(|| ApiError::no_such_id(ErrorCode::MapNotFound, s))
 }
 
 /// Parses a JSON document that must be an object (a request body, the `params` or `drive`
@@ -155,6 +156,7 @@ pub fn parse_json<T: DeserializeOwned>(bytes: &[u8], root: Option<&str>) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+    use seasonloc_app::AppError;
 
     #[test]
     fn errors_name_the_field_path() {
@@ -171,7 +173,7 @@ mod tests {
         }
         let e = parse_json::<Outer>(br#"{"params": {"exact": "yes"}}"#, None).unwrap_err();
         assert!(
-            matches!(&e, ApiError::InvalidParameter { name, .. } if name == "params.exact"),
+            matches!(&e, ApiError::App(AppError::InvalidParameter { name, .. }) if name == "params.exact"),
             "{e}"
         );
         let e = parse_json::<Inner>(br#"{"exact": 1}"#, Some("params")).unwrap_err();

@@ -143,7 +143,7 @@ fn panic_response(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
         .map(String::as_str)
         .or_else(|| err.downcast_ref::<&str>().copied())
         .unwrap_or("(no message)");
-    ApiError::Internal(format!("request handler panicked: {message}")).into_response()
+    ApiError::internal(format!("request handler panicked: {message}")).into_response()
 }
 
 /// The CORS layer for the configured origins (`None` when there are none: no cross-origin
@@ -221,7 +221,7 @@ async fn limit_error(err: BoxError) -> ApiError {
     } else if err.is::<tower::load_shed::error::Overloaded>() {
         ApiError::Overloaded
     } else {
-        ApiError::Internal(format!("middleware: {err}"))
+        ApiError::internal(format!("middleware: {err}"))
     }
 }
 

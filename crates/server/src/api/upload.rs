@@ -10,6 +10,7 @@
 use axum::body::Bytes;
 use axum::extract::multipart::{Multipart, MultipartError, MultipartRejection};
 use axum::http::{header, HeaderMap};
+use seasonloc_app::AppError;
 
 use super::error::ApiError;
 use seasonloc_app::ImageInput;
@@ -111,9 +112,9 @@ pub async fn read(
         }
     }
     if upload.images.is_empty() {
-        return Err(ApiError::EmptyBatch(
+        return Err(ApiError::App(AppError::EmptyBatch(
             "no `image` parts in the request".into(),
-        ));
+        )));
     }
     Ok(upload)
 }
@@ -127,7 +128,9 @@ pub fn descriptor_matrix(
     max_rows: usize,
 ) -> Result<Matrix, ApiError> {
     if rows.is_empty() {
-        return Err(ApiError::EmptyBatch("`descriptors` is empty".into()));
+        return Err(ApiError::App(AppError::EmptyBatch(
+            "`descriptors` is empty".into(),
+        )));
     }
     if rows.len() > max_rows {
         return Err(ApiError::BatchTooLarge {
@@ -137,24 +140,24 @@ pub fn descriptor_matrix(
     }
     let dim = expected_dim.map_or(rows[0].len(), |d| d as usize);
     if dim == 0 {
-        return Err(ApiError::DescriptorLength(
+        return Err(ApiError::App(AppError::DescriptorLength(
             "descriptors must not be empty vectors".into(),
-        ));
+        )));
     }
     let mut out = Matrix::zeros(rows.len(), dim);
     for (i, row) in rows.iter().enumerate() {
         if row.len() != dim {
-            return Err(ApiError::DescriptorLength(format!(
+            return Err(ApiError::App(AppError::DescriptorLength(format!(
                 "descriptors[{i}] has length {}, expected {dim}",
                 row.len()
-            )));
+            ))));
         }
         for (j, (out, &v)) in out.row_mut(i).iter_mut().zip(row).enumerate() {
             let x = v as f32;
             if !x.is_finite() {
-                return Err(ApiError::NonFinite(format!(
+                return Err(ApiError::App(AppError::NonFinite(format!(
                     "descriptors[{i}][{j}] = {v} is not a finite 32-bit float"
-                )));
+                ))));
             }
             *out = x;
         }
@@ -169,13 +172,15 @@ pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<M
         return Err(ApiError::param("dim", "must be at least 1"));
     }
     if body.is_empty() {
-        return Err(ApiError::EmptyBatch("the body holds no descriptors".into()));
+        return Err(ApiError::App(AppError::EmptyBatch(
+            "the body holds no descriptors".into(),
+        )));
     }
     if !body.len().is_multiple_of(4 * dim) {
-        return Err(ApiError::DescriptorLength(format!(
+        return Err(ApiError::App(AppError::DescriptorLength(format!(
             "a body of {} bytes is not a whole number of {dim}-value rows of 4-byte floats",
             body.len()
-        )));
+        ))));
     }
     let rows = body.len() / (4 * dim);
     if rows > max_rows {
@@ -191,12 +196,12 @@ pub fn raw_descriptor_matrix(body: &[u8], dim: u32, max_rows: usize) -> Result<M
     }
     let data = out.as_slice();
     if let Some(k) = data.iter().position(|v| !v.is_finite()) {
-        return Err(ApiError::NonFinite(format!(
+        return Err(ApiError::App(AppError::NonFinite(format!(
             "descriptors[{}][{}] = {} is not finite",
             k / dim,
             k % dim,
             data[k]
-        )));
+        ))));
     }
     Ok(out)
 }
@@ -212,12 +217,15 @@ mod tests {
         let e = descriptor_matrix(&[vec![1.0, 2.0], vec![3.0]], None, 10).unwrap_err();
         assert!(e.to_string().contains("descriptors[1] has length 1"), "{e}");
         let e = descriptor_matrix(&[vec![1.0, 1e39]], None, 10).unwrap_err();
-        assert!(matches!(e, ApiError::NonFinite(_)), "{e}");
+        assert!(matches!(e, ApiError::App(AppError::NonFinite(_))), "{e}");
         let e = descriptor_matrix(&[vec![1.0]], Some(2), 10).unwrap_err();
-        assert!(matches!(e, ApiError::DescriptorLength(_)), "{e}");
+        assert!(
+            matches!(e, ApiError::App(AppError::DescriptorLength(_))),
+            "{e}"
+        );
         assert!(matches!(
             descriptor_matrix(&[], None, 10),
-            Err(ApiError::EmptyBatch(_))
+            Err(ApiError::App(AppError::EmptyBatch(_)))
         ));
         assert!(matches!(
             descriptor_matrix(&[vec![1.0], vec![1.0]], None, 1),
@@ -237,7 +245,7 @@ mod tests {
         assert_eq!(m.row(0), &[1.0, 2.0]);
         assert!(matches!(
             raw_descriptor_matrix(&bytes[..6], 2, 10),
-            Err(ApiError::DescriptorLength(_))
+            Err(ApiError::App(AppError::DescriptorLength(_)))
         ));
     }
 }

@@ -234,7 +234,7 @@ async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine
     a.delete_map(map.id).await.unwrap();
     assert!(matches!(
         b.localize(map.id, queries(0..3)).await,
-        Err(AppError::MapNotFound(_))
+        Err(AppError::Store(StoreError::MapNotFound(_)))
     ));
 }
 

@@ -21,6 +21,7 @@ use axum::http::{header, HeaderMap, HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use seasonloc_app::ErrorCode;
 
 use crate::api::error::ApiError;
 use crate::api::state::AppState;
@@ -165,30 +166,26 @@ async fn page(headers: HeaderMap) -> Response {
 
 /// A page about one object: the shell when the path holds a well-formed id (whether it exists
 /// is for the page to ask the API), the API's 404 when it cannot be an id at all.
-fn object_page(
-    id: &str,
-    headers: &HeaderMap,
-    not_found: fn(String) -> ApiError,
-) -> Result<Response, ApiError> {
+fn object_page(id: &str, headers: &HeaderMap, not_found: ErrorCode) -> Result<Response, ApiError> {
     match parse_id(id) {
         Some(_) => Ok(serve(&SHELL, headers, true)),
-        None => Err(not_found(id.to_string())),
+        None => Err(ApiError::no_such_id(not_found, id)),
     }
 }
 
 async fn map_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ApiError::MapNotFound)
+    object_page(&id, &headers, ErrorCode::MapNotFound)
 }
 
 async fn localization_page(
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ApiError::LocalizationNotFound)
+    object_page(&id, &headers, ErrorCode::LocalizationNotFound)
 }
 
 async fn trip_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ApiError::TripNotFound)
+    object_page(&id, &headers, ErrorCode::TripNotFound)
 }
 
 async fn asset(Path(name): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {

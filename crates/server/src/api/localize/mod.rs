@@ -12,6 +12,7 @@ use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::Router;
+use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{
@@ -157,7 +158,7 @@ fn refused(state: &AppState, refusal: Refusal) -> ApiError {
 /// `replayed` adds `Idempotent-Replayed: true`.
 fn json_document(record: &LocalizationRecord, replayed: bool) -> Result<Response, ApiError> {
     let bytes = serde_json::to_vec(&LocalizationResponse::from(record))
-        .map_err(|e| ApiError::Internal(format!("serializing a result: {e}")))?;
+        .map_err(|e| ApiError::internal(format!("serializing a result: {e}")))?;
     let mut r = Body::from(bytes).into_response();
     r.headers_mut().insert(
         header::CONTENT_TYPE,
@@ -168,7 +169,8 @@ fn json_document(record: &LocalizationRecord, replayed: bool) -> Result<Response
 }
 
 async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let lid = parse_id(&id).ok_or(ApiError::LocalizationNotFound(id))?;
+    let lid =
+        parse_id(&id).ok_or_else(|| ApiError::no_such_id(ErrorCode::LocalizationNotFound, id))?;
     json_document(&state.app.get_localization(lid).await?, false)
 }
 
@@ -205,11 +207,7 @@ async fn list(
         .list_localizations(map, PageRequest { before, limit })
         .await?;
     Ok(axum::Json(LocalizationListResponse {
-        items: page
-            .items
-            .iter()
-            .map(LocalizationResponse::from)
-            .collect(),
+        items: page.items.iter().map(LocalizationResponse::from).collect(),
         next: page.next.map(format_id),
     }))
 }

@@ -16,6 +16,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::routing::{get, post};
 use axum::{Json, Router};
+use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{
@@ -50,7 +51,7 @@ fn status_name(s: TripStatus) -> String {
 }
 
 fn trip_id(s: &str) -> Result<u64, ApiError> {
-    parse_id(s).ok_or_else(|| ApiError::TripNotFound(s.to_string()))
+    parse_id(s).ok_or_else(|| ApiError::no_such_id(ErrorCode::TripNotFound, s))
 }
 
 fn response(r: &TripRecord) -> TripResponse {

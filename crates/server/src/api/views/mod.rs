@@ -10,6 +10,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{ImageInfo, ImagePage, ImagesQuery};
@@ -112,7 +113,8 @@ pub async fn picture(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let lid = parse_id(&id).ok_or_else(|| ApiError::LocalizationNotFound(id.clone()))?;
+    let lid = parse_id(&id)
+        .ok_or_else(|| ApiError::no_such_id(ErrorCode::LocalizationNotFound, id.clone()))?;
     match state.app.localization_picture(lid).await? {
         Some(png) => Ok(immutable(png, "image/png")),
         None => Err(ApiError::PictureNotFound(format!(

@@ -1,7 +1,13 @@
-//! The use-case layer's one error type. Every variant is a kind of failure a front end must
-//! tell apart (the API maps each to a status and code in one exhaustive match); messages name
-//! the offending input and are meant for the client, except [`AppError::Internal`] and
-//! [`AppError::Unavailable`], whose causes are for logs.
+//! The use-case layer's one error type, and the one table of error codes ([`ErrorCode`]).
+//! Every variant is a kind of failure a front end must tell apart and says its code once
+//! ([`AppError::code`]); what the store reports arrives as [`AppError::Store`] with the
+//! store's own code. Messages name the offending input and are meant for the client, except
+//! those whose code hides them ([`ErrorCode::hides_message`]: internal errors and an
+//! unreachable store), whose causes are for logs.
+
+mod code;
+
+pub use code::ErrorCode;
 
 use crate::store::StoreError;
 
@@ -11,18 +17,10 @@ pub type AppResult<T> = Result<T, AppError>;
 /// Why a use case failed.
 #[derive(Debug, thiserror::Error)]
 pub enum AppError {
-    /// No such map.
-    #[error("map {0:016x} does not exist")]
-    MapNotFound(u64),
-    /// No such localization.
-    #[error("localization {0:016x} does not exist")]
-    LocalizationNotFound(u64),
-    /// No such trip.
-    #[error("trip {0:016x} does not exist")]
-    TripNotFound(u64),
-    /// Frames posted to a closed trip.
-    #[error("trip {0:016x} is closed")]
-    TripClosed(u64),
+    /// What the store reported (an unknown id, a closed trip, a concurrent write, an
+    /// unreachable or broken engine), with the store's code.
+    #[error(transparent)]
+    Store(#[from] StoreError),
     /// The trip changed while a batch was computed, more often than the retries allow.
     #[error("{0}")]
     TripConflict(String),
@@ -47,7 +45,7 @@ pub enum AppError {
     #[error("empty batch: {0}")]
     EmptyBatch(String),
     /// A map without reference images.
-    #[error("map {0:016x} has no reference images yet")]
+    #[error("map `{0:016x}` has no reference images yet")]
     MapEmpty(u64),
     /// A CNN map's model file is no longer the model the map was created with.
     #[error("{0}")]
@@ -58,9 +56,6 @@ pub enum AppError {
     /// A concurrent request changed the map first; retrying is safe.
     #[error("{0}")]
     MapChanged(String),
-    /// The map cannot hold more images.
-    #[error("map {0:016x} cannot hold more images")]
-    MapFull(u64),
     /// An image over the configured pixel limit.
     #[error(
         "{part} is {width}x{height} = {pixels} pixels, more than the configured limit of {limit}"
@@ -97,9 +92,6 @@ pub enum AppError {
     /// An `Idempotency-Key` sent again with a different request.
     #[error("{0}")]
     IdempotencyKeyReused(String),
-    /// The store cannot be reached now; retrying later may succeed.
-    #[error("the store is unavailable: {0}")]
-    Unavailable(String),
     /// A bug or a broken store: the message is for logs, not for clients.
     #[error("internal error: {0}")]
     Internal(String),
@@ -138,25 +130,27 @@ impl From<seasonloc_core::Error> for AppError {
     }
 }
 
-impl From<StoreError> for AppError {
-    fn from(e: StoreError) -> Self {
-        match e {
-            StoreError::MapNotFound(id) => AppError::MapNotFound(id),
-            StoreError::LocalizationNotFound(id) => AppError::LocalizationNotFound(id),
-            StoreError::TripNotFound(id) => AppError::TripNotFound(id),
-            StoreError::TripClosed(id) => AppError::TripClosed(id),
-            StoreError::MapFull(id) => AppError::MapFull(id),
-            StoreError::DimensionMismatch { .. } => AppError::DescriptorLength(e.to_string()),
-            StoreError::Conflict(_) | StoreError::IdempotencyKeyTaken { .. } => {
-                AppError::MapChanged(e.to_string())
-            }
-            StoreError::TripConflict { .. } => AppError::TripConflict(e.to_string()),
-            StoreError::Unavailable(cause) => AppError::Unavailable(cause),
-            StoreError::Open { .. }
-            | StoreError::IdTaken(_)
-            | StoreError::Backend(_)
-            | StoreError::Corrupt { .. }
-            | StoreError::UnsupportedSchema { .. } => AppError::Internal(e.to_string()),
+impl AppError {
+    /// The code of this error in the one table.
+    pub fn code(&self) -> ErrorCode {
+        use ErrorCode as C;
+        match self {
+            AppError::Store(e) => e.code(),
+            AppError::TripConflict(_) => C::TripConflict,
+            AppError::InvalidParameter { .. } => C::InvalidParameter,
+            AppError::InconsistentParameter { .. } => C::InconsistentParameter,
+            AppError::EmptyBatch(_) => C::EmptyBatch,
+            AppError::MapEmpty(_) => C::MapEmpty,
+            AppError::ModelMismatch(_) => C::ModelMismatch,
+            AppError::MapKind(_) => C::MapKind,
+            AppError::MapChanged(_) => C::MapChanged,
+            AppError::ImageTooLarge { .. } => C::ImageTooLarge,
+            AppError::InvalidImage { .. } => C::InvalidImage,
+            AppError::DescriptorLength(_) => C::DescriptorLength,
+            AppError::NonFinite(_) => C::NonFinite,
+            AppError::ShapeMismatch(_) => C::ShapeMismatch,
+            AppError::IdempotencyKeyReused(_) => C::IdempotencyKeyReused,
+            AppError::Internal(_) => C::Internal,
         }
     }
 }
