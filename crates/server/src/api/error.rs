@@ -27,12 +27,10 @@ pub enum ApiError {
     App(#[from] AppError),
     /// `map_not_found`, `localization_not_found` or `trip_not_found` for a path id that is not
     /// an id at all (no object can have it).
-    #[error("{what} `{id}` does not exist")]
+    #[error("{kind} `{id}` does not exist")]
     NoSuchId {
-        /// The not-found code of the kind of object.
-        code: ErrorCode,
-        /// "map", "localization" or "trip".
-        what: &'static str,
+        /// What the id names.
+        kind: IdKind,
         /// The id as the client wrote it.
         id: String,
     },
@@ -110,7 +108,11 @@ impl ApiError {
         use ErrorCode as C;
         match self {
             ApiError::App(e) => e.code(),
-            ApiError::NoSuchId { code, .. } => *code,
+            ApiError::NoSuchId { kind, .. } => match kind {
+                IdKind::Map => C::MapNotFound,
+                IdKind::Localization => C::LocalizationNotFound,
+                IdKind::Trip => C::TripNotFound,
+            },
             ApiError::ThumbnailNotFound(_) => C::ThumbnailNotFound,
             ApiError::PictureNotFound(_) => C::PictureNotFound,
             ApiError::AssetNotFound(_) => C::AssetNotFound,
@@ -161,18 +163,33 @@ impl ApiError {
         ApiError::App(AppError::Internal(cause.into()))
     }
 
-    /// A path id of `code`'s kind (`map_not_found`, ...) that no object can have.
-    pub fn no_such_id(code: ErrorCode, id: impl Into<String>) -> Self {
-        let what = match code {
-            ErrorCode::LocalizationNotFound => "localization",
-            ErrorCode::TripNotFound => "trip",
-            _ => "map",
-        };
+    /// A path id of `kind` that no object can have.
+    pub fn no_such_id(kind: IdKind, id: impl Into<String>) -> Self {
         ApiError::NoSuchId {
-            code,
-            what,
+            kind,
             id: id.into(),
         }
+    }
+}
+
+/// What a path id names, for [`ApiError::NoSuchId`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum IdKind {
+    /// A map.
+    Map,
+    /// A localization.
+    Localization,
+    /// A trip.
+    Trip,
+}
+
+impl std::fmt::Display for IdKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            IdKind::Map => "map",
+            IdKind::Localization => "localization",
+            IdKind::Trip => "trip",
+        })
     }
 }
 

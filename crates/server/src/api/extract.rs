@@ -5,10 +5,9 @@ use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{FromRequest, Request};
 use axum::http::{header, HeaderMap, StatusCode};
-use seasonloc_app::ErrorCode;
 use serde::de::DeserializeOwned;
 
-use super::error::ApiError;
+use super::error::{ApiError, IdKind};
 use super::state::AppState;
 use super::wire::parse_id;
 
@@ -90,7 +89,7 @@ pub fn bytes_rejection(r: BytesRejection, max_body: usize) -> ApiError {
 
 /// Parses a map id from a path or query; ids that cannot exist are 404.
 pub fn map_id(s: &str) -> Result<u64, ApiError> {
-    parse_id(s).ok_or_else(|| ApiError::no_such_id(ErrorCode::MapNotFound, s))
+    parse_id(s).ok_or_else(|| ApiError::no_such_id(IdKind::Map, s))
 }
 
 /// Parses a JSON document that must be an object (a request body, the `params` or `drive`

@@ -21,9 +21,8 @@ use axum::http::{header, HeaderMap, HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
-use seasonloc_app::ErrorCode;
 
-use crate::api::error::ApiError;
+use crate::api::error::{ApiError, IdKind};
 use crate::api::state::AppState;
 use crate::api::wire::parse_id;
 
@@ -166,7 +165,7 @@ async fn page(headers: HeaderMap) -> Response {
 
 /// A page about one object: the shell when the path holds a well-formed id (whether it exists
 /// is for the page to ask the API), the API's 404 when it cannot be an id at all.
-fn object_page(id: &str, headers: &HeaderMap, not_found: ErrorCode) -> Result<Response, ApiError> {
+fn object_page(id: &str, headers: &HeaderMap, not_found: IdKind) -> Result<Response, ApiError> {
     match parse_id(id) {
         Some(_) => Ok(serve(&SHELL, headers, true)),
         None => Err(ApiError::no_such_id(not_found, id)),
@@ -174,18 +173,18 @@ fn object_page(id: &str, headers: &HeaderMap, not_found: ErrorCode) -> Result<Re
 }
 
 async fn map_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ErrorCode::MapNotFound)
+    object_page(&id, &headers, IdKind::Map)
 }
 
 async fn localization_page(
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ErrorCode::LocalizationNotFound)
+    object_page(&id, &headers, IdKind::Localization)
 }
 
 async fn trip_page(Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
-    object_page(&id, &headers, ErrorCode::TripNotFound)
+    object_page(&id, &headers, IdKind::Trip)
 }
 
 async fn asset(Path(name): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {

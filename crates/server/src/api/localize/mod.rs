@@ -12,7 +12,6 @@ use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::Router;
-use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{
@@ -20,7 +19,7 @@ use self::dto::{
     LocalizeParams,
 };
 use crate::api::admission::Refusal;
-use crate::api::error::ApiError;
+use crate::api::error::{ApiError, IdKind};
 use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::views;
@@ -169,8 +168,7 @@ fn json_document(record: &LocalizationRecord, replayed: bool) -> Result<Response
 }
 
 async fn read(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let lid =
-        parse_id(&id).ok_or_else(|| ApiError::no_such_id(ErrorCode::LocalizationNotFound, id))?;
+    let lid = parse_id(&id).ok_or_else(|| ApiError::no_such_id(IdKind::Localization, id))?;
     json_document(&state.app.get_localization(lid).await?, false)
 }
 

@@ -16,14 +16,13 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{
     BatchTimings, FrameEstimateDto, FramesResponse, ListQuery, ReadQuery, TripListResponse,
     TripParamsDto, TripParamsUsed, TripResponse,
 };
-use crate::api::error::ApiError;
+use crate::api::error::{ApiError, IdKind};
 use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
@@ -51,7 +50,7 @@ fn status_name(s: TripStatus) -> String {
 }
 
 fn trip_id(s: &str) -> Result<u64, ApiError> {
-    parse_id(s).ok_or_else(|| ApiError::no_such_id(ErrorCode::TripNotFound, s))
+    parse_id(s).ok_or_else(|| ApiError::no_such_id(IdKind::Trip, s))
 }
 
 fn response(r: &TripRecord) -> TripResponse {

@@ -10,11 +10,10 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use seasonloc_app::ErrorCode;
 pub mod dto;
 
 use self::dto::{ImageInfo, ImagePage, ImagesQuery};
-use crate::api::error::ApiError;
+use crate::api::error::{ApiError, IdKind};
 use crate::api::extract::map_id;
 use crate::api::state::AppState;
 use crate::api::wire::{format_id, parse_id};
@@ -113,8 +112,8 @@ pub async fn picture(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let lid = parse_id(&id)
-        .ok_or_else(|| ApiError::no_such_id(ErrorCode::LocalizationNotFound, id.clone()))?;
+    let lid =
+        parse_id(&id).ok_or_else(|| ApiError::no_such_id(IdKind::Localization, id.clone()))?;
     match state.app.localization_picture(lid).await? {
         Some(png) => Ok(immutable(png, "image/png")),
         None => Err(ApiError::PictureNotFound(format!(
