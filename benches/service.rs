@@ -27,7 +27,7 @@ use std::time::Instant;
 use std::sync::Arc;
 
 use http::{Client, Part};
-use seasonloc_app::{App, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries};
+use seasonloc_app::{App, DescriptorSpec, ImageInput, LocalizeInput, NewMapSpec, Queries, Upload};
 use seasonloc_core::features::hog::{HogOptions, HogSpec};
 use seasonloc_core::features::{decode_image, extract_batch};
 use seasonloc_core::localize::{localize, LocalizeOptions};
@@ -401,14 +401,14 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
     };
     let maps: Arc<Vec<u64>> = Arc::new(
         (0..=CLIENTS)
-            .map(|_| rt.block_on(app.create_map(hog())).expect("map").id)
+            .map(|_| rt.block_on(app.create_map(hog(), None)).expect("map").0.id)
             .collect(),
     );
     // Fetched per request, as the API does (the map's image count moves).
     let append = |app: Arc<App>, map: u64, batch: Vec<ImageInput>| async move {
         let metas = vec![seasonloc_app::model::ImageMeta::default(); batch.len()];
-        let target = app.map_for_images(map).await.expect("map");
-        app.append_images(target, batch, metas)
+        let target = app.map_for(map, Upload::Images).await.expect("map");
+        app.append_images(target, batch, metas, None)
             .await
             .expect("append");
     };
@@ -443,7 +443,9 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
         concurrently(CLIENTS, w.rounds * batches, move |_, j| {
             let (app, input) = (Arc::clone(&app), request(j));
             async move {
-                app.localize(target, input).await.expect("localize");
+                app.localize(target, input, None, || {})
+                    .await
+                    .expect("localize");
             }
         })
     };
@@ -459,7 +461,8 @@ fn use_case_rates(w: &Workload) -> (Rates, Vec<f64>, f64) {
                     images.truncate(k);
                 }
                 let t = Instant::now();
-                rt.block_on(app.localize(target, input)).expect("localize");
+                rt.block_on(app.localize(target, input, None, || {}))
+                    .expect("localize");
                 t.elapsed()
             }))
         })

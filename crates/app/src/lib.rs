@@ -1,16 +1,19 @@
-//! The use-case layer: one async function per thing a client can do (create a map, append
-//! images / descriptors / drives, localize, open a trip, post frames, close it, read and
-//! list, delete), taking typed input and returning store records and core types.
+//! The application layer: the domain model ([`model`]), the storage port ([`store::Store`],
+//! implemented by the engines of `seasonloc-store`), the one table of error codes
+//! ([`ErrorCode`]), and the use cases: one async method of [`App`] per thing a client can do
+//! (create a map, append images / descriptors / drives, localize, open a trip, post frames,
+//! close it, read and list, delete), taking typed input and returning the model's records.
 //!
-//! [`App`] is the only caller of the [`Store`] and the only place that dispatches on a map's
-//! kind ([`kind`]); front ends (the HTTP API, later the dashboard) decode their input, call it,
-//! and encode its answer. Rules every use case keeps:
+//! [`App`] is the only caller of the [`Store`]; what differs between kinds of map is one small
+//! trait with one module per kind (`kind/`: global descriptors, co-occurrence maps), chosen in
+//! one place. Front ends (the HTTP API) decode their input, call a use case and encode its
+//! answer. Rules every use case keeps:
 //!
 //! * CPU work (decoding, extraction, similarities, solving, encoding a trip's state) runs on
 //!   the [`CpuPool`]; store I/O is awaited outside pool jobs, never inside one.
 //! * Nothing is written until everything that can fail on the input has been checked, and
 //!   every write is one atomic store call, so a failed request changes nothing.
-//! * What a process caches (`app/cache.rs`) is checked against the store's versions first, so
+//! * What a process caches (`cache.rs`) is checked against the store's versions first, so
 //!   several processes may serve one shared store.
 
 // Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
@@ -18,13 +21,11 @@
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
 mod cache;
-mod cooc;
-mod descriptors;
 mod error;
 mod idempotency;
 pub mod ids;
 mod images;
-pub mod kind;
+mod kind;
 mod localize;
 mod maps;
 pub mod model;
@@ -38,14 +39,15 @@ use std::sync::Arc;
 
 use crate::store::Store;
 
-pub use cooc::{DriveInput, DriveOutcome};
-pub use descriptors::map_extractor;
 pub use error::{AppError, AppResult, ErrorCode};
 pub use idempotency::Idempotency;
 pub use ids::new_id;
 pub use images::ImageInput;
-pub use localize::{LocalizeInput, Queries};
-pub use maps::{AppendOutcome, DescriptorSpec, NewMapSpec};
+pub use kind::cooc::{DriveInput, DriveOutcome};
+pub use kind::descriptors::map_extractor;
+pub use kind::{AppendOutcome, Queries, Upload};
+pub use localize::LocalizeInput;
+pub use maps::{DescriptorSpec, NewMapSpec};
 pub use models::ModelPolicy;
 pub use pool::CpuPool;
 pub use trips::{FramesOutcome, FramesTimings};

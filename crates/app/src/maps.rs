@@ -4,14 +4,13 @@
 //! An append is all-or-nothing: every image is decoded and described first (on the CPU pool),
 //! then the batch is one atomic store write; any error before that writes nothing.
 
-use std::ops::Range;
 use std::time::Instant;
 
 use super::error::{AppError, AppResult};
 use super::idempotency::{answered_id, id_answer, Idempotency};
-use super::images::{self, ImageInput};
-use super::kind::{kind, Kind};
-use super::{ids, map_extractor, App};
+use super::images::ImageInput;
+use super::kind::{self, AppendOutcome, Upload};
+use super::{ids, App};
 use crate::model::{CnnSettings, DescriptorSettings, ImageMeta, MapRecord};
 use crate::store::{IdempotencyRecord, ImageBatch, NewMap};
 use seasonloc_core::features::cnn::{CnnOptions, CnnSpec};
@@ -35,20 +34,6 @@ pub enum DescriptorSpec {
     Settings(DescriptorSettings),
     /// A CNN layer: the model is loaded and checked at creation, and its identity recorded.
     Cnn(CnnOptions),
-}
-
-/// The result of an append.
-#[derive(Clone, Debug, PartialEq)]
-pub struct AppendOutcome {
-    /// Route indices given to the new images.
-    pub indices: Range<u32>,
-    /// Seconds spent decoding and describing the images (none for descriptors).
-    pub features_seconds: Option<f64>,
-    /// Seconds of the store write, when it was a separate stage.
-    pub store_seconds: Option<f64>,
-    /// Whether this is the stored answer of an earlier request with the same idempotency key
-    /// (nothing was appended).
-    pub replayed: bool,
 }
 
 /// A CNN settings error at creation, naming the map spec's field.
@@ -129,15 +114,10 @@ fn check_hog_resize(cell_size: u32, (w, h): (u32, u32), max_len: usize) -> AppRe
 }
 
 impl App {
-    /// Creates a map.
-    pub async fn create_map(&self, spec: NewMapSpec) -> AppResult<MapRecord> {
-        Ok(self.create_map_once(spec, None).await?.0)
-    }
-
-    /// [`App::create_map`] with an optional idempotency key: a request whose key created a
+    /// Creates a map, with an optional idempotency key: a request whose key created a
     /// map already (on any replica, and the map still exists) creates none but answers that
     /// map, as it is now, with `true` (a replay).
-    pub async fn create_map_once(
+    pub async fn create_map(
         &self,
         spec: NewMapSpec,
         idempotency: Option<Idempotency>,
@@ -232,48 +212,21 @@ impl App {
         Ok(())
     }
 
-    /// The map that a batch of reference images is about to be appended to: fails before the
-    /// images are read when the map is gone or takes descriptors, not images.
-    pub async fn map_for_images(&self, id: u64) -> AppResult<MapRecord> {
+    /// The map that `upload` is about to be sent to: fails before the body is read when the
+    /// map is gone or its kind does not take it (`map_kind`).
+    pub async fn map_for(&self, id: u64, upload: Upload) -> AppResult<MapRecord> {
         let map = self.get_map(id).await?;
-        if let DescriptorSettings::Precomputed { .. } = map.descriptor {
-            return Err(AppError::MapKind(format!(
-                "map `{id:016x}` stores precomputed descriptors; post them to \
-                 /v1/maps/{id:016x}/descriptors"
-            )));
-        }
-        Ok(map)
-    }
-
-    /// The map that precomputed descriptors are about to be appended to: fails when it is gone
-    /// or is a co-occurrence map (built from images).
-    pub async fn map_for_descriptors(&self, id: u64) -> AppResult<MapRecord> {
-        let map = self.get_map(id).await?;
-        if let Kind::Cooc(_) = kind(&map) {
-            return Err(AppError::MapKind(format!(
-                "co-occurrence map `{id:016x}` is built from images; post them to \
-                 /v1/maps/{id:016x}/images"
-            )));
-        }
+        kind::of(&map).accepts(&map, upload)?;
         Ok(map)
     }
 
     /// Appends reference images (in route order, one metadata entry each) to `map` (from
-    /// [`App::map_for_images`]): described with the map's settings and stored, or, for a
-    /// co-occurrence map, its first batch builds the map.
-    pub async fn append_images(
-        &self,
-        map: MapRecord,
-        images: Vec<ImageInput>,
-        metas: Vec<ImageMeta>,
-    ) -> AppResult<AppendOutcome> {
-        self.append_images_once(map, images, metas, None).await
-    }
-
-    /// [`App::append_images`] with an optional idempotency key: a batch whose key was applied
+    /// [`App::map_for`]): described with the map's settings and stored, or, for a
+    /// co-occurrence map, its first batch builds the map. With an optional idempotency key: a
+    /// batch whose key was applied
     /// already (by any process) is not appended again but answered with the indices it got
     /// (`app/idempotency.rs`).
-    pub async fn append_images_once(
+    pub async fn append_images(
         &self,
         map: MapRecord,
         images: Vec<ImageInput>,
@@ -328,62 +281,15 @@ impl App {
                 images.len()
             )));
         }
-        if let Kind::Cooc(params) = kind(&map) {
-            let params = params.clone();
-            return self
-                .build_cooc(map, params, images, metas, idempotency)
-                .await;
-        }
-        let started = Instant::now();
-        let max_pixels = self.config.max_image_pixels;
-        let max_len = self.config.max_descriptor_len;
-        let id = map.id;
-        let (descriptors, thumbnails, geometry) = self
-            .pool
-            .run(move || {
-                let mut map = map;
-                let geometry = first_batch_geometry(&mut map, &images)?;
-                let Some(extractor) = map_extractor(&map)? else {
-                    return Err(AppError::MapKind(format!(
-                        "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
-                         images"
-                    )));
-                };
-                let rows = images::describe_with_thumbnails(
-                    extractor.as_ref(),
-                    &images,
-                    max_pixels,
-                    max_len,
-                    map.dim,
-                )?;
-                Ok((rows.0, rows.1, geometry))
-            })
-            .await?;
-        let features_seconds = started.elapsed().as_secs_f64();
-        let batch = ImageBatch::new(id, descriptors, metas)?
-            .with_thumbnails(thumbnails)?
-            .with_geometry(geometry)
-            .with_idempotency(idempotency);
-        let mut outcome = self.store_batch(batch).await?;
-        outcome.features_seconds = Some(features_seconds);
-        Ok(outcome)
-    }
-
-    /// Appends precomputed descriptors (one row per image, in route order) to a map of
-    /// global descriptors.
-    pub async fn append_descriptors(
-        &self,
-        map: u64,
-        descriptors: Matrix,
-        metas: Vec<ImageMeta>,
-    ) -> AppResult<AppendOutcome> {
-        self.append_descriptors_once(map, descriptors, metas, None)
+        kind::of(&map)
+            .append_images(self, map, images, metas, idempotency)
             .await
     }
 
-    /// [`App::append_descriptors`] with an optional idempotency key, as
-    /// [`App::append_images_once`] (one key space per map for both kinds of append).
-    pub async fn append_descriptors_once(
+    /// Appends precomputed descriptors (one row per image, in route order) to a map of global
+    /// descriptors, with an optional idempotency key, as
+    /// [`App::append_images`] (one key space per map for both kinds of append).
+    pub async fn append_descriptors(
         &self,
         map: u64,
         descriptors: Matrix,
@@ -416,7 +322,7 @@ impl App {
         Ok((map, metas))
     }
 
-    async fn store_batch(&self, batch: ImageBatch) -> AppResult<AppendOutcome> {
+    pub(crate) async fn store_batch(&self, batch: ImageBatch) -> AppResult<AppendOutcome> {
         let map = batch.map();
         let started = Instant::now();
         let indices = self.store.append_images(batch).await?;
@@ -434,30 +340,4 @@ impl App {
             replayed: false,
         })
     }
-}
-
-/// The input geometry a HOG map without one gets from its first batch: the size of the batch's
-/// first image (`features::geometry`), set into `map` so that the whole batch is described at
-/// it, and returned for the store to record. `None` (and `map` unchanged) for other maps, maps
-/// that already have images or a `resize`, and a first image that cannot hold one HOG cell
-/// (which the description then reports by name).
-fn first_batch_geometry(
-    map: &mut MapRecord,
-    images: &[ImageInput],
-) -> AppResult<Option<(u32, u32)>> {
-    let has_images = map.dim.is_some();
-    let DescriptorSettings::Hog { cell_size, resize } = &mut map.descriptor else {
-        return Ok(None);
-    };
-    let (Some(first), None, false) = (images.first(), *resize, has_images) else {
-        return Ok(None);
-    };
-    let (w, h) = images::dimensions(first)?;
-    let usable =
-        |side: u32| (*cell_size..=seasonloc_core::features::hog::MAX_RESIZE_SIDE).contains(&side);
-    if !(usable(w) && usable(h)) {
-        return Ok(None);
-    }
-    *resize = Some((w, h));
-    Ok(Some((w, h)))
 }

@@ -89,7 +89,7 @@ pub struct LocalizationRecord {
     pub result: LocalizationResult,
 }
 
-/// A stored trip (its solver state is kept separately, see [`Store::trip_state`]).
+/// A stored trip (its solver state is kept separately, see [`crate::store::Store::trip_state`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TripRecord {
     /// Trip id (growing with creation time).
@@ -100,7 +100,7 @@ pub struct TripRecord {
     pub created_ms: u64,
     /// When it was closed, if it was.
     pub closed_ms: Option<u64>,
-    /// Frames consumed so far: also the version of the trip's state (see [`TripBatch`]).
+    /// Frames consumed so far: also the version of the trip's state (see [`crate::store::TripBatch`]).
     pub frame_count: u64,
     /// The map's image count when the trip was opened: the trip localizes against those.
     pub reference_count: u32,

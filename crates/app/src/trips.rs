@@ -17,18 +17,18 @@
 
 use std::time::Instant;
 
-use super::cooc::RowSource;
 use super::error::{AppError, AppResult};
 use super::idempotency::{self, answered_id, id_answer, Idempotency};
 use super::images::{self, ImageInput};
-use super::kind::{kind, Kind};
+use super::kind;
+use super::kind::RowSource;
 use super::{ids, map_extractor, App};
 use crate::model::{MapRecord, TripRecord};
 use crate::store::{
     IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripState, TripStateWrite,
 };
 use seasonloc_core::similarity;
-use seasonloc_core::trip::{column_prior, BatchUpdate, FrameEstimate, Trip, TripParams};
+use seasonloc_core::trip::{BatchUpdate, FrameEstimate, Trip, TripParams};
 
 /// How often a batch is recomputed when another process changed the trip meanwhile.
 pub const CONFLICT_RETRIES: usize = 4;
@@ -63,15 +63,10 @@ pub struct FramesOutcome {
 }
 
 impl App {
-    /// Opens a trip on map `id` with validated parameters.
-    pub async fn open_trip(&self, id: u64, params: TripParams) -> AppResult<TripRecord> {
-        Ok(self.open_trip_once(id, params, None).await?.0)
-    }
-
-    /// [`App::open_trip`] with an optional idempotency key (the map's key space): a request
+    /// Opens a trip on map `id`, with an optional idempotency key (the map's key space): a request
     /// whose key opened a trip already (on any replica) opens none but answers that trip, as
     /// it is now, with `true` (a replay).
-    pub async fn open_trip_once(
+    pub async fn open_trip(
         &self,
         id: u64,
         params: TripParams,
@@ -92,40 +87,7 @@ impl App {
         idempotency: Option<IdempotencyRecord>,
     ) -> AppResult<TripRecord> {
         let map = self.get_map(id).await?;
-        if let Kind::Cooc(_) = kind(&map) {
-            let prior = self.cooc_trip_prior(&map).await?;
-            return self.create_trip(&map, prior, params, idempotency).await;
-        }
-        let checked = map.clone();
-        let has_extractor = self
-            .pool
-            .run(move || Ok(map_extractor(&checked)?.is_some()))
-            .await?;
-        if !has_extractor {
-            return Err(AppError::MapKind(format!(
-                "map `{id:016x}` stores client-computed descriptors; trips need a map that can \
-                 describe images (e.g. `hog`)"
-            )));
-        }
-        if map.image_count == 0 {
-            return Err(AppError::MapEmpty(id));
-        }
-        let count = map.image_count;
-        let prior = match self.priors.get(id, count) {
-            Some(p) => p,
-            None => {
-                let references = self
-                    .references
-                    .get(self.store.as_ref(), &self.pool, &map, count)
-                    .await?;
-                let prior = self
-                    .pool
-                    .run(move || Ok(std::sync::Arc::new(column_prior(&references)?)))
-                    .await?;
-                self.priors.keep(id, count, std::sync::Arc::clone(&prior));
-                prior
-            }
-        };
+        let prior = kind::of(&map).trip_prior(self, &map).await?;
         self.create_trip(&map, prior, params, idempotency).await
     }
 
@@ -163,15 +125,11 @@ impl App {
         Ok(record)
     }
 
-    /// Extends trip `id` by a batch of frames (in driving order).
-    pub async fn post_frames(&self, id: u64, frames: Vec<ImageInput>) -> AppResult<FramesOutcome> {
-        self.post_frames_once(id, frames, None).await
-    }
-
-    /// [`App::post_frames`] with an optional idempotency key: a batch whose key was applied
+    /// Posts a batch of frames to trip `id`, with an optional idempotency key: a batch whose
+    /// key was applied
     /// already (by any process) is not applied again but answered as the first time
     /// (`app/idempotency.rs`).
-    pub async fn post_frames_once(
+    pub async fn post_frames(
         &self,
         id: u64,
         frames: Vec<ImageInput>,
@@ -250,20 +208,9 @@ impl App {
             }
         };
         let map = self.get_map(record.map_id).await?;
-        let source = match kind(&map) {
-            Kind::Cooc(_) => RowSource::Cooc(Box::new(self.load_cooc(&map).await?.1)),
-            Kind::Descriptors(_) => RowSource::Descriptors(
-                self.normalized
-                    .get(
-                        &self.references,
-                        self.store.as_ref(),
-                        &self.pool,
-                        &map,
-                        record.reference_count,
-                    )
-                    .await?,
-            ),
-        };
+        let source = kind::of(&map)
+            .trip_rows(self, &map, record.reference_count)
+            .await?;
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
         let frame_count = record.frame_count;

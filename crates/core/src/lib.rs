@@ -1,17 +1,13 @@
-//! seasonloc: visual localization on a previously driven route, across seasons.
+//! seasonloc's algorithms: visual localization on a previously driven route, across seasons.
 //!
-//! The crate is layered (see `ARCHITECTURE.md`):
-//!
-//! * **core** — [`features`], [`similarity`], [`solver`], [`baselines`], [`eval`]: pure
-//!   algorithms on images, descriptor matrices and similarity matrices. They know nothing of
-//!   HTTP, JSON or the store, and report failures as [`Error`].
-//! * **cli** — the `seasonloc solve` / `seasonloc eval` front end (`src/cli`).
-//! * **app** — the use cases of the service ([`app`]): the only caller of the store, the only
-//!   dispatch on a map's kind, CPU work on its own pool.
-//! * **store** — the [`store::Store`] trait and its engines (sled, embedded, the default;
-//!   PostgreSQL, shared by replicas): only `store` knows a database.
-//! * **api** — the HTTP edge ([`api`], [`config`], [`service`]): only `api` knows axum and the
-//!   JSON wire types.
+//! The core of the workspace (see `ARCHITECTURE.md`): pure algorithms on images, descriptor
+//! matrices and similarity matrices, with no HTTP, JSON, async runtime or database; failures
+//! are [`Error`]. [`features`] (HOG; a CNN layer on tract behind the `cnn` feature),
+//! [`similarity`] (Eq. 1 and 2), [`solver`] (the flow graph), [`confidence`] and [`localize`]
+//! (from descriptors to hypotheses and predictions), [`trip`] (the online solver of a vehicle
+//! that posts frames as it drives), [`cooc`] (feature co-occurrence maps), [`baselines`],
+//! [`picture`] (what people look at) and [`eval`] (the evaluation protocol). The `serde` feature
+//! gives the results other layers store and send their serde forms.
 //!
 //! The method is Naseer, Burgard & Stachniss, *Robust Visual Localization Across Seasons*:
 //! global descriptors -> cosine similarity matrix (Eq. 1) -> column normalisation (Eq. 2)

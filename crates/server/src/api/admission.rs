@@ -202,7 +202,7 @@ impl Turn {
     /// Ends the turn of a localization whose computation ran to its end, recording how long
     /// it took (a turn dropped without this, e.g. a failed or cancelled request, is not
     /// counted). Called when the result is computed, before it is stored
-    /// ([`seasonloc_app::App::localize_once_then`]): a turn is CPU time.
+    /// ([`seasonloc_app::App::localize`]): a turn is CPU time.
     pub fn finish(self) {
         self.admission.record(self.started.elapsed().as_secs_f64());
     }

@@ -3,7 +3,7 @@
 //!
 //! Only this module knows PostgreSQL. It owns the schema (the SQL files in
 //! `migrations/postgres/`, applied in order at start-up by [`migrate`]) and keeps the write
-//! rules of [`crate::store`] with the database's own tools:
+//! rules of [`seasonloc_app::store`] with the database's own tools:
 //!
 //! * every change that spans several rows (a batch of images and the map's `image_count`, a
 //!   trip batch's record, state and estimates) is one transaction; a map's children reference

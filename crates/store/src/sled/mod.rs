@@ -2,7 +2,7 @@
 //! command needs nothing but the binary).
 //!
 //! Only this module knows sled. It owns the key layout and value encodings ([`codec`]), the
-//! layout version and its upgrades ([`migrate`]), and the write rules of [`crate::store`]:
+//! layout version and its upgrades ([`migrate`]), and the write rules of [`seasonloc_app::store`]:
 //!
 //! * every change that spans several keys (a batch of images plus the map's `image_count`, a
 //!   localization plus its index entry, a trip batch, a map and everything under it) is one

@@ -130,15 +130,19 @@ fn app(store: Arc<dyn Store>) -> App {
 
 async fn hog_map(app: &App, images: std::ops::Range<u32>) -> MapRecord {
     let map = app
-        .create_map(NewMapSpec {
-            name: "route".into(),
-            descriptor: DescriptorSpec::Settings(DescriptorSettings::Hog {
-                cell_size: 8,
-                resize: None,
-            }),
-        })
+        .create_map(
+            NewMapSpec {
+                name: "route".into(),
+                descriptor: DescriptorSpec::Settings(DescriptorSettings::Hog {
+                    cell_size: 8,
+                    resize: None,
+                }),
+            },
+            None,
+        )
         .await
-        .unwrap();
+        .unwrap()
+        .0;
     append(app, map.id, images).await;
     app.get_map(map.id).await.unwrap()
 }
@@ -146,8 +150,10 @@ async fn hog_map(app: &App, images: std::ops::Range<u32>) -> MapRecord {
 async fn append(app: &App, map: u64, images: std::ops::Range<u32>) {
     let frames: Vec<ImageInput> = images.map(|i| frame(i, false)).collect();
     let metas = vec![ImageMeta::default(); frames.len()];
-    let target = app.map_for_images(map).await.unwrap();
-    app.append_images(target, frames, metas).await.unwrap();
+    let target = app.map_for(map, Upload::Images).await.unwrap();
+    app.append_images(target, frames, metas, None)
+        .await
+        .unwrap();
 }
 
 fn queries(range: std::ops::Range<u32>) -> LocalizeInput {
@@ -173,7 +179,7 @@ async fn the_cpu_is_released_before_a_localization_is_stored(engine: Engine) {
     };
     let key = || Some(Idempotency::new("k-1", b"the same request".to_vec()).unwrap());
     let (first, replayed) = app
-        .localize_once_then(map.id, queries(5..15), key(), hook(&probed.computed))
+        .localize(map.id, queries(5..15), key(), hook(&probed.computed))
         .await
         .unwrap();
     assert!(!replayed);
@@ -181,7 +187,7 @@ async fn the_cpu_is_released_before_a_localization_is_stored(engine: Engine) {
     // A replay computes nothing.
     let again = Arc::new(AtomicBool::new(false));
     let (second, replayed) = app
-        .localize_once_then(map.id, queries(5..15), key(), hook(&again))
+        .localize(map.id, queries(5..15), key(), hook(&again))
         .await
         .unwrap();
     assert!(replayed);
@@ -195,7 +201,7 @@ async fn the_cpu_is_released_before_a_localization_is_stored(engine: Engine) {
         method: None,
     };
     let e = app
-        .localize_once_then(map.id, wrong, None, hook(&failed))
+        .localize(map.id, wrong, None, hook(&failed))
         .await
         .unwrap_err();
     assert!(matches!(e, AppError::DescriptorLength(_)), "{e}");
@@ -210,16 +216,25 @@ async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine
     let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
     let map = hog_map(&a, 0..20).await;
     // B caches the 20-image matrix.
-    let first = b.localize(map.id, queries(5..15)).await.unwrap();
+    let first = b
+        .localize(map.id, queries(5..15), None, || {})
+        .await
+        .unwrap()
+        .0;
     assert_eq!(first.result.reference_count, 20);
     // A appends; B's next localization uses all 40 images, exactly as a fresh process does.
     append(&a, map.id, 20..40).await;
-    let second = b.localize(map.id, queries(25..35)).await.unwrap();
+    let second = b
+        .localize(map.id, queries(25..35), None, || {})
+        .await
+        .unwrap()
+        .0;
     assert_eq!(second.result.reference_count, 40);
     let fresh = app(Arc::clone(&store))
-        .localize(map.id, queries(25..35))
+        .localize(map.id, queries(25..35), None, || {})
         .await
-        .unwrap();
+        .unwrap()
+        .0;
     assert_eq!(second.result.hypotheses, fresh.result.hypotheses);
     assert_eq!(second.result.predictions, fresh.result.predictions);
     // The queries are frames 25..35 of the route: the appended part was used.
@@ -233,7 +248,7 @@ async fn an_append_on_one_replica_is_seen_by_the_next_localize_on_another(engine
     // A map deleted on one replica is gone on the other, whatever it cached.
     a.delete_map(map.id).await.unwrap();
     assert!(matches!(
-        b.localize(map.id, queries(0..3)).await,
+        b.localize(map.id, queries(0..3), None, || {}).await,
         Err(AppError::Store(StoreError::MapNotFound(_)))
     ));
 }
@@ -248,13 +263,16 @@ async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) 
         lag: 6,
         ..TripParams::default()
     };
-    let shared = a.open_trip(map.id, params).await.unwrap();
-    let single = a.open_trip(map.id, params).await.unwrap();
+    let shared = a.open_trip(map.id, params, None).await.unwrap().0;
+    let single = a.open_trip(map.id, params, None).await.unwrap().0;
     for (k, start) in (0..30).step_by(5).enumerate() {
         let batch: Vec<ImageInput> = (start..start + 5).map(|i| frame(i, true)).collect();
         let replica = if k % 2 == 0 { &a } else { &b };
-        let x = replica.post_frames(shared.id, batch.clone()).await.unwrap();
-        let y = a.post_frames(single.id, batch).await.unwrap();
+        let x = replica
+            .post_frames(shared.id, batch.clone(), None)
+            .await
+            .unwrap();
+        let y = a.post_frames(single.id, batch, None).await.unwrap();
         assert_eq!(x.update, y.update, "batch {k}");
     }
     let (_, s1) = store.trip_state(shared.id).await.unwrap();
@@ -399,12 +417,16 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     ));
     let (a, b) = (app(Arc::clone(&gated)), app(Arc::clone(&gated)));
     let map = hog_map(&app(Arc::clone(&plain)), 0..30).await;
-    let trip = a.open_trip(map.id, TripParams::default()).await.unwrap();
+    let trip = a
+        .open_trip(map.id, TripParams::default(), None)
+        .await
+        .unwrap()
+        .0;
     let first: Vec<ImageInput> = (0..4).map(|i| frame(i, true)).collect();
     let second: Vec<ImageInput> = (4..10).map(|i| frame(i, true)).collect();
     let (x, y) = tokio::join!(
-        a.post_frames(trip.id, first.clone()),
-        b.post_frames(trip.id, second.clone())
+        a.post_frames(trip.id, first.clone(), None),
+        b.post_frames(trip.id, second.clone(), None)
     );
     let (x, y) = (x.unwrap(), y.unwrap());
     // Both applied, once each: one saw the other's frames already in the trip.
@@ -422,11 +444,12 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     };
     let single = app(Arc::clone(&plain));
     let reference = single
-        .open_trip(map.id, TripParams::default())
+        .open_trip(map.id, TripParams::default(), None)
         .await
-        .unwrap();
+        .unwrap()
+        .0;
     for batch in order {
-        single.post_frames(reference.id, batch).await.unwrap();
+        single.post_frames(reference.id, batch, None).await.unwrap();
     }
     let (_, want) = plain.trip_state(reference.id).await.unwrap();
     let (_, got) = plain.trip_state(trip.id).await.unwrap();

@@ -14,7 +14,7 @@ use crate::api::error::ApiError;
 use crate::api::extract::{map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::{idempotency, upload};
-use seasonloc_app::DriveInput;
+use seasonloc_app::{DriveInput, Upload};
 
 /// The routes of this resource.
 pub fn router() -> Router<AppState> {
@@ -28,7 +28,7 @@ async fn add_drive(
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<(HeaderMap, Json<DriveResponse>), ApiError> {
     let id = map_id(&id)?;
-    state.app.map_for_drives(id).await?;
+    state.app.map_for(id, Upload::Drive).await?;
     let s = &state.settings;
     let batch = upload::read(
         multipart.map_err(|r| upload::rejection(r, &headers))?,
@@ -61,7 +61,7 @@ async fn add_drive(
     let key = idempotency::from_tagged_request(&headers, "drives", &batch)?;
     let outcome = state
         .app
-        .add_drive_once(
+        .add_drive(
             id,
             DriveInput {
                 images: batch.images,

@@ -114,7 +114,7 @@ async fn run(
     // wait on the disk and the network, not on a CPU.
     let (record, replayed) = state
         .app
-        .localize_once_then(map, input, key, move || turn.finish())
+        .localize(map, input, key, move || turn.finish())
         .await?;
     if replayed {
         return json_document(&record, true);

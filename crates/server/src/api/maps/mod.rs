@@ -26,7 +26,7 @@ use crate::api::extract::{bytes_rejection, map_id, parse_json, parse_json_object
 use crate::api::state::AppState;
 use crate::api::{idempotency, upload, views};
 use seasonloc_app::model::{DescriptorSettings, ImageMeta};
-use seasonloc_app::{AppendOutcome, DescriptorSpec, NewMapSpec};
+use seasonloc_app::{AppendOutcome, DescriptorSpec, NewMapSpec, Upload};
 use seasonloc_core::cooc::CoocParams;
 use seasonloc_core::features::cnn::{CnnOptions, CnnResize};
 use seasonloc_core::features::hog::{HogOptions, HogSpec};
@@ -236,7 +236,7 @@ async fn create(
 ) -> Result<(StatusCode, HeaderMap, Json<MapResponse>), ApiError> {
     let spec = validate(req, state.settings.default_cnn_model.as_deref())?;
     let key = idempotency::from_parts(&headers, "maps", &[&body])?;
-    let (map, replayed) = state.app.create_map_once(spec, key).await?;
+    let (map, replayed) = state.app.create_map(spec, key).await?;
     Ok((
         StatusCode::CREATED,
         idempotency::headers(replayed),
@@ -311,7 +311,7 @@ async fn append_images(
     headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<(HeaderMap, Json<AppendResponse>), ApiError> {
-    let map = state.app.map_for_images(map_id(&id)?).await?;
+    let map = state.app.map_for(map_id(&id)?, Upload::Images).await?;
     let s = &state.settings;
     let batch = upload::read(
         multipart.map_err(|r| upload::rejection(r, &headers))?,
@@ -324,7 +324,7 @@ async fn append_images(
     let key = idempotency::from_request(&headers, &batch)?;
     let outcome = state
         .app
-        .append_images_once(map, batch.images, metas, key)
+        .append_images(map, batch.images, metas, key)
         .await?;
     let headers = idempotency::headers(outcome.replayed);
     Ok((headers, Json(appended(&state, &outcome))))
@@ -339,7 +339,7 @@ async fn append_descriptors(
 ) -> Result<(HeaderMap, Json<AppendResponse>), ApiError> {
     let id = map_id(&id)?;
     let body = body.map_err(|r| bytes_rejection(r, state.settings.max_body_bytes))?;
-    let map = state.app.map_for_descriptors(id).await?;
+    let map = state.app.map_for(id, Upload::Descriptors).await?;
     let max = state.settings.max_batch_images;
     let content_type = headers
         .get(header::CONTENT_TYPE)
@@ -402,7 +402,7 @@ async fn append_descriptors(
     let key = idempotency::from_parts(&headers, "descriptors", &[kind, dim.as_bytes(), &body])?;
     let outcome = state
         .app
-        .append_descriptors_once(id, descriptors, metas, key)
+        .append_descriptors(id, descriptors, metas, key)
         .await?;
     let headers = idempotency::headers(outcome.replayed);
     Ok((headers, Json(appended(&state, &outcome))))

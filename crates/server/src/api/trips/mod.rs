@@ -93,7 +93,7 @@ async fn open(
     };
     let params = dto.into_params()?;
     let key = idempotency::from_parts(&headers, "trips", &[&body])?;
-    let (record, replayed) = state.app.open_trip_once(map, params, key).await?;
+    let (record, replayed) = state.app.open_trip(map, params, key).await?;
     Ok((
         StatusCode::CREATED,
         idempotency::headers(replayed),
@@ -118,7 +118,7 @@ async fn frames(
     )
     .await?;
     let key = idempotency::from_request(&headers, &batch)?;
-    let outcome = state.app.post_frames_once(trip, batch.images, key).await?;
+    let outcome = state.app.post_frames(trip, batch.images, key).await?;
     let t = &outcome.timings;
     if !outcome.replayed {
         let m = &state.metrics;

@@ -50,7 +50,7 @@ pub fn decode_idempotency(
 }
 
 /// Encodes a localization record: ids and time, then the document's JSON
-/// ([`LocalizationRecord::to_json`]).
+/// ([`crate::document::localization_json`]).
 pub fn encode_localization(l: &LocalizationRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(l.id);
@@ -80,7 +80,7 @@ fn status_of(key: &[u8], code: u8) -> Result<Option<TripStatus>, StoreError> {
     }
 }
 
-/// Encodes a trip record (its parameters as [`TripParams::to_json`]).
+/// Encodes a trip record (its parameters as [`crate::document::trip_params_json`]).
 pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     w.u64(t.id);

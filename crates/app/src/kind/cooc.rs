@@ -19,42 +19,97 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::error::{AppError, AppResult};
-use super::idempotency::Idempotency;
-use super::images::{decode_gray, ImageInput};
-use super::kind::{kind, Kind};
-use super::maps::AppendOutcome;
-use super::App;
-use crate::model::{ImageMeta, MapRecord};
+use async_trait::async_trait;
+
+use super::{AppendOutcome, Computed, MapKind, Queries, RowSource, Upload};
+use crate::error::{AppError, AppResult};
+use crate::idempotency::Idempotency;
+use crate::images::{decode_gray, ImageInput};
+use crate::model::{DescriptorSettings, ImageMeta, MapRecord};
 use crate::store::{CoocWrite, IdempotencyRecord};
+use crate::App;
 use seasonloc_core::cooc::{CoocMap, CoocMethod, CoocOptions, CoocParams, CoocQueries, Drive};
 use seasonloc_core::localize::{Localization, LocalizeOptions};
-use seasonloc_core::Matrix;
 
 /// How many of a map's own images [`App::cooc_trip_prior`] scores (as for descriptor maps).
 const TRIP_PRIOR_SAMPLE: usize = 256;
 
-/// Where a trip's similarity rows come from: the map's reference descriptors (cosine rows), or
-/// its co-occurrence model (score rows `s + 1`, as `cooc-flow` offline). Either feeds the same
-/// online graph ([`seasonloc_core::trip::Trip::push_batch`]).
-pub(super) enum RowSource {
-    /// Reference descriptors of a HOG/CNN map, L2-normalised
-    /// ([`seasonloc_core::similarity::l2_normalized_rows`]).
-    Descriptors(Arc<Matrix>),
-    /// The decoded co-occurrence map.
-    Cooc(Box<CoocMap>),
-}
+/// The kind of feature co-occurrence maps.
+pub(crate) struct CoocMaps;
 
-impl RowSource {
-    /// The rows of a batch of frames on a co-occurrence map: quantised with its vocabulary and
-    /// scored against every location ([`CoocMap::trip_rows`]).
-    pub(super) fn cooc_rows(
-        map: &CoocMap,
-        frames: &[ImageInput],
-        max_pixels: u64,
-    ) -> AppResult<Matrix> {
-        let words = map.quantize_all(&decode_gray(frames, max_pixels)?)?;
-        Ok(map.trip_rows(&words))
+#[async_trait]
+impl MapKind for CoocMaps {
+    fn accepts(&self, map: &MapRecord, upload: Upload) -> AppResult<()> {
+        let id = map.id;
+        match upload {
+            Upload::Images | Upload::Drive => Ok(()),
+            Upload::Descriptors => Err(AppError::MapKind(format!(
+                "co-occurrence map `{id:016x}` is built from images; post them to \
+                 /v1/maps/{id:016x}/images"
+            ))),
+        }
+    }
+
+    async fn append_images(
+        &self,
+        app: &App,
+        map: MapRecord,
+        images: Vec<ImageInput>,
+        metas: Vec<ImageMeta>,
+        idempotency: Option<IdempotencyRecord>,
+    ) -> AppResult<AppendOutcome> {
+        let DescriptorSettings::Cooc(params) = &map.descriptor else {
+            return Err(AppError::Internal(format!(
+                "map `{:016x}` is not a co-occurrence map",
+                map.id
+            )));
+        };
+        let params = params.as_ref().clone();
+        app.build_cooc(map, params, images, metas, idempotency)
+            .await
+    }
+
+    async fn localize(
+        &self,
+        app: &App,
+        map: MapRecord,
+        queries: Queries,
+        options: &LocalizeOptions,
+        method: Option<CoocMethod>,
+    ) -> AppResult<Computed> {
+        let Queries::Images(parts) = queries else {
+            return Err(AppError::MapKind(format!(
+                "co-occurrence map `{:016x}` localizes images (multipart), not descriptors",
+                map.id
+            )));
+        };
+        let method = method.unwrap_or_default();
+        let query_count = parts.len();
+        let (localization, load_references, features) = app
+            .localize_cooc(&map, parts, method, options.clone())
+            .await?;
+        // The co-occurrence methods keep no similarity picture (yet).
+        Ok(Computed {
+            localization,
+            load_references,
+            features,
+            query_count,
+            method: Some(method),
+            picture: None,
+        })
+    }
+
+    async fn trip_prior(&self, app: &App, map: &MapRecord) -> AppResult<Arc<Vec<f32>>> {
+        app.cooc_trip_prior(map).await
+    }
+
+    async fn trip_rows(
+        &self,
+        app: &App,
+        map: &MapRecord,
+        _reference_count: u32,
+    ) -> AppResult<RowSource> {
+        Ok(RowSource::Cooc(Box::new(app.load_cooc(map).await?.1)))
     }
 }
 
@@ -173,27 +228,10 @@ impl App {
         })
     }
 
-    /// The map a drive is about to be added to: fails before the images are read when it is
-    /// gone or not a co-occurrence map.
-    pub async fn map_for_drives(&self, id: u64) -> AppResult<MapRecord> {
-        let map = self.get_map(id).await?;
-        if let Kind::Descriptors(_) = kind(&map) {
-            return Err(AppError::MapKind(format!(
-                "map `{id:016x}` is not a co-occurrence map; drives apply to maps of kind `cooc`"
-            )));
-        }
-        Ok(map)
-    }
-
-    /// Adds a further drive of the route to a co-occurrence map.
-    pub async fn add_drive(&self, id: u64, drive: DriveInput) -> AppResult<DriveOutcome> {
-        self.add_drive_once(id, drive, None).await
-    }
-
-    /// [`App::add_drive`] with an optional idempotency key (the map's key space, shared with
-    /// its image appends): a drive whose key was applied already is not fused again but answered
+    /// Adds a further drive of the route to a co-occurrence map, with an optional idempotency
+    /// key (the map's key space, shared with its image appends): a drive whose key was applied already is not fused again but answered
     /// as the first time (`app/idempotency.rs`).
-    pub async fn add_drive_once(
+    pub async fn add_drive(
         &self,
         id: u64,
         drive: DriveInput,
@@ -221,7 +259,7 @@ impl App {
         record: Option<IdempotencyRecord>,
     ) -> AppResult<DriveOutcome> {
         // Re-read: the map may have been built since the caller's check.
-        let map = self.map_for_drives(id).await?;
+        let map = self.map_for(id, Upload::Drive).await?;
         if drive.locations.len() != drive.images.len() {
             return Err(AppError::inconsistent(
                 "drive.locations",
