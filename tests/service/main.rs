@@ -18,6 +18,7 @@ mod flow;
 mod hardening;
 mod http;
 mod idempotency;
+mod outside;
 mod spec;
 mod stored;
 mod trips;

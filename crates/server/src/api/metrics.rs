@@ -3,8 +3,10 @@
 //!
 //! * `seasonloc_http_requests_total{method,route,status}` and
 //!   `seasonloc_http_request_duration_seconds{method,route}` (histogram), recorded by
-//!   [`track`] for every request; `route` is the matched route template, so ids do not explode
-//!   the label space;
+//!   [`track`] for every request, before authentication. Every label comes from a closed set,
+//!   so no client can grow the label space: `method` is one of HTTP's standard methods or
+//!   `other` ([`method_label`]), `route` the matched route template (ids do not explode it) or
+//!   `unmatched`, `status` a three-digit status;
 //! * `seasonloc_http_requests_by_key_total{key,status}`: requests that presented a known API
 //!   key, by the key's `name` (never the key itself);
 //! * `seasonloc_stage_duration_seconds{stage}` (histogram): `features`, `load_references`,
@@ -18,6 +20,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use axum::extract::{MatchedPath, Request, State};
+use axum::http::Method;
 use axum::middleware::Next;
 use axum::response::Response;
 
@@ -200,11 +203,30 @@ fn escape(s: &str) -> String {
     s.replace('\\', "\\\\").replace('"', "\\\"")
 }
 
+/// The `method` label of a request: the standard method's name, or `other` for any extension
+/// method (a client may send any token as a method, e.g. 1,000 characters of it, before it is
+/// authenticated; each distinct one would otherwise be a new series kept forever). The log
+/// span uses the same label.
+pub fn method_label(method: &Method) -> &'static str {
+    match *method {
+        Method::GET => "GET",
+        Method::HEAD => "HEAD",
+        Method::POST => "POST",
+        Method::PUT => "PUT",
+        Method::DELETE => "DELETE",
+        Method::OPTIONS => "OPTIONS",
+        Method::PATCH => "PATCH",
+        Method::TRACE => "TRACE",
+        Method::CONNECT => "CONNECT",
+        _ => "other",
+    }
+}
+
 /// Middleware recording count and latency of every request under its matched route (its state
 /// is the metrics alone, so this module does not depend on `state`).
 pub async fn track(State(metrics): State<Arc<Metrics>>, req: Request, next: Next) -> Response {
     let started = Instant::now();
-    let method = req.method().to_string();
+    let method = method_label(req.method());
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -214,7 +236,7 @@ pub async fn track(State(metrics): State<Arc<Metrics>>, req: Request, next: Next
         metrics.observe_key(&key.0, response.status().as_u16());
     }
     metrics.observe_request(
-        &method,
+        method,
         &route,
         response.status().as_u16(),
         started.elapsed().as_secs_f64(),
@@ -245,5 +267,19 @@ mod tests {
         assert!(text.contains("seasonloc_http_request_duration_seconds_bucket{method=\"GET\",route=\"/v1/maps/{id}\",le=\"+Inf\"} 2"));
         assert!(text.contains("seasonloc_stage_duration_seconds_count{stage=\"solve\"} 1"));
         assert!(text.contains("seasonloc_images_ingested_total 5"));
+    }
+
+    #[test]
+    fn extension_methods_share_one_label() {
+        for m in ["GET", "POST", "DELETE", "OPTIONS"] {
+            assert_eq!(method_label(&Method::from_bytes(m.as_bytes()).unwrap()), m);
+        }
+        let long = format!("M{}", "X".repeat(999));
+        for m in ["PROPFIND", "get", long.as_str()] {
+            assert_eq!(
+                method_label(&Method::from_bytes(m.as_bytes()).unwrap()),
+                "other"
+            );
+        }
     }
 }

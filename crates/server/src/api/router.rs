@@ -94,7 +94,7 @@ pub fn app(state: AppState) -> Router {
                     tracing::info_span!(
                         "request",
                         request_id = %id,
-                        method = %req.method(),
+                        method = %metrics::method_label(req.method()),
                         route = %route,
                         key = tracing::field::Empty
                     )
