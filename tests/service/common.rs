@@ -132,11 +132,26 @@ impl Process {
     /// Starts `seasonloc serve` with `args` and environment `env`, stderr to `log`, and waits
     /// for its "listening on" line.
     pub fn start(args: &[&str], env: &[(&str, &str)], log: &Path) -> Process {
-        let file = std::fs::File::create(log).unwrap();
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_seasonloc"));
-        cmd.arg("serve")
-            .args(args)
-            .env_remove("SEASONLOC_ADDR")
+        cmd.arg("serve").args(args);
+        Process::spawn(cmd, env, log)
+    }
+
+    /// [`Process::start`] through `sh shell... BINARY serve args...`, e.g. `["-c", "ulimit -n
+    /// \"$0\" && exec \"$@\"", "256"]`: the shell sets a limit, then becomes the server (same
+    /// pid).
+    pub fn start_under(shell: &[&str], args: &[&str], env: &[(&str, &str)], log: &Path) -> Process {
+        let mut cmd = Command::new("sh");
+        cmd.args(shell)
+            .arg(env!("CARGO_BIN_EXE_seasonloc"))
+            .arg("serve")
+            .args(args);
+        Process::spawn(cmd, env, log)
+    }
+
+    fn spawn(mut cmd: Command, env: &[(&str, &str)], log: &Path) -> Process {
+        let file = std::fs::File::create(log).unwrap();
+        cmd.env_remove("SEASONLOC_ADDR")
             .env_remove("SEASONLOC_DATA_DIR")
             .env("RUST_LOG", "info")
             .stdin(Stdio::null())
@@ -164,6 +179,11 @@ impl Process {
             );
             std::thread::sleep(Duration::from_millis(20));
         }
+    }
+
+    /// Whether the process is still running.
+    pub fn alive(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
     }
 
     /// Sends SIGTERM and waits; returns whether it exited successfully.

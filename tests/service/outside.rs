@@ -6,13 +6,15 @@
 //!
 //! Every server listens on 127.0.0.1; every load is bounded in count and time.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use serde_json::json;
 use sha2::{Digest, Sha256};
 
-use crate::common::Server;
-use crate::http::Client;
+use crate::common::{create_hog_map, engine_database, Process, Route, Server};
+use crate::http::{multipart_body, Client, Part, BOUNDARY};
+use crate::spec;
 
 const ADMIN: &str = "adm-42c1f0e9d8b7a6";
 const READER: &str = "rd-42e5d4c3b2a190";
@@ -32,6 +34,31 @@ fn write_keys(path: &Path) {
 
 fn bearer(key: &str) -> String {
     format!("Bearer {key}")
+}
+
+/// `n` route frames as multipart image parts (references, or queries of the other season).
+fn frames(route: &Route, range: std::ops::Range<u32>, query: bool) -> Vec<Part> {
+    range
+        .map(|i| {
+            let png = if query {
+                route.query_png(i)
+            } else {
+                route.reference_png(i)
+            };
+            Part::image(&format!("f{i}.png"), png)
+        })
+        .collect()
+}
+
+/// A HOG map of `n` frames of `route`.
+fn hog_map(client: &Client, route: &Route, n: u32) -> String {
+    let map = create_hog_map(client, "route", 8);
+    let r = client.post_multipart(
+        &format!("/v1/maps/{map}/images"),
+        &frames(route, 0..n, false),
+    );
+    assert_eq!(r.status, 200, "{}", r.message());
+    map
 }
 
 // ---- 1: metric labels --------------------------------------------------------------------------
@@ -72,4 +99,261 @@ fn distinct_long_methods_never_become_metric_labels() {
         "/metrics grew from {before} to {} bytes",
         text.len()
     );
+}
+
+// ---- 2: decoded pixels under a memory limit ----------------------------------------------------
+
+/// An all-zero 8-bit grey PNG of `w` x `h`: about 16 KB on the wire for 4000 x 4000, 16 MB
+/// decoded.
+fn zero_png(w: u32, h: u32) -> Vec<u8> {
+    let mut out = Vec::new();
+    let encoder = image::codecs::png::PngEncoder::new_with_quality(
+        &mut out,
+        image::codecs::png::CompressionType::Best,
+        image::codecs::png::FilterType::NoFilter,
+    );
+    image::ImageEncoder::write_image(
+        encoder,
+        &vec![0u8; (w * h) as usize],
+        w,
+        h,
+        image::ExtendedColorType::L8,
+    )
+    .unwrap();
+    out
+}
+
+/// A memory limit for one child process: a cgroup (v2 if the unified hierarchy has the memory
+/// controller, else v1) when this process may make one (root), else the child's address space
+/// (`ulimit -v`, RLIMIT_AS, which any user may lower; `SEASONLOC_TEST_RLIMIT_AS=1` picks it
+/// always).
+enum MemoryLimit {
+    Cgroup { dir: PathBuf, v2: bool },
+    AddressSpace,
+}
+
+/// The limit under a cgroup: the 128 images of a batch decode to 2 GB at once.
+const CGROUP_LIMIT: u64 = 768 << 20;
+/// The limit of the address space, which also counts what is reserved and never touched (the
+/// allocator's per-thread arenas, thread stacks): an idle server reserves about 800 MB.
+const ADDRESS_SPACE_LIMIT: u64 = 1536 << 20;
+
+impl MemoryLimit {
+    fn new(tag: &str) -> MemoryLimit {
+        if std::env::var_os("SEASONLOC_TEST_RLIMIT_AS").is_some() {
+            return MemoryLimit::AddressSpace;
+        }
+        let bytes = CGROUP_LIMIT;
+        let name = format!("seasonloc-test-{}-{tag}", std::process::id());
+        let v2 = Path::new("/sys/fs/cgroup");
+        let controllers =
+            std::fs::read_to_string(v2.join("cgroup.controllers")).unwrap_or_default();
+        if controllers.split_whitespace().any(|c| c == "memory") {
+            let _ = std::fs::write(v2.join("cgroup.subtree_control"), "+memory");
+            let dir = v2.join(&name);
+            if std::fs::create_dir(&dir).is_ok() {
+                if std::fs::write(dir.join("memory.max"), bytes.to_string()).is_ok() {
+                    let _ = std::fs::write(dir.join("memory.swap.max"), "0");
+                    return MemoryLimit::Cgroup { dir, v2: true };
+                }
+                let _ = std::fs::remove_dir(&dir);
+            }
+        }
+        let v1 = Path::new("/sys/fs/cgroup/memory");
+        if v1.join("cgroup.procs").exists() {
+            let dir = v1.join(&name);
+            if std::fs::create_dir(&dir).is_ok() {
+                if std::fs::write(dir.join("memory.limit_in_bytes"), bytes.to_string()).is_ok() {
+                    let _ =
+                        std::fs::write(dir.join("memory.memsw.limit_in_bytes"), bytes.to_string());
+                    return MemoryLimit::Cgroup { dir, v2: false };
+                }
+                let _ = std::fs::remove_dir(&dir);
+            }
+        }
+        MemoryLimit::AddressSpace
+    }
+
+    /// The limit in bytes.
+    fn bytes(&self) -> u64 {
+        match self {
+            MemoryLimit::Cgroup { .. } => CGROUP_LIMIT,
+            MemoryLimit::AddressSpace => ADDRESS_SPACE_LIMIT,
+        }
+    }
+
+    /// `sh -c` arguments that put the child under the limit, then `exec` it.
+    fn shell(&self) -> Vec<String> {
+        let bytes = self.bytes();
+        match self {
+            MemoryLimit::Cgroup { dir, .. } => vec![
+                "-c".into(),
+                r#"echo $$ > "$0" && exec "$@""#.into(),
+                dir.join("cgroup.procs").display().to_string(),
+            ],
+            MemoryLimit::AddressSpace => vec![
+                "-c".into(),
+                r#"ulimit -v "$0" && exec "$@""#.into(),
+                (bytes / 1024).to_string(),
+            ],
+        }
+    }
+
+    fn describe(&self) -> &'static str {
+        match self {
+            MemoryLimit::Cgroup { v2: true, .. } => "cgroup v2 memory.max",
+            MemoryLimit::Cgroup { v2: false, .. } => "cgroup v1 memory.limit_in_bytes",
+            MemoryLimit::AddressSpace => "RLIMIT_AS (ulimit -v)",
+        }
+    }
+
+    /// The cgroup's peak memory, if it has one.
+    fn peak(&self) -> Option<u64> {
+        let MemoryLimit::Cgroup { dir, v2 } = self else {
+            return None;
+        };
+        let file = if *v2 {
+            "memory.peak"
+        } else {
+            "memory.max_usage_in_bytes"
+        };
+        std::fs::read_to_string(dir.join(file))
+            .ok()?
+            .trim()
+            .parse()
+            .ok()
+    }
+}
+
+impl Drop for MemoryLimit {
+    fn drop(&mut self) {
+        if let MemoryLimit::Cgroup { dir, .. } = self {
+            for _ in 0..50 {
+                if std::fs::remove_dir(&*dir).is_ok() || !dir.exists() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+    }
+}
+
+/// `VmHWM` (peak resident memory) of a process, in bytes.
+fn peak_rss(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    Some(kb * 1024)
+}
+
+/// The serve arguments of a child process on this test binary's engine.
+fn engine_args(data: &Path) -> Vec<String> {
+    let mut args = vec![
+        "--addr".to_string(),
+        "127.0.0.1:0".to_string(),
+        "--data-dir".to_string(),
+        data.display().to_string(),
+    ];
+    if let Some(url) = engine_database() {
+        args.extend(["--database-url".to_string(), url]);
+    }
+    args
+}
+
+#[test]
+fn a_batch_of_decompression_bombs_is_decoded_within_a_memory_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let limit = MemoryLimit::new("bombs");
+    let mut args = engine_args(&dir.path().join("data"));
+    args.extend(["--worker-threads", "2", "--request-timeout-secs", "100"].map(String::from));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let shell = limit.shell();
+    let shell: Vec<&str> = shell.iter().map(String::as_str).collect();
+    let log = dir.path().join("serve.log");
+    let mut server = Process::start_under(&shell, &args, &[], &log);
+    let c = server.client;
+    let route = Route::new(20, 42);
+    let map = hog_map(&c, &route, 20);
+    let trip = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    assert_eq!(trip.status, 201, "{}", trip.message());
+    let trip = trip.json()["id"].as_str().unwrap().to_string();
+    // 16 MB decoded each, 2 GB for the 128 of a batch at once.
+    let bomb = zero_png(4000, 4000);
+    let started = Instant::now();
+    for (route, path, n) in [
+        ("trip frames", format!("/v1/trips/{trip}/frames"), 128),
+        ("localize", format!("/v1/maps/{map}/localize"), 128),
+        ("images", format!("/v1/maps/{map}/images"), 64),
+    ] {
+        let parts: Vec<Part> = (0..n)
+            .map(|i| Part::image(&format!("zero{i}.png"), bomb.clone()))
+            .collect();
+        let sent = Instant::now();
+        let r = c.try_request(
+            "POST",
+            &path,
+            Some(&format!("multipart/form-data; boundary={BOUNDARY}")),
+            &multipart_body(&parts),
+        );
+        let alive = server.alive();
+        let peak = limit.peak().or_else(|| peak_rss(server.child.id()));
+        eprintln!(
+            "{route} x{n} ({} KB): {:?} after {:.1} s; peak {} MiB under {} of {} MiB",
+            n * bomb.len() / 1024,
+            r.as_ref().map(|r| r.status),
+            sent.elapsed().as_secs_f64(),
+            peak.map_or(-1, |p| (p >> 20) as i64),
+            limit.describe(),
+            limit.bytes() >> 20
+        );
+        let log_text = std::fs::read_to_string(&log).unwrap_or_default();
+        assert!(
+            alive,
+            "{n} zero 4000x4000 PNGs as {route} killed the server under {}: {}",
+            limit.describe(),
+            log_text.lines().last().unwrap_or("")
+        );
+        let r = r.unwrap_or_else(|e| panic!("{route}: {e}"));
+        assert!(
+            r.status == 200 || (400..500).contains(&r.status),
+            "{route}: {} {}",
+            r.status,
+            r.message()
+        );
+    }
+    assert!(started.elapsed() < Duration::from_secs(240));
+}
+
+#[test]
+fn a_co_occurrence_batch_over_the_pixel_budget_is_refused_before_decoding() {
+    // A co-occurrence map's first batch is held decoded whole: 20 frames of 64 x 32 are
+    // 40,960 pixels, over a budget of 40,000.
+    let server = Server::start_with(|a| a.max_batch_pixels = 40_000);
+    let c = server.client;
+    let r = c.post_json(
+        "/v1/maps",
+        &json!({"name": "cooc", "descriptor": {"kind": "cooc", "vocabulary_branching": 8}}),
+    );
+    assert_eq!(r.status, 201, "{}", r.message());
+    let map = r.json()["id"].as_str().unwrap().to_string();
+    let route = Route::new(20, 5);
+    let path = format!("/v1/maps/{map}/images");
+    let r = c.post_multipart(&path, &frames(&route, 0..20, false));
+    assert_eq!(
+        (r.status, r.code().as_str()),
+        (400, "batch_too_large"),
+        "{}",
+        r.message()
+    );
+    assert!(r.message().contains("40960 pixels"), "{}", r.message());
+    spec::check("post", "/v1/maps/{id}/images", &r);
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 0);
+    // Within the budget the same map is built.
+    let r = c.post_multipart(&path, &frames(&route, 0..19, false));
+    assert_eq!(r.status, 200, "{}", r.message());
 }

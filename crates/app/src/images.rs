@@ -1,10 +1,16 @@
 //! Uploaded images: checking them (format and pixel count from the header, before decoding)
 //! and turning them into descriptor rows or grey images, on the current rayon pool.
 //!
+//! Memory: a descriptor map's batch is decoded one image per pool thread at a time (decoded,
+//! described, dropped), so its decoded pixels never exceed `threads x max_pixels` however many
+//! images it has; a co-occurrence batch that must be held whole is refused over a budget of
+//! decoded pixels (`max_batch_pixels`) before anything is decoded.
+//!
 //! Every image error names its part as the front end named it (the API uses
 //! `image[k] ("file name")`, `k` counting the batch's images from 0).
 
 use std::io::Cursor;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use bytes::Bytes;
 use image::GrayImage;
@@ -54,6 +60,10 @@ fn invalid(part: &ImageInput, reason: String) -> AppError {
 /// descriptors of one length, equal to `expected_dim` when given (the map's); violations name
 /// the first offending part, and at most `max_len` (checked from the header, before anything
 /// is decoded, so a request's memory is bounded in advance). Blocking: run on the CPU pool.
+///
+/// Each image is decoded, described and dropped by one task of the pool ([`each_part`]), so at
+/// most one decoded image per pool thread is alive at a time, whatever the batch's size: the
+/// decoded pixels of every request together stay under `threads x max_pixels`.
 pub fn describe(
     extractor: &dyn Extractor,
     parts: &[ImageInput],
@@ -61,19 +71,17 @@ pub fn describe(
     max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<Matrix> {
-    let images = decode_checked(
-        extractor,
-        parts,
-        max_pixels,
-        max_len,
-        expected_dim,
-        extractor.pixels(),
-    )?;
-    Ok(features::extract_batch(extractor, &images)?)
+    let dim = check_headers(extractor, parts, max_len, max_pixels, expected_dim)?;
+    let rows = each_part(parts, |p| {
+        let image = decode(p, max_pixels, extractor.pixels())?;
+        extract(extractor, p, &image, dim)
+    })?;
+    pack(rows, dim)
 }
 
 /// [`describe`] for reference images: also the JPEG thumbnail of each image
-/// ([`seasonloc_core::picture::thumbnail_jpeg`]), from the same decoded pixels. Blocking.
+/// ([`seasonloc_core::picture::thumbnail_jpeg`]), from the same decoded pixels. Blocking; one
+/// decoded image per pool thread at a time, as [`describe`].
 pub fn describe_with_thumbnails(
     extractor: &dyn Extractor,
     parts: &[ImageInput],
@@ -81,71 +89,56 @@ pub fn describe_with_thumbnails(
     max_len: usize,
     expected_dim: Option<u32>,
 ) -> AppResult<(Matrix, Vec<Vec<u8>>)> {
-    // Thumbnails show colour; the descriptors read what the extractor reads (a camera JPEG's
-    // Y plane for HOG), exactly as for queries, so references and queries match.
-    let images = decode_checked(
-        extractor,
-        parts,
-        max_pixels,
-        max_len,
-        expected_dim,
-        features::Pixels::Colour,
-    )?;
-    let descriptors = if extractor.pixels() == features::Pixels::Colour {
-        features::extract_batch(extractor, &images)?
-    } else {
-        // The extractor's own pixels from the colour decode where they are the same image
-        // (PNG), decoded again where not (a camera JPEG's Y plane).
-        let own = parts
-            .par_iter()
-            .zip(&images)
-            .map(|(p, colour)| {
-                match features::from_colour_decode(&p.bytes, colour, extractor.pixels()) {
-                    Some(image) => Ok(image),
-                    None => {
-                        features::decode_image_as(&p.name, &p.bytes, max_pixels, extractor.pixels())
-                            .map_err(AppError::from)
-                    }
+    let dim = check_headers(extractor, parts, max_len, max_pixels, expected_dim)?;
+    let own = extractor.pixels();
+    let rows = each_part(parts, |p| {
+        // Thumbnails show colour; the descriptors read what the extractor reads (a camera
+        // JPEG's Y plane for HOG), exactly as for queries, so references and queries match.
+        let colour = decode(p, max_pixels, features::Pixels::Colour)?;
+        let thumbnail = seasonloc_core::picture::thumbnail_jpeg(&colour)?;
+        let values = if own == features::Pixels::Colour {
+            extract(extractor, p, &colour, dim)?
+        } else {
+            // The extractor's own pixels from the colour decode where they are the same image
+            // (PNG), decoded again where not (a camera JPEG's Y plane), the colour pixels
+            // dropped first.
+            let image = match features::from_colour_decode(&p.bytes, &colour, own) {
+                Some(image) => image,
+                None => {
+                    drop(colour);
+                    decode(p, max_pixels, own)?
                 }
-            })
-            .collect::<AppResult<Vec<_>>>()?;
-        features::extract_batch(extractor, &own)?
-    };
-    let thumbnails = images
-        .par_iter()
-        .map(|img| seasonloc_core::picture::thumbnail_jpeg(img).map_err(AppError::from))
-        .collect::<AppResult<Vec<_>>>()?;
-    Ok((descriptors, thumbnails))
+            };
+            extract(extractor, p, &image, dim)?
+        };
+        Ok((values, thumbnail))
+    })?;
+    let (rows, thumbnails) = rows.into_iter().unzip();
+    Ok((pack(rows, dim)?, thumbnails))
 }
 
-/// Checks every part's header (format, pixel count, descriptor length) before decoding any,
-/// then decodes them all.
-fn decode_checked(
+/// Checks every part's header (format, pixel count, descriptor length) before decoding any;
+/// the batch's descriptor length.
+fn check_headers(
     extractor: &dyn Extractor,
     parts: &[ImageInput],
-    max_pixels: u64,
     max_len: usize,
+    max_pixels: u64,
     expected_dim: Option<u32>,
-    pixels: features::Pixels,
-) -> AppResult<Vec<image::DynamicImage>> {
+) -> AppResult<usize> {
+    if parts.is_empty() {
+        return Err(AppError::EmptyBatch(
+            "no images to extract descriptors from".into(),
+        ));
+    }
     let dims = parts
         .par_iter()
         .map(|p| {
-            let (w, h) = dimensions(p)?;
-            let pixels = u64::from(w) * u64::from(h);
-            if pixels > max_pixels {
-                return Err(AppError::ImageTooLarge {
-                    part: p.name.clone(),
-                    width: w,
-                    height: h,
-                    pixels,
-                    limit: max_pixels,
-                });
-            }
+            let (w, h) = checked_dimensions(p, max_pixels)?;
             let dim = extractor
                 .dim_for(w, h)
                 .map_err(|e| invalid(p, e.to_string()))?;
-            Ok((w, h, dim))
+            Ok::<_, AppError>((w, h, dim))
         })
         .collect::<Vec<_>>();
     let mut first: Option<(u32, u32, usize)> = None;
@@ -180,29 +173,148 @@ fn decode_checked(
             Some(_) => {}
         }
     }
-    decode_all(parts, max_pixels, pixels)
+    Ok(first.map_or(0, |(_, _, d)| d))
 }
 
-/// Decodes every part as `pixels`, in order (headers already checked). Blocking.
-fn decode_all(
+/// The upright size of a part from its header, refused over `max_pixels` before decoding.
+fn checked_dimensions(p: &ImageInput, max_pixels: u64) -> AppResult<(u32, u32)> {
+    let (w, h) = dimensions(p)?;
+    let pixels = u64::from(w) * u64::from(h);
+    if pixels > max_pixels {
+        return Err(AppError::ImageTooLarge {
+            part: p.name.clone(),
+            width: w,
+            height: h,
+            pixels,
+            limit: max_pixels,
+        });
+    }
+    Ok((w, h))
+}
+
+/// Runs `work` on every part on the current rayon pool and gives the results in order, or the
+/// error of the first failing part in order. Each task holds what `work` decodes only while it
+/// runs, so a batch's decoded pixels are at most one image per pool thread; once a part
+/// failed, the parts after it are not worked on.
+fn each_part<T: Send>(
     parts: &[ImageInput],
+    work: impl Fn(&ImageInput) -> AppResult<T> + Sync,
+) -> AppResult<Vec<T>> {
+    let first_bad = AtomicUsize::new(usize::MAX);
+    let results: Vec<Option<AppResult<T>>> = parts
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if i > first_bad.load(Ordering::Relaxed) {
+                return None;
+            }
+            let r = work(p);
+            if r.is_err() {
+                first_bad.fetch_min(i, Ordering::Relaxed);
+            }
+            Some(r)
+        })
+        .collect();
+    // A part is skipped only after a failure at a lower index, whose error returns first.
+    results.into_iter().flatten().collect()
+}
+
+/// Decodes one part as `pixels` (its header already checked). Blocking.
+fn decode(
+    p: &ImageInput,
     max_pixels: u64,
     pixels: features::Pixels,
-) -> AppResult<Vec<image::DynamicImage>> {
-    parts
-        .par_iter()
-        .map(|p| {
-            features::decode_image_as(&p.name, &p.bytes, max_pixels, pixels).map_err(AppError::from)
-        })
-        .collect()
+) -> AppResult<image::DynamicImage> {
+    Ok(features::decode_image_as(
+        &p.name, &p.bytes, max_pixels, pixels,
+    )?)
 }
 
-/// Decodes the parts to grey images, in order (the co-occurrence method's input). Blocking.
-pub fn decode_gray(parts: &[ImageInput], max_pixels: u64) -> AppResult<Vec<GrayImage>> {
+/// The descriptor of one decoded part, checked to have the batch's length `dim` (the
+/// extractor's promise from the header). Errors name the part.
+fn extract(
+    extractor: &dyn Extractor,
+    p: &ImageInput,
+    image: &image::DynamicImage,
+    dim: usize,
+) -> AppResult<Vec<f32>> {
+    use seasonloc_core::Error as E;
+    let values = extractor.extract(image).map_err(|e| match e {
+        // The extractor does not know the part's name.
+        E::Image { reason, .. } => invalid(p, reason),
+        e @ (E::InvalidParameter { .. }
+        | E::Inconsistent { .. }
+        | E::NonFinite { .. }
+        | E::Shape(_)
+        | E::Empty(_)
+        | E::Io { .. }
+        | E::Format { .. }) => AppError::from(e),
+    })?;
+    if values.len() != dim {
+        return Err(AppError::ShapeMismatch(format!(
+            "{}: the extractor produced {} values but announced {dim}",
+            p.name,
+            values.len()
+        )));
+    }
+    Ok(values)
+}
+
+/// Rows of one length `dim` as a matrix.
+fn pack(rows: Vec<Vec<f32>>, dim: usize) -> AppResult<Matrix> {
+    let n = rows.len();
+    let mut data = Vec::with_capacity(n * dim);
+    for r in rows {
+        data.extend_from_slice(&r);
+    }
+    Ok(Matrix::from_vec(n, dim, data)?)
+}
+
+/// Decodes the parts to grey images, in order (the co-occurrence method's input, held whole:
+/// a drive's model is built from all its images at once). The batch's decoded pixels, the sum
+/// of its images' sizes from their headers, must stay within `max_batch_pixels`
+/// ([`AppError::BatchPixels`], checked before anything is decoded). Blocking.
+pub fn decode_gray(
+    parts: &[ImageInput],
+    max_pixels: u64,
+    max_batch_pixels: u64,
+) -> AppResult<Vec<GrayImage>> {
+    let sizes = parts
+        .par_iter()
+        .map(|p| checked_dimensions(p, max_pixels))
+        .collect::<AppResult<Vec<_>>>()?;
+    let pixels: u64 = sizes
+        .iter()
+        .map(|&(w, h)| u64::from(w) * u64::from(h))
+        .sum();
+    if pixels > max_batch_pixels {
+        return Err(AppError::BatchPixels {
+            images: parts.len(),
+            pixels,
+            limit: max_batch_pixels,
+        });
+    }
     parts
         .par_iter()
         .map(|p| Ok(features::decode_gray(&p.name, &p.bytes, max_pixels)?))
         .collect()
+}
+
+/// Decodes each part to grey and hands it to `work` (e.g. extracting and quantising its
+/// features), in order; the pixels are dropped as soon as `work` returns, so at most one
+/// decoded image per pool thread is alive at a time ([`each_part`]). Blocking.
+pub fn each_gray<T: Send>(
+    parts: &[ImageInput],
+    max_pixels: u64,
+    work: impl Fn(&ImageInput, &GrayImage) -> AppResult<T> + Sync,
+) -> AppResult<Vec<T>> {
+    for p in parts {
+        checked_dimensions(p, max_pixels)?;
+    }
+    each_part(parts, |p| {
+        let gray = features::decode_gray(&p.name, &p.bytes, max_pixels)?;
+        work(p, &gray)
+    })
 }
 
 #[cfg(test)]

@@ -59,6 +59,11 @@ pub struct AppConfig {
     pub worker_threads: usize,
     /// Largest accepted image in pixels, checked from the header before decoding.
     pub max_image_pixels: u64,
+    /// Most decoded pixels of a batch that is held decoded as a whole (a co-occurrence map's
+    /// first batch or drive), the sum of its images' sizes checked from their headers before
+    /// decoding. Batches described image by image need no such budget: at most one decoded
+    /// image per CPU-pool thread is alive at a time.
+    pub max_batch_pixels: u64,
     /// Model of CNN maps created without one.
     pub default_cnn_model: Option<PathBuf>,
     /// Longest descriptor an image may give or a map may have (f32 values).

@@ -32,6 +32,12 @@ pub struct ServeArgs {
     /// Largest accepted image in pixels (width x height), checked before decoding.
     #[arg(long, env = "SEASONLOC_MAX_IMAGE_PIXELS", default_value_t = 16_000_000)]
     pub max_image_pixels: u64,
+    /// Most decoded pixels of a batch that is held decoded as a whole (a co-occurrence map's
+    /// first batch or a drive: the sum of the images' width x height, checked from their
+    /// headers before decoding); larger batches get 400 `batch_too_large`. Other batches are
+    /// decoded one image per CPU-pool thread at a time and need no such budget.
+    #[arg(long, env = "SEASONLOC_MAX_BATCH_PIXELS", default_value_t = 1 << 28)]
+    pub max_batch_pixels: u64,
     /// Seconds after which a request is abandoned with 503 `timeout`.
     #[arg(long, env = "SEASONLOC_REQUEST_TIMEOUT_SECS", default_value_t = 120)]
     pub request_timeout_secs: u64,
@@ -119,6 +125,7 @@ impl Default for ServeArgs {
             max_body_bytes: 64 * 1024 * 1024,
             max_batch_images: 4096,
             max_image_pixels: 16_000_000,
+            max_batch_pixels: 1 << 28,
             request_timeout_secs: 120,
             max_concurrent_requests: 256,
             localize_queue: 16,
@@ -155,6 +162,8 @@ pub struct Settings {
     pub max_batch_images: usize,
     /// Pixel limit per image, > 0.
     pub max_image_pixels: u64,
+    /// Decoded-pixel budget of a batch held whole, > 0.
+    pub max_batch_pixels: u64,
     /// Per-request timeout, > 0.
     pub request_timeout: Duration,
     /// Concurrency limit, > 0.
@@ -236,6 +245,7 @@ impl ServeArgs {
         positive("localize_max_wait_secs", self.localize_max_wait_secs)?;
         positive("header_read_timeout_secs", self.header_read_timeout_secs)?;
         positive("body_read_timeout_secs", self.body_read_timeout_secs)?;
+        positive("max_batch_pixels", self.max_batch_pixels)?;
         if self.localize_max_wait_secs >= self.request_timeout_secs {
             return Err(ConfigError {
                 name: "localize_max_wait_secs",
@@ -342,6 +352,7 @@ impl ServeArgs {
             max_body_bytes: self.max_body_bytes,
             max_batch_images: self.max_batch_images,
             max_image_pixels: self.max_image_pixels,
+            max_batch_pixels: self.max_batch_pixels,
             request_timeout: Duration::from_secs(self.request_timeout_secs),
             max_concurrent_requests: self.max_concurrent_requests,
             localize_queue: self.localize_queue,

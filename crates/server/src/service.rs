@@ -59,6 +59,7 @@ pub fn app_config(settings: &Settings) -> AppConfig {
     AppConfig {
         worker_threads: settings.worker_threads,
         max_image_pixels: settings.max_image_pixels,
+        max_batch_pixels: settings.max_batch_pixels,
         default_cnn_model: settings.default_cnn_model.clone(),
         max_descriptor_len: settings.max_descriptor_len,
         models: seasonloc_app::ModelPolicy {

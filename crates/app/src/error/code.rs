@@ -69,7 +69,8 @@ error_codes! {
     BadRequest = "bad_request", 400;
     /// Nothing to work on (no frames, no queries, no descriptors).
     EmptyBatch = "empty_batch", 400;
-    /// More images or descriptors in one request than the configured limit.
+    /// More images or descriptors in one request than the configured limit, or a batch held
+    /// decoded whole over the budget of decoded pixels.
     BatchTooLarge = "batch_too_large", 400;
     /// No key, or a key the service does not know (`WWW-Authenticate: Bearer`).
     Unauthorized = "unauthorized", 401;

@@ -72,6 +72,20 @@ pub enum AppError {
         /// The configured limit.
         limit: u64,
     },
+    /// A batch held decoded as a whole (a co-occurrence map's drive) over the budget of
+    /// decoded pixels.
+    #[error(
+        "the {images} images of this batch would decode to {pixels} pixels, more than the \
+         configured budget of {limit} decoded pixels per batch (send fewer or smaller images)"
+    )]
+    BatchPixels {
+        /// Images in the batch.
+        images: usize,
+        /// The sum of their sizes.
+        pixels: u64,
+        /// The configured budget.
+        limit: u64,
+    },
     /// An image that is not a decodable JPEG/PNG.
     #[error("{part}: {reason}")]
     InvalidImage {
@@ -140,6 +154,7 @@ impl AppError {
             AppError::InvalidParameter { .. } => C::InvalidParameter,
             AppError::InconsistentParameter { .. } => C::InconsistentParameter,
             AppError::EmptyBatch(_) => C::EmptyBatch,
+            AppError::BatchPixels { .. } => C::BatchTooLarge,
             AppError::MapEmpty(_) => C::MapEmpty,
             AppError::ModelMismatch(_) => C::ModelMismatch,
             AppError::MapKind(_) => C::MapKind,

@@ -24,7 +24,7 @@ use async_trait::async_trait;
 use super::{AppendOutcome, Computed, MapKind, Queries, RowSource, Upload};
 use crate::error::{AppError, AppResult};
 use crate::idempotency::Idempotency;
-use crate::images::{decode_gray, ImageInput};
+use crate::images::{decode_gray, each_gray, ImageInput};
 use crate::model::{DescriptorSettings, ImageMeta, MapRecord};
 use crate::store::{CoocWrite, IdempotencyRecord};
 use crate::App;
@@ -200,11 +200,11 @@ impl App {
             )));
         }
         let started = Instant::now();
-        let max_pixels = self.config.max_image_pixels;
+        let (max_pixels, max_batch) = (self.config.max_image_pixels, self.config.max_batch_pixels);
         let encoded = self
             .pool
             .run(move || {
-                let gray = decode_gray(&images, max_pixels)?;
+                let gray = decode_gray(&images, max_pixels, max_batch)?;
                 let built = CoocMap::build(&params, &[Drive::sequential(0.0, gray)?])?;
                 Ok(built.to_bytes())
             })
@@ -290,12 +290,12 @@ impl App {
             });
         }
         let (previous, mut cooc) = self.load_cooc(&map).await?;
-        let max_pixels = self.config.max_image_pixels;
+        let (max_pixels, max_batch) = (self.config.max_image_pixels, self.config.max_batch_pixels);
         let images = drive.images.len();
         let (encoded, drives) = self
             .pool
             .run(move || {
-                let gray = decode_gray(&drive.images, max_pixels)?;
+                let gray = decode_gray(&drive.images, max_pixels, max_batch)?;
                 let locations = drive.locations.iter().map(|&l| l as usize).collect();
                 cooc.add_drive(&Drive::new(drive.time, gray, locations)?)?;
                 Ok((cooc.to_bytes(), cooc.locations().drives().len()))
@@ -353,7 +353,11 @@ impl App {
         self.pool
             .run(move || {
                 let started = Instant::now();
-                let queries = CoocQueries::new(&cooc, &decode_gray(&parts, max_pixels)?)?;
+                // Each query is decoded, quantised and dropped in turn (no batch held decoded).
+                let words = each_gray(&parts, max_pixels, |p, gray| {
+                    Ok(cooc.quantize(&p.name, gray)?)
+                })?;
+                let queries = CoocQueries::from_words(&cooc, words);
                 let features = started.elapsed().as_secs_f64();
                 let options = CoocOptions {
                     flow: options,

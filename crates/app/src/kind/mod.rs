@@ -13,7 +13,7 @@ use std::sync::Arc;
 use async_trait::async_trait;
 
 use crate::error::AppResult;
-use crate::images::{decode_gray, ImageInput};
+use crate::images::{each_gray, ImageInput};
 use crate::model::{DescriptorSettings, ImageMeta, MapRecord};
 use crate::store::IdempotencyRecord;
 use crate::App;
@@ -156,7 +156,10 @@ impl RowSource {
         frames: &[ImageInput],
         max_pixels: u64,
     ) -> AppResult<Matrix> {
-        let words = map.quantize_all(&decode_gray(frames, max_pixels)?)?;
+        // Each frame is decoded, quantised and dropped in turn (no batch held decoded).
+        let words = each_gray(frames, max_pixels, |p, gray| {
+            Ok(map.quantize(&p.name, gray)?)
+        })?;
         Ok(map.trip_rows(&words))
     }
 }

@@ -117,6 +117,7 @@ fn app(store: Arc<dyn Store>) -> App {
         AppConfig {
             worker_threads: 2,
             max_image_pixels: 1 << 20,
+            max_batch_pixels: 1 << 28,
             default_cnn_model: None,
             max_descriptor_len: 1 << 20,
             models: seasonloc_app::ModelPolicy {
