@@ -6,13 +6,15 @@
 //!
 //! Every server listens on 127.0.0.1; every load is bounded in count and time.
 
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use serde_json::json;
 use sha2::{Digest, Sha256};
 
-use crate::common::{create_hog_map, engine_database, Process, Route, Server};
+use crate::common::{create_hog_map, create_vector_map, engine_database, Process, Route, Server};
 use crate::http::{multipart_body, Client, Part, BOUNDARY};
 use crate::spec;
 
@@ -356,4 +358,148 @@ fn a_co_occurrence_batch_over_the_pixel_budget_is_refused_before_decoding() {
     // Within the budget the same map is built.
     let r = c.post_multipart(&path, &frames(&route, 0..19, false));
     assert_eq!(r.status, 200, "{}", r.message());
+}
+
+// ---- 3: slow bodies ----------------------------------------------------------------------------
+
+/// A request whose header and the start of a multipart body are sent at once; the rest never
+/// comes (until `drip` is called).
+struct SlowBody {
+    stream: TcpStream,
+}
+
+impl SlowBody {
+    fn open(addr: SocketAddr, path: &str) -> SlowBody {
+        let mut stream = TcpStream::connect(addr).unwrap();
+        let head = format!(
+            "POST {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: multipart/form-data; \
+             boundary={BOUNDARY}\r\nContent-Length: 1000000\r\n\r\n--{BOUNDARY}\r\n\
+             Content-Disposition: form-data; name=\"image\"; filename=\"slow.png\"\r\n\
+             Content-Type: image/png\r\n\r\n"
+        );
+        stream.write_all(head.as_bytes()).unwrap();
+        SlowBody { stream }
+    }
+
+    /// Sends one more byte of the body (false once the server has closed the connection).
+    fn drip(&mut self) -> bool {
+        self.stream.write_all(b"\0").is_ok()
+    }
+
+    /// The status the server answered with, waiting at most `bound`.
+    fn status(&mut self, bound: Duration) -> Option<u16> {
+        self.stream.set_read_timeout(Some(bound)).unwrap();
+        let mut buf = [0u8; 512];
+        let n = self.stream.read(&mut buf).ok()?;
+        let text = String::from_utf8_lossy(&buf[..n]);
+        text.split(' ').nth(1)?.parse().ok()
+    }
+}
+
+#[test]
+fn a_body_that_keeps_trickling_gets_408_at_its_deadline() {
+    let server = Server::start_with(|a| {
+        a.body_deadline_secs = 2;
+        a.body_read_timeout_secs = 20;
+    });
+    let c = server.client;
+    let map = create_hog_map(&c, "m", 8);
+    let mut slow = SlowBody::open(c.addr, &format!("/v1/maps/{map}/images"));
+    let started = Instant::now();
+    // One byte every 200 ms: never a stall, but never a whole body either.
+    let status = loop {
+        if !slow.drip() {
+            break slow.status(Duration::from_secs(5));
+        }
+        if let Some(s) = slow.status(Duration::from_millis(200)) {
+            break Some(s);
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(15),
+            "a trickling body was still being read after {:?}",
+            started.elapsed()
+        );
+    };
+    assert_eq!(status, Some(408), "after {:?}", started.elapsed());
+    assert!(started.elapsed() >= Duration::from_secs(2));
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 0);
+}
+
+#[test]
+fn slow_localize_bodies_hold_no_place_in_the_queue() {
+    let server = Server::start_with(|a| {
+        a.localize_queue = 2;
+        a.body_deadline_secs = 60;
+    });
+    let c = server.client;
+    let map = create_vector_map(&c, "v", 2);
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/descriptors"),
+        &json!({"descriptors": [[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]}),
+    );
+    assert_eq!(r.status, 200, "{}", r.message());
+    // Four localize bodies that never arrive (twice the queue), and one to a map that does not
+    // exist.
+    let mut slow: Vec<SlowBody> = (0..4)
+        .map(|_| SlowBody::open(c.addr, &format!("/v1/maps/{map}/localize")))
+        .collect();
+    let mut unknown = SlowBody::open(c.addr, "/v1/maps/00000000000000ab/localize");
+    assert_eq!(unknown.status(Duration::from_secs(10)), Some(404));
+    std::thread::sleep(Duration::from_millis(300));
+    for s in &mut slow {
+        assert!(s.drip());
+    }
+    let started = Instant::now();
+    let r = c.post_json(
+        &format!("/v1/maps/{map}/localize"),
+        &json!({"descriptors": [[1.0, 0.1], [0.1, 1.0]]}),
+    );
+    assert_eq!(r.status, 200, "{} {}", r.code(), r.message());
+    assert!(started.elapsed() < Duration::from_secs(5));
+}
+
+/// Status of `GET path` within `bound` (None when no answer came in time).
+fn probe(addr: SocketAddr, path: &str, bound: Duration) -> Option<u16> {
+    let mut s = TcpStream::connect_timeout(&addr, bound).ok()?;
+    s.set_read_timeout(Some(bound)).ok()?;
+    s.write_all(
+        format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes(),
+    )
+    .ok()?;
+    let mut buf = [0u8; 256];
+    let n = s.read(&mut buf).ok()?;
+    String::from_utf8_lossy(&buf[..n])
+        .split(' ')
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
+#[test]
+fn probes_answer_while_slow_uploads_hold_every_request_slot() {
+    let server = Server::start_with(|a| {
+        a.max_concurrent_requests = 4;
+        a.body_deadline_secs = 60;
+    });
+    let c = server.client;
+    let map = create_hog_map(&c, "m", 8);
+    let slow: Vec<SlowBody> = (0..6)
+        .map(|_| SlowBody::open(c.addr, &format!("/v1/maps/{map}/images")))
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    // The limit is taken: an API request is shed ...
+    let r = c.get("/v1/maps");
+    assert_eq!((r.status, r.code().as_str()), (503, "overloaded"));
+    spec::check("get", "/v1/maps", &r);
+    // ... and the probes and the dashboard's front page are not.
+    for path in ["/healthz", "/readyz", "/"] {
+        let started = Instant::now();
+        assert_eq!(
+            probe(c.addr, path, Duration::from_secs(2)),
+            Some(200),
+            "{path}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(2), "{path}");
+    }
+    drop(slow);
 }

@@ -62,6 +62,11 @@ pub struct ServeArgs {
     /// `body_timeout`; the whole request stays under `--request-timeout-secs`.
     #[arg(long, env = "SEASONLOC_BODY_READ_TIMEOUT_SECS", default_value_t = 20)]
     pub body_read_timeout_secs: u64,
+    /// Seconds a client has to send a request's whole body, from the end of its header;
+    /// a body still arriving then (however steadily it trickles) fails with 408
+    /// `body_timeout`. Values above `--request-timeout-secs` mean that timeout.
+    #[arg(long, env = "SEASONLOC_BODY_DEADLINE_SECS", default_value_t = 45)]
+    pub body_deadline_secs: u64,
     /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core; at most
     /// 1024).
     #[arg(long, env = "SEASONLOC_WORKER_THREADS", default_value_t = 0)]
@@ -132,6 +137,7 @@ impl Default for ServeArgs {
             localize_max_wait_secs: 30,
             header_read_timeout_secs: 10,
             body_read_timeout_secs: 20,
+            body_deadline_secs: 45,
             worker_threads: 0,
             shutdown_timeout_secs: 30,
             cnn_model: None,
@@ -176,6 +182,8 @@ pub struct Settings {
     pub header_read_timeout: Duration,
     /// Longest stall of a request body, > 0.
     pub body_read_timeout: Duration,
+    /// Longest time to receive a whole request body, > 0 and at most `request_timeout`.
+    pub body_deadline: Duration,
     /// CPU pool threads, > 0 (resolved from 0 = one per core).
     pub worker_threads: usize,
     /// Drain time on shutdown.
@@ -245,6 +253,7 @@ impl ServeArgs {
         positive("localize_max_wait_secs", self.localize_max_wait_secs)?;
         positive("header_read_timeout_secs", self.header_read_timeout_secs)?;
         positive("body_read_timeout_secs", self.body_read_timeout_secs)?;
+        positive("body_deadline_secs", self.body_deadline_secs)?;
         positive("max_batch_pixels", self.max_batch_pixels)?;
         if self.localize_max_wait_secs >= self.request_timeout_secs {
             return Err(ConfigError {
@@ -359,6 +368,10 @@ impl ServeArgs {
             localize_max_wait: Duration::from_secs(self.localize_max_wait_secs),
             header_read_timeout: Duration::from_secs(self.header_read_timeout_secs),
             body_read_timeout: Duration::from_secs(self.body_read_timeout_secs),
+            // The request timeout bounds the whole request, its body included.
+            body_deadline: Duration::from_secs(
+                self.body_deadline_secs.min(self.request_timeout_secs),
+            ),
             worker_threads,
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
             // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".
@@ -526,6 +539,25 @@ mod tests {
         let err = args.validate().unwrap_err();
         assert_eq!(err.name, "localize_queue");
         assert!(err.to_string().contains("localize_queue"));
+    }
+
+    #[test]
+    fn the_body_deadline_is_within_the_request_timeout() {
+        let args = ServeArgs {
+            body_deadline_secs: 200,
+            ..ServeArgs::default()
+        };
+        assert_eq!(
+            args.validate().unwrap().body_deadline,
+            Duration::from_secs(120)
+        );
+        let zero = ServeArgs {
+            body_deadline_secs: 0,
+            ..ServeArgs::default()
+        };
+        assert_eq!(zero.validate().unwrap_err().name, "body_deadline_secs");
+        let s = ServeArgs::default().validate().unwrap();
+        assert_eq!(s.body_deadline, Duration::from_secs(45));
     }
 
     #[test]

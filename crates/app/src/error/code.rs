@@ -76,7 +76,8 @@ error_codes! {
     Unauthorized = "unauthorized", 401;
     /// A known key whose role does not allow the request.
     Forbidden = "forbidden", 403;
-    /// The request body stalled longer than the server's body read timeout.
+    /// The request body stalled longer than the server's body read timeout, or did not arrive
+    /// whole within its deadline.
     BodyTimeout = "body_timeout", 408;
     /// Frames posted to a closed trip.
     TripClosed = "trip_closed", 409;

@@ -1,12 +1,12 @@
 //! Admission of `/localize` requests: a bounded queue in front of the CPU pool, first come
 //! first served, with a bounded wait.
 //!
-//! Two steps, so that a slow upload never holds a CPU turn (and the turn ends with the
-//! computation, before the result is stored, so that a slow disk never holds one either):
+//! Two steps, so that a slow upload never holds a place or a CPU turn (and the turn ends with
+//! the computation, before the result is stored, so that a slow disk never holds one either):
 //!
-//! 1. [`Admission::reserve`], before the body is read: at most `queue` localizations are in
-//!    the queue at once (reading their body, waiting, or computing); one more is refused at
-//!    once ([`Refusal::Full`]).
+//! 1. [`Admission::reserve`], once the map is checked and the body is read and parsed: at most
+//!    `queue` localizations are in the queue at once (waiting or computing); one more is
+//!    refused at once ([`Refusal::Full`]). A client that trickles its body holds no place.
 //! 2. [`Reservation::turn`], once the request is parsed: at most `running` localizations
 //!    compute at once (the CPU pool's threads); the others wait in arrival order (tokio's
 //!    semaphore is fair) for at most `max_wait`. A request whose estimated wait — the
@@ -43,7 +43,7 @@ pub struct Admission {
     turn_secs: Mutex<Option<f64>>,
 }
 
-/// A place in the queue, held while the request's body is read and parsed.
+/// A place in the queue, held from the parsed request until its turn ends.
 #[derive(Debug)]
 pub struct Reservation {
     admission: Arc<Admission>,

@@ -88,8 +88,12 @@ pub enum ApiError {
         /// Seconds to send in `Retry-After`.
         retry_after: u64,
     },
-    /// `body_timeout`: the request body stalled longer than `--body-read-timeout-secs`.
-    #[error("the request body stalled longer than the server's body read timeout")]
+    /// `body_timeout`: the request body stalled longer than `--body-read-timeout-secs`, or did
+    /// not arrive whole within `--body-deadline-secs`.
+    #[error(
+        "the request body stalled longer than the server's body read timeout, or did not \
+         arrive whole within its deadline"
+    )]
     BodyTimeout,
     /// `overloaded` with `Retry-After`: the concurrency limit is reached.
     #[error("the server is at its concurrency limit; retry later")]

@@ -63,11 +63,14 @@ pub fn is_json(headers: &HeaderMap) -> bool {
 }
 
 /// Whether a body read failed because the body stalled longer than the body read timeout
-/// (`tower_http`'s `TimeoutError` somewhere in the error's source chain).
+/// (`tower_http`'s `TimeoutError` somewhere in the error's source chain) or did not arrive whole
+/// within its deadline ([`super::body::BodyDeadlineExceeded`]).
 pub fn is_body_timeout(err: &(dyn std::error::Error + 'static)) -> bool {
     let mut cause = Some(err);
     while let Some(e) = cause {
-        if e.is::<tower_http::timeout::TimeoutError>() {
+        if e.is::<tower_http::timeout::TimeoutError>()
+            || e.is::<super::body::BodyDeadlineExceeded>()
+        {
             return true;
         }
         cause = e.source();

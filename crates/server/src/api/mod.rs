@@ -12,7 +12,7 @@
 //!   and the co-occurrence method), `localize` (localizations), `trips` (online trips), `ops`
 //!   (health, metrics, OpenAPI) and `dashboard` (the embedded web dashboard for people);
 //! * the files directly in `api/` are the machinery the resources share ([`error`],
-//!   [`extract`], [`upload`], [`idempotency`], [`wire`] ids and page sizes, [`state`],
+//!   [`extract`], [`upload`], [`idempotency`], [`wire`] ids and page sizes, [`state`], [`body`],
 //!   [`admission`], [`auth`], [`metrics`]); they never import a resource;
 //! * `router` composes the resources and the middleware; nothing imports it but this file.
 
@@ -23,6 +23,7 @@
 // Shared edge machinery: used by the resources, never using them.
 pub mod admission;
 pub mod auth;
+pub mod body;
 pub mod error;
 pub mod extract;
 pub mod idempotency;

@@ -12,6 +12,7 @@
 //! timeout (a body that stalls fails with 408 `body_timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
 //! one.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::error_handling::HandleErrorLayer;
@@ -19,6 +20,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
 use axum::http::{header, HeaderName, HeaderValue, Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{middleware, BoxError, Router};
+use tokio::sync::Semaphore;
 use tower::ServiceBuilder;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::cors::{AllowOrigin, CorsLayer};
@@ -30,7 +32,7 @@ use tracing::Level;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{auth, cooc, dashboard, localize, maps, metrics, ops, trips};
+use super::{auth, body, cooc, dashboard, localize, maps, metrics, ops, trips};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -66,17 +68,19 @@ pub const ROUTES: &[(&str, &str)] = &[
 
 const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
 
+/// Paths outside the global concurrency limit: the probes (an orchestrator restarts a pod
+/// whose probes fail, so a burst of slow uploads must not make them fail) and the dashboard's
+/// front page. They are cheap and never read a body.
+pub const UNLIMITED: &[&str] = &["/healthz", "/readyz", "/"];
+
 /// The whole service as an axum router.
 pub fn app(state: AppState) -> Router {
     let s = &state.settings;
     let timeout: Duration = s.request_timeout;
     let limits = ServiceBuilder::new()
         .layer(HandleErrorLayer::new(limit_error))
-        .load_shed()
-        .layer(tower::limit::GlobalConcurrencyLimitLayer::new(
-            s.max_concurrent_requests,
-        ))
         .timeout(timeout);
+    let global = Arc::new(Semaphore::new(s.max_concurrent_requests));
     let edge = ServiceBuilder::new()
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
         .layer(
@@ -114,7 +118,12 @@ pub fn app(state: AppState) -> Router {
             auth::authorize,
         ))
         .layer(CatchPanicLayer::custom(panic_response))
+        .layer(middleware::from_fn_with_state(global, global_limit))
         .layer(limits)
+        .layer(middleware::from_fn_with_state(
+            s.body_deadline,
+            body::deadline,
+        ))
         .layer(RequestBodyTimeoutLayer::new(s.body_read_timeout))
         .layer(RequestBodyLimitLayer::new(s.max_body_bytes))
         .layer(DefaultBodyLimit::disable());
@@ -133,6 +142,22 @@ pub fn app(state: AppState) -> Router {
         .layer(edge)
         .layer(axum::Extension(BodyLimit(max_body)))
         .with_state(state)
+}
+
+/// The global concurrency limit (`--max-concurrent-requests`): a request past it is shed at
+/// once with 503 `overloaded`, except on the [`UNLIMITED`] paths.
+async fn global_limit(
+    axum::extract::State(limit): axum::extract::State<Arc<Semaphore>>,
+    req: Request,
+    next: middleware::Next,
+) -> Response {
+    if UNLIMITED.contains(&req.uri().path()) {
+        return next.run(req).await;
+    }
+    match limit.try_acquire_owned() {
+        Ok(_permit) => next.run(req).await,
+        Err(_) => ApiError::Overloaded.into_response(),
+    }
 }
 
 /// The answer to a request whose handler panicked: logged with its message (a bug to fix),
@@ -218,8 +243,6 @@ struct BodyLimit(usize);
 async fn limit_error(err: BoxError) -> ApiError {
     if err.is::<tower::timeout::error::Elapsed>() {
         ApiError::Timeout
-    } else if err.is::<tower::load_shed::error::Overloaded>() {
-        ApiError::Overloaded
     } else {
         ApiError::internal(format!("middleware: {err}"))
     }

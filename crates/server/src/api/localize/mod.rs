@@ -3,7 +3,9 @@
 //! A localization takes a query sequence (multipart `image` parts, or JSON descriptors) and
 //! its parameters; the use case ([`seasonloc_app::App::localize`]) runs it against the map and
 //! stores the result, which is returned. Admission is bounded: when `localize_queue` requests
-//! are already running or waiting, the answer is 503 `queue_full` with `Retry-After`.
+//! are already running or waiting, the answer is 503 `queue_full` with `Retry-After`. A request
+//! takes its place in the queue only once its map is known to exist and its body has been read
+//! and parsed, so a client that trickles its body (or names no map) holds no place.
 
 use axum::body::Body;
 use axum::extract::multipart::Multipart;
@@ -99,9 +101,8 @@ async fn run(
     req: Request,
 ) -> Result<Response, ApiError> {
     let map = map_id(&id)?;
-    // A place in the queue before the body is read (a full queue refuses without reading
-    // it), the CPU turn once it is parsed (a slow upload never holds a turn).
-    let reservation = state.admission.reserve().map_err(|r| refused(&state, r))?;
+    // An unknown map fails before the body is read.
+    state.app.get_map(map).await?;
     let (input, key) = parse(&state, req).await?;
     // A retry of an answered request is answered from the store, without a CPU turn.
     if let Some(k) = &key {
@@ -109,6 +110,9 @@ async fn run(
             return json_document(&done, true);
         }
     }
+    // A place in the queue once the request is read (a slow upload holds none), then the CPU
+    // turn in arrival order.
+    let reservation = state.admission.reserve().map_err(|r| refused(&state, r))?;
     let turn = reservation.turn().await.map_err(|r| refused(&state, r))?;
     // The turn ends with the computation: storing the result (a flushed write) and answering
     // wait on the disk and the network, not on a CPU.
