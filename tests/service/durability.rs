@@ -205,7 +205,7 @@ fn sigterm_lets_in_flight_requests_finish() {
     let body = serde_json::to_vec(&json!({"descriptors": [[1, 2], [3, 4]]})).unwrap();
     let mut s = std::net::TcpStream::connect(p.client.addr).unwrap();
     let head = format!(
-        "POST /v1/maps/{map}/descriptors HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\
+        "POST /v1/maps/{map}/descriptors HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\
          Content-Type: application/json\r\nContent-Length: {}\r\n\r\n",
         body.len()
     );

@@ -503,3 +503,102 @@ fn probes_answer_while_slow_uploads_hold_every_request_slot() {
     }
     drop(slow);
 }
+
+// ---- 9: keyless loopback: DNS rebinding and CSRF -----------------------------------------------
+
+#[test]
+fn keyless_loopback_answers_only_loopback_names_and_addresses() {
+    let server = Server::start();
+    let c = server.client;
+    let port = c.addr.port();
+    for host in [
+        format!("127.0.0.1:{port}"),
+        format!("localhost:{port}"),
+        "[::1]".into(),
+    ] {
+        let r = c.request_with("GET", "/v1/maps", &[("Host", &host)], None, b"");
+        assert_eq!(r.status, 200, "Host {host}: {}", r.message());
+    }
+    for host in [
+        "attacker-rebind.example".to_string(),
+        format!("attacker-rebind.example:{port}"),
+    ] {
+        let r = c.request_with("GET", "/v1/maps", &[("Host", &host)], None, b"");
+        assert_eq!(
+            (r.status, r.code().as_str()),
+            (421, "misdirected_request"),
+            "{host}"
+        );
+        spec::check("get", "/v1/maps", &r);
+        // The probes answer under any name.
+        let r = c.request_with("GET", "/healthz", &[("Host", &host)], None, b"");
+        assert_eq!(r.status, 200);
+    }
+}
+
+#[test]
+fn keyless_loopback_refuses_cross_site_writes() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(12, 7);
+    let map = hog_map(&c, &route, 10);
+    let trip = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({}));
+    let trip = trip.json()["id"].as_str().unwrap().to_string();
+    let close = format!("/v1/trips/{trip}/close");
+    let evil = [
+        ("Origin", "http://evil.example"),
+        ("Referer", "http://evil.example/page"),
+        ("Sec-Fetch-Site", "cross-site"),
+    ];
+    // What a hostile page can send without a preflight: a text/plain or form POST ...
+    for ct in [
+        "text/plain;charset=UTF-8",
+        "application/x-www-form-urlencoded",
+    ] {
+        let r = c.request_with("POST", &close, &evil, Some(ct), b"a=1");
+        assert_eq!(
+            (r.status, r.code().as_str()),
+            (403, "cross_site_request"),
+            "{ct}"
+        );
+        spec::check("post", "/v1/trips/{id}/close", &r);
+        // ... refused also without the cross-site headers (old browsers send none).
+        let r = c.request_with("POST", &close, &[], Some(ct), b"a=1");
+        assert_eq!(
+            (r.status, r.code().as_str()),
+            (415, "unsupported_media_type"),
+            "{ct}"
+        );
+        spec::check("post", "/v1/trips/{id}/close", &r);
+    }
+    assert!(c.get(&format!("/v1/trips/{trip}")).json()["closed_at_ms"].is_null());
+    // ... and a multipart upload from its origin.
+    let body = multipart_body(&frames(&route, 10..12, false));
+    let ct = format!("multipart/form-data; boundary={BOUNDARY}");
+    let images = format!("/v1/maps/{map}/images");
+    let r = c.request_with("POST", &images, &evil[..1], Some(&ct), &body);
+    assert_eq!((r.status, r.code().as_str()), (403, "cross_site_request"));
+    spec::check("post", "/v1/maps/{id}/images", &r);
+    let r = c.request_with(
+        "POST",
+        &images,
+        &[("Sec-Fetch-Site", "same-site")],
+        Some(&ct),
+        &body,
+    );
+    assert_eq!(r.status, 403);
+    assert_eq!(c.get(&format!("/v1/maps/{map}")).json()["image_count"], 10);
+    // Programs (no Origin), this server's own pages and a custom header are served.
+    let own = format!("http://{}", c.addr);
+    let r = c.request_with("POST", &images, &[("Origin", &own)], Some(&ct), &body);
+    assert_eq!(r.status, 200, "{}", r.message());
+    let r = c.request_with(
+        "POST",
+        &close,
+        &[evil[0], ("X-Requested-With", "fetch")],
+        Some("text/plain"),
+        b"",
+    );
+    assert_eq!(r.status, 200, "{}", r.message());
+    assert!(!c.get(&format!("/v1/trips/{trip}")).json()["closed_at_ms"].is_null());
+}

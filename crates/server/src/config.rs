@@ -112,7 +112,9 @@ pub struct ServeArgs {
     )]
     pub cors_origins: Vec<String>,
     /// Accepted values of the `Host` header (host name, or `host:port`), against DNS
-    /// rebinding; repeatable (comma-separated in the environment). None: any host.
+    /// rebinding; repeatable (comma-separated in the environment); `*` accepts any host.
+    /// None: any host with `--api-keys`; without keys, only `localhost` and IP addresses (a
+    /// rebinding page's name is neither).
     #[arg(
         long = "allowed-host",
         env = "SEASONLOC_ALLOWED_HOSTS",
@@ -202,8 +204,59 @@ pub struct Settings {
     pub max_requests_per_key: usize,
     /// Origins allowed by CORS (exact `scheme://host[:port]` strings).
     pub cors_origins: Vec<String>,
-    /// Accepted `Host` header values (lowercase); empty = any.
-    pub allowed_hosts: Vec<String>,
+    /// Which `Host` header values are answered.
+    pub hosts: HostPolicy,
+}
+
+/// Which `Host` header values the service answers (DNS rebinding: a hostile page on a name
+/// that resolves to this server would otherwise be same-origin with it). The probes are
+/// answered under any name.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum HostPolicy {
+    /// Any `Host` (`--allowed-host '*'`, or the default with API keys: a rebinding page has no
+    /// key).
+    Any,
+    /// Only these names (lowercase, each a host name or `host:port`), and IP addresses when
+    /// `ip_literals` (the default without keys: `localhost` and IP addresses, which no
+    /// rebinding page can be served under).
+    Only {
+        /// Accepted names.
+        names: Vec<String>,
+        /// Whether any IP address (`127.0.0.1`, `[::1]`, ...) is accepted too.
+        ip_literals: bool,
+    },
+}
+
+/// The names a keyless service answers by default, besides IP addresses.
+pub const LOOPBACK_NAMES: &[&str] = &["localhost"];
+
+impl HostPolicy {
+    /// Whether a request with this `Host` header value (`None`: no header) is answered.
+    pub fn allows(&self, host: Option<&str>) -> bool {
+        let (names, ip_literals) = match self {
+            HostPolicy::Any => return true,
+            HostPolicy::Only { names, ip_literals } => (names, *ip_literals),
+        };
+        let Some(h) = host.map(str::to_ascii_lowercase) else {
+            return false;
+        };
+        let name = match h.rsplit_once(':') {
+            // `[::1]:8080` and `host:8080`; a bare IPv6 literal keeps its brackets.
+            Some((name, port)) if !port.is_empty() && port.bytes().all(|b| b.is_ascii_digit()) => {
+                name
+            }
+            _ => h.as_str(),
+        };
+        if names.iter().any(|a| *a == h || a == name) {
+            return true;
+        }
+        ip_literals
+            && (name.parse::<std::net::Ipv4Addr>().is_ok()
+                || name
+                    .strip_prefix('[')
+                    .and_then(|n| n.strip_suffix(']'))
+                    .is_some_and(|n| n.parse::<std::net::Ipv6Addr>().is_ok()))
+    }
 }
 
 /// A database URL. It may carry a password, so it is never printed: `Debug` shows `***`.
@@ -307,6 +360,21 @@ impl ServeArgs {
             .map(|h| h.trim().to_ascii_lowercase())
             .filter(|h| !h.is_empty())
             .collect();
+        let hosts = if allowed_hosts.iter().any(|h| h == "*") {
+            HostPolicy::Any
+        } else if !allowed_hosts.is_empty() {
+            HostPolicy::Only {
+                names: allowed_hosts,
+                ip_literals: false,
+            }
+        } else if api_keys.is_some() {
+            HostPolicy::Any
+        } else {
+            HostPolicy::Only {
+                names: LOOPBACK_NAMES.iter().map(|n| n.to_string()).collect(),
+                ip_literals: true,
+            }
+        };
         if self.data_dir.as_os_str().is_empty() {
             return Err(ConfigError {
                 name: "data_dir",
@@ -382,7 +450,7 @@ impl ServeArgs {
             api_keys,
             max_requests_per_key: self.max_requests_per_key,
             cors_origins,
-            allowed_hosts,
+            hosts,
         })
     }
 }
@@ -539,6 +607,51 @@ mod tests {
         let err = args.validate().unwrap_err();
         assert_eq!(err.name, "localize_queue");
         assert!(err.to_string().contains("localize_queue"));
+    }
+
+    #[test]
+    fn keyless_services_answer_only_loopback_names_and_addresses_by_default() {
+        let keyless = ServeArgs::default().validate().unwrap().hosts;
+        for ok in [
+            "127.0.0.1:8080",
+            "localhost:8080",
+            "LOCALHOST",
+            "[::1]:8080",
+            "[::1]",
+        ] {
+            assert!(keyless.allows(Some(ok)), "{ok}");
+        }
+        for bad in [
+            "attacker-rebind.example",
+            "attacker-rebind.example:8080",
+            "localhost.evil.example",
+            "127.0.0.1.evil.example",
+            "",
+        ] {
+            assert!(!keyless.allows(Some(bad)), "{bad}");
+        }
+        assert!(!keyless.allows(None));
+        let keyed = ServeArgs {
+            api_keys: Some(PathBuf::from("/run/keys.json")),
+            ..ServeArgs::default()
+        };
+        assert_eq!(keyed.validate().unwrap().hosts, HostPolicy::Any);
+        let listed = ServeArgs {
+            allowed_hosts: vec!["Seasonloc.Internal".into()],
+            ..ServeArgs::default()
+        };
+        let listed = listed.validate().unwrap().hosts;
+        assert!(listed.allows(Some("seasonloc.internal:8080")));
+        assert!(!listed.allows(Some("127.0.0.1:8080")));
+        let any = ServeArgs {
+            allowed_hosts: vec!["*".into()],
+            ..ServeArgs::default()
+        };
+        assert!(any
+            .validate()
+            .unwrap()
+            .hosts
+            .allows(Some("anything.example")));
     }
 
     #[test]

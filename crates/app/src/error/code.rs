@@ -76,6 +76,9 @@ error_codes! {
     Unauthorized = "unauthorized", 401;
     /// A known key whose role does not allow the request.
     Forbidden = "forbidden", 403;
+    /// A state-changing request to a server without API keys that a browser sent for another
+    /// site (a cross-site `Origin` or `Sec-Fetch-Site`) without `X-Requested-With`.
+    CrossSiteRequest = "cross_site_request", 403;
     /// The request body stalled longer than the server's body read timeout, or did not arrive
     /// whole within its deadline.
     BodyTimeout = "body_timeout", 408;
@@ -153,7 +156,7 @@ mod tests {
             // Retry-After belongs to answers that can succeed later.
             assert!(!c.retry_after() || matches!(c.status(), 429 | 503), "{c}");
         }
-        assert_eq!(ErrorCode::ALL.len(), 38);
+        assert_eq!(ErrorCode::ALL.len(), 39);
         assert!(ErrorCode::NotReady.retry_after() && ErrorCode::NotReady.hides_message());
         assert!(ErrorCode::Internal.hides_message() && !ErrorCode::Internal.retry_after());
         assert!(!ErrorCode::QueueFull.hides_message());

@@ -73,9 +73,15 @@ pub enum ApiError {
     /// `forbidden`: a known key whose role does not allow the request.
     #[error("{0}")]
     Forbidden(String),
-    /// `misdirected_request`: a `Host` header that is not in `--allowed-host`.
+    /// `misdirected_request`: a `Host` header the server does not answer (`--allowed-host`;
+    /// without keys, by default, only `localhost` and IP addresses).
     #[error("{0}")]
     MisdirectedRequest(String),
+    /// `cross_site_request`: a state-changing request to a server without API keys that a
+    /// browser sent on behalf of another site (a cross-site `Origin` or `Sec-Fetch-Site`)
+    /// without `X-Requested-With`.
+    #[error("{0}")]
+    CrossSite(String),
     /// `too_many_requests` with `Retry-After`: the key has its limit of requests in flight.
     #[error("{0}")]
     TooManyRequests(String),
@@ -129,6 +135,7 @@ impl ApiError {
             ApiError::Unauthorized(_) => C::Unauthorized,
             ApiError::Forbidden(_) => C::Forbidden,
             ApiError::MisdirectedRequest(_) => C::MisdirectedRequest,
+            ApiError::CrossSite(_) => C::CrossSiteRequest,
             ApiError::TooManyRequests(_) => C::TooManyRequests,
             ApiError::QueueFull { .. } => C::QueueFull,
             ApiError::BodyTimeout => C::BodyTimeout,

@@ -112,6 +112,10 @@ pub fn app(state: AppState) -> Router {
             metrics::track,
         ))
         .layer(middleware::from_fn_with_state(state.clone(), check_host))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            guard_cross_site,
+        ))
         .option_layer(cors(&s.cors_origins))
         .layer(middleware::from_fn_with_state(
             state.auth.clone(),
@@ -198,42 +202,112 @@ fn cors(origins: &[String]) -> Option<CorsLayer> {
     )
 }
 
-/// Rejects requests whose `Host` is not one of `--allowed-host` (DNS rebinding: a hostile page
-/// on a name that resolves to this server would otherwise be same-origin with it). The probes
-/// stay reachable under any name (orchestrators often call them by IP).
+/// Rejects requests whose `Host` the server does not answer ([`crate::config::HostPolicy`]:
+/// `--allowed-host`, or without keys by default only `localhost` and IP addresses) with 421:
+/// against DNS rebinding, where a hostile page on a name that resolves to this server would
+/// otherwise be same-origin with it. The probes stay reachable under any name (orchestrators
+/// often call them by IP or a service name).
 async fn check_host(
     axum::extract::State(state): axum::extract::State<AppState>,
     req: Request,
     next: middleware::Next,
 ) -> Response {
-    let allowed = &state.settings.allowed_hosts;
     let path = req.uri().path();
-    if allowed.is_empty() || path == "/healthz" || path == "/readyz" {
+    if path == "/healthz" || path == "/readyz" {
         return next.run(req).await;
     }
     let host = req
         .headers()
         .get(header::HOST)
         .and_then(|h| h.to_str().ok())
-        .or_else(|| req.uri().authority().map(|a| a.as_str()))
-        .map(str::to_ascii_lowercase);
-    let ok = host.as_deref().is_some_and(|h| {
-        let name = match h.rsplit_once(':') {
-            // `[::1]:8080` and `host:8080`; a bare IPv6 literal keeps its brackets.
-            Some((name, port)) if port.bytes().all(|b| b.is_ascii_digit()) => name,
-            _ => h,
-        };
-        allowed.iter().any(|a| a == h || a == name)
-    });
-    if ok {
+        .or_else(|| req.uri().authority().map(|a| a.as_str()));
+    if state.settings.hosts.allows(host) {
         next.run(req).await
     } else {
+        let shown: String = host.unwrap_or_default().chars().take(100).collect();
         ApiError::MisdirectedRequest(format!(
-            "Host `{}` is not one this server answers for",
-            host.unwrap_or_default()
+            "Host `{shown}` is not one this server answers for (see --allowed-host)"
         ))
         .into_response()
     }
+}
+
+/// The header a non-browser client (or a page of this server) may send to say a request is
+/// not a cross-site form: a browser sends a custom header cross-site only after a CORS
+/// preflight, which this server grants only to `--cors-origin`.
+pub const CSRF_HEADER: &str = "x-requested-with";
+
+/// Why a state-changing request to a server without API keys looks like one a browser sent on
+/// behalf of another site (`None`: it does not). On such a server anyone who can reach the
+/// port may write, so a page on the web that the operator's browser visits must not: a request
+/// whose `Origin` is another site (or `null`), or whose `Sec-Fetch-Site` says `cross-site` or
+/// `same-site`, is 403 `cross_site_request`; one whose body is `text/plain` or
+/// `application/x-www-form-urlencoded` (what an HTML form or a no-CORS `fetch` sends, also from
+/// browsers that send neither header; no route takes them) is 415 `unsupported_media_type`.
+/// Either passes with [`CSRF_HEADER`], which a browser sends cross-site only after a CORS
+/// preflight. `curl` and programs send no `Origin`, so their requests pass.
+pub fn cross_site(req: &Request, cors_origins: &[String]) -> Option<ApiError> {
+    let m = req.method();
+    if m == Method::GET || m == Method::HEAD || m == Method::OPTIONS {
+        return None;
+    }
+    let h = req.headers();
+    if h.contains_key(CSRF_HEADER) {
+        return None;
+    }
+    let text = |name: header::HeaderName| {
+        h.get(name).map(|v| {
+            String::from_utf8_lossy(v.as_bytes())
+                .trim()
+                .to_ascii_lowercase()
+        })
+    };
+    if let Some(site) = text(HeaderName::from_static("sec-fetch-site")) {
+        if site == "cross-site" || site == "same-site" {
+            return Some(ApiError::CrossSite(format!(
+                "a request a browser sent from another site (`Sec-Fetch-Site: {site}`) may not \
+                 change anything on a server without API keys"
+            )));
+        }
+    }
+    if let Some(origin) = text(header::ORIGIN) {
+        let host = text(header::HOST).unwrap_or_default();
+        let same = origin
+            .split_once("://")
+            .is_some_and(|(_, authority)| authority == host);
+        if !same && !cors_origins.iter().any(|o| o.eq_ignore_ascii_case(&origin)) {
+            let shown: String = origin.chars().take(100).collect();
+            return Some(ApiError::CrossSite(format!(
+                "a request from the page of another origin (`{shown}`) may not change anything \
+                 on a server without API keys (start it with --api-keys, or list the origin \
+                 with --cors-origin)"
+            )));
+        }
+    }
+    let ct = text(header::CONTENT_TYPE)?;
+    let essence = ct.split(';').next().unwrap_or("").trim();
+    (essence == "text/plain" || essence == "application/x-www-form-urlencoded").then(|| {
+        ApiError::UnsupportedMediaType(format!(
+            "no route takes a `{essence}` body (what an HTML form or another site's page \
+             sends, refused on a server without API keys): send the route's own content type \
+             (JSON, multipart or octet-stream), or add an `X-Requested-With` header"
+        ))
+    })
+}
+
+/// Middleware of [`cross_site`] on servers without API keys (with keys, a request needs its
+/// `Authorization` header, which no other site's page can send without a preflight).
+async fn guard_cross_site(
+    axum::extract::State(state): axum::extract::State<AppState>,
+    req: Request,
+    next: middleware::Next,
+) -> Response {
+    if state.auth.is_none() {
+        if let Some(refusal) = cross_site(&req, &state.settings.cors_origins) {
+            return refusal.into_response();
+        }
+    }
+    next.run(req).await
 }
 
 /// The configured body limit, for messages of responses built outside the handlers.
@@ -292,5 +366,57 @@ mod tests {
         let body: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
         assert_eq!(body["error"]["code"], "internal");
         assert!(!body.to_string().contains("secret"), "{body}");
+    }
+
+    fn post(headers: &[(&str, &str)]) -> Request {
+        let mut b = Request::post("/v1/trips/00000000000000ff/close");
+        for (k, v) in headers {
+            b = b.header(*k, *v);
+        }
+        b.body(Body::empty()).unwrap()
+    }
+
+    #[test]
+    fn cross_site_writes_are_told_apart_from_programs() {
+        let host = ("host", "127.0.0.1:8080");
+        // What curl and programs send: no Origin.
+        assert!(cross_site(&post(&[host]), &[]).is_none());
+        let multipart = ("content-type", "multipart/form-data; boundary=x");
+        assert!(cross_site(&post(&[host, multipart]), &[]).is_none());
+        let json = ("content-type", "application/json");
+        // A page of this server.
+        let own = ("origin", "http://127.0.0.1:8080");
+        assert!(cross_site(&post(&[host, own, json]), &[]).is_none());
+        assert!(cross_site(&post(&[host, ("sec-fetch-site", "same-origin")]), &[]).is_none());
+        // Another site's page.
+        let evil = ("origin", "http://evil.example");
+        for refused in [
+            post(&[host, evil, multipart]),
+            post(&[host, ("origin", "null")]),
+            post(&[host, ("sec-fetch-site", "cross-site")]),
+            post(&[host, ("content-type", "text/plain;charset=UTF-8")]),
+            post(&[host, ("content-type", "application/x-www-form-urlencoded")]),
+        ] {
+            assert!(
+                cross_site(&refused, &[]).is_some(),
+                "{:?}",
+                refused.headers()
+            );
+        }
+        // A listed CORS origin, or the custom header, is let through.
+        let listed = vec!["http://evil.example".to_string()];
+        assert!(cross_site(&post(&[host, evil, json]), &listed).is_none());
+        let custom = ("x-requested-with", "seasonloc");
+        assert!(cross_site(
+            &post(&[host, evil, ("content-type", "text/plain"), custom]),
+            &[]
+        )
+        .is_none());
+        // Reads are never refused.
+        let get = Request::get("/v1/maps")
+            .header("origin", "http://evil.example")
+            .body(Body::empty())
+            .unwrap();
+        assert!(cross_site(&get, &[]).is_none());
     }
 }
