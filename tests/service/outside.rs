@@ -602,3 +602,129 @@ fn keyless_loopback_refuses_cross_site_writes() {
     assert_eq!(r.status, 200, "{}", r.message());
     assert!(!c.get(&format!("/v1/trips/{trip}")).json()["closed_at_ms"].is_null());
 }
+
+// ---- 10: connections and request ids -----------------------------------------------------------
+
+/// The soft limit on this process's open files.
+fn own_descriptor_limit() -> usize {
+    std::fs::read_to_string("/proc/self/limits")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("Max open files"))
+                .and_then(|l| l.split_whitespace().nth(3)?.parse().ok())
+        })
+        .unwrap_or(1024)
+}
+
+/// Keeps up to `n` half-open connections (half a request header each) to `addr` until
+/// `stop`: each one the server closes is opened again.
+fn half_open_clients(
+    addr: SocketAddr,
+    n: usize,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<usize> {
+    std::thread::spawn(move || {
+        let mut held: Vec<TcpStream> = Vec::new();
+        let mut opened = 0;
+        let half = format!("GET /healthz HTTP/1.1\r\nHost: {addr}\r\n");
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            while held.len() < n {
+                let Ok(mut s) = TcpStream::connect_timeout(&addr, Duration::from_millis(500))
+                else {
+                    break;
+                };
+                let _ = s.write_all(half.as_bytes());
+                let _ = s.set_nonblocking(true);
+                held.push(s);
+                opened += 1;
+            }
+            let mut buf = [0u8; 64];
+            held.retain_mut(|s| match s.read(&mut buf) {
+                Ok(0) => false,
+                Ok(_) => true,
+                Err(e) => e.kind() == std::io::ErrorKind::WouldBlock,
+            });
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        opened
+    })
+}
+
+#[test]
+fn half_open_connections_past_the_descriptor_limit_do_not_starve_probes() {
+    const NOFILE: usize = 256;
+    const HELD: usize = 400;
+    if own_descriptor_limit() < HELD + 200 {
+        eprintln!(
+            "SKIPPED: this test process may open {} files; it needs {} for {HELD} connections",
+            own_descriptor_limit(),
+            HELD + 200
+        );
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut args = engine_args(&dir.path().join("data"));
+    // Half-open connections are never let go by the header timeout during the test.
+    args.extend(["--header-read-timeout-secs", "60"].map(String::from));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let log = dir.path().join("serve.log");
+    let limit = NOFILE.to_string();
+    let mut server = Process::start_under(
+        &["-c", r#"ulimit -n "$0" && exec "$@""#, &limit],
+        &args,
+        &[],
+        &log,
+    );
+    let addr = server.client.addr;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let attacker = half_open_clients(addr, HELD, std::sync::Arc::clone(&stop));
+    std::thread::sleep(Duration::from_secs(2));
+    let mut answered = Vec::new();
+    for _ in 0..6 {
+        let started = Instant::now();
+        let status = probe(addr, "/healthz", Duration::from_secs(2));
+        answered.push((status, started.elapsed()));
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let opened = attacker.join().unwrap();
+    let failed: Vec<_> = answered
+        .iter()
+        .filter(|(s, t)| *s != Some(200) || *t > Duration::from_secs(2))
+        .collect();
+    assert!(
+        failed.is_empty(),
+        "{} of {} probes failed under {opened} half-open connections ({NOFILE} descriptors): \
+         {answered:?}",
+        failed.len(),
+        answered.len()
+    );
+    assert!(opened >= HELD, "only {opened} connections were opened");
+    // A 16,000-character request id is neither echoed nor logged whole; a short one is kept.
+    let c = server.client;
+    let long = "r".repeat(16_000);
+    let r = c.request_with("GET", "/healthz", &[("x-request-id", &long)], None, b"");
+    assert_eq!(r.status, 200);
+    let echoed = r.header("x-request-id").unwrap_or("");
+    assert!(
+        !echoed.is_empty() && echoed.len() <= 128,
+        "{} characters",
+        echoed.len()
+    );
+    let r = c.request_with(
+        "GET",
+        "/healthz",
+        &[("x-request-id", "trace-42")],
+        None,
+        b"",
+    );
+    assert_eq!(r.header("x-request-id"), Some("trace-42"));
+    std::thread::sleep(Duration::from_millis(200));
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        !text.contains(&"r".repeat(129)),
+        "the long request id was logged"
+    );
+    assert!(server.alive());
+}

@@ -67,6 +67,12 @@ pub struct ServeArgs {
     /// `body_timeout`. Values above `--request-timeout-secs` mean that timeout.
     #[arg(long, env = "SEASONLOC_BODY_DEADLINE_SECS", default_value_t = 45)]
     pub body_deadline_secs: u64,
+    /// Connections served at once (0 = as many as the process's file-descriptor limit allows,
+    /// less a reserve for the store and the pool). At the cap, a new connection closes the
+    /// connection that has waited longest for a request header (an idle or half-sent one);
+    /// when every connection is busy, the new one is closed.
+    #[arg(long, env = "SEASONLOC_MAX_CONNECTIONS", default_value_t = 0)]
+    pub max_connections: usize,
     /// Threads of the CPU pool for decoding, extraction and solving (0 = one per core; at most
     /// 1024).
     #[arg(long, env = "SEASONLOC_WORKER_THREADS", default_value_t = 0)]
@@ -140,6 +146,7 @@ impl Default for ServeArgs {
             header_read_timeout_secs: 10,
             body_read_timeout_secs: 20,
             body_deadline_secs: 45,
+            max_connections: 0,
             worker_threads: 0,
             shutdown_timeout_secs: 30,
             cnn_model: None,
@@ -186,6 +193,8 @@ pub struct Settings {
     pub body_read_timeout: Duration,
     /// Longest time to receive a whole request body, > 0 and at most `request_timeout`.
     pub body_deadline: Duration,
+    /// Connections served at once, > 0 (resolved from 0 = the descriptor limit's room).
+    pub max_connections: usize,
     /// CPU pool threads, > 0 (resolved from 0 = one per core).
     pub worker_threads: usize,
     /// Drain time on shutdown.
@@ -257,6 +266,26 @@ impl HostPolicy {
                     .and_then(|n| n.strip_suffix(']'))
                     .is_some_and(|n| n.parse::<std::net::Ipv6Addr>().is_ok()))
     }
+}
+
+/// Descriptors kept out of `--max-connections`' automatic value: the store's files, the
+/// PostgreSQL pool, the runtime, logs and the accept of one connection past the cap.
+pub const RESERVED_DESCRIPTORS: usize = 128;
+
+/// Connections the process's descriptor limit leaves room for (its soft `RLIMIT_NOFILE`, read
+/// from `/proc/self/limits`, less [`RESERVED_DESCRIPTORS`]; 1024 assumed where it cannot be
+/// read), at least 16.
+pub fn descriptor_room() -> usize {
+    let soft = std::fs::read_to_string("/proc/self/limits")
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("Max open files"))
+                .and_then(|l| l.split_whitespace().nth(3).map(str::to_string))
+        })
+        .map_or(Some(1024), |v| v.parse::<usize>().ok())
+        .unwrap_or(usize::MAX / 2);
+    soft.saturating_sub(RESERVED_DESCRIPTORS).max(16)
 }
 
 /// A database URL. It may carry a password, so it is never printed: `Debug` shows `***`.
@@ -375,6 +404,11 @@ impl ServeArgs {
                 ip_literals: true,
             }
         };
+        let max_connections = if self.max_connections == 0 {
+            descriptor_room()
+        } else {
+            self.max_connections
+        };
         if self.data_dir.as_os_str().is_empty() {
             return Err(ConfigError {
                 name: "data_dir",
@@ -440,6 +474,7 @@ impl ServeArgs {
             body_deadline: Duration::from_secs(
                 self.body_deadline_secs.min(self.request_timeout_secs),
             ),
+            max_connections,
             worker_threads,
             shutdown_timeout: Duration::from_secs(self.shutdown_timeout_secs),
             // An empty value (e.g. `SEASONLOC_CNN_MODEL=` in `.env`) means "no default model".
@@ -671,6 +706,7 @@ mod tests {
         assert_eq!(zero.validate().unwrap_err().name, "body_deadline_secs");
         let s = ServeArgs::default().validate().unwrap();
         assert_eq!(s.body_deadline, Duration::from_secs(45));
+        assert!(s.max_connections >= 16);
     }
 
     #[test]

@@ -6,8 +6,10 @@
 //!
 //! Connections are served by hyper's HTTP/1.1 server directly (not `axum::serve`) so that the
 //! header read timeout applies: a client gets `header_read_timeout` to send a request's header,
-//! then it is disconnected (slowloris); a stalled body is cut off by the router's body read
-//! timeout (408).
+//! then it is disconnected (slowloris); a stalled or trickling body is cut off by the router's
+//! body read timeout and body deadline (408). At most `--max-connections` connections are
+//! served at once ([`crate::connections`]): at the cap, the one that has waited longest for a
+//! request header makes room.
 //!
 //! Shutdown stops accepting connections, lets in-flight requests finish for at most
 //! `shutdown_timeout`, then flushes the store. Every acknowledged write was already flushed, so
@@ -16,11 +18,15 @@
 use std::future::Future;
 use std::sync::Arc;
 
+use std::sync::atomic::Ordering;
+
 use anyhow::Context;
 use tokio::net::TcpListener;
+use tower::ServiceExt;
 
 use crate::api::{self, AppState};
-use crate::config::{ServeArgs, Settings};
+use crate::config::{descriptor_room, ServeArgs, Settings};
+use crate::connections::ConnectionCap;
 use seasonloc_app::store::Store;
 use seasonloc_app::{App, AppConfig};
 use seasonloc_store::{PgStore, SledStore};
@@ -107,9 +113,23 @@ pub async fn serve(
         None => tracing::warn!("access control off: no --api-keys, every request is let through"),
     }
     let header_timeout = state.settings.header_read_timeout;
+    let room = descriptor_room();
+    let max_connections = state.settings.max_connections.min(room);
+    if max_connections < state.settings.max_connections {
+        tracing::warn!(
+            "--max-connections {} is more than the descriptor limit leaves room for; serving at \
+             most {max_connections} connections (raise the limit, e.g. `ulimit -n`)",
+            state.settings.max_connections
+        );
+    }
+    let cap = std::sync::Arc::new(ConnectionCap::new(max_connections));
     let app = api::app(state);
     let addr = listener.local_addr()?;
-    tracing::info!(store = %use_cases.store_location(), "seasonloc serve listening on http://{addr}");
+    tracing::info!(
+        store = %use_cases.store_location(),
+        max_connections,
+        "seasonloc serve listening on http://{addr}"
+    );
 
     let http = http1_builder(header_timeout);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();
@@ -127,17 +147,59 @@ pub async fn serve(
                 }
             },
         };
+        let Some((slot, displaced)) = cap.admit() else {
+            // Every connection is busy with a request: this one is closed at once.
+            tracing::debug!(
+                max = cap.max(),
+                "connection refused: every connection under --max-connections is busy"
+            );
+            drop(stream);
+            continue;
+        };
         // Small answers go out at once instead of waiting for Nagle's algorithm.
         let _ = stream.set_nodelay(true);
-        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        // The connection waits for a header until a request arrives, and again once its
+        // response has been sent (the body dropped): only then may it make room for another.
+        let (started, sent) = (slot.waiting(), slot.waiting());
+        let service = app
+            .clone()
+            .map_request(move |req: axum::http::Request<hyper::body::Incoming>| {
+                started.store(false, Ordering::Relaxed);
+                req
+            })
+            .map_response(move |response: axum::response::Response| {
+                let sent = std::sync::Arc::clone(&sent);
+                response.map(|body| {
+                    axum::body::Body::new(api::body::OnDrop::new(body, move || {
+                        sent.store(true, Ordering::Relaxed);
+                    }))
+                })
+            });
+        let service = hyper_util::service::TowerToHyperService::new(service);
         let conn = http.serve_connection(hyper_util::rt::TokioIo::new(stream), service);
         let conn = graceful.watch(conn);
         tokio::spawn(async move {
-            // Clients that hang up, send garbage or are too slow with their header end here.
-            if let Err(e) = conn.await {
-                tracing::debug!("connection closed: {e}");
+            tokio::select! {
+                // Clients that hang up, send garbage or are too slow with their header end here.
+                done = conn => if let Err(e) = done {
+                    tracing::debug!("connection closed: {e}");
+                },
+                () = slot.evicted() => {
+                    tracing::debug!("connection closed to make room under --max-connections");
+                }
             }
+            drop(slot);
         });
+        // The connection that made room is closed before the next accept, so descriptors stay
+        // within the cap however fast connections arrive (bounded, in case its task is slow).
+        if let Some(displaced) = displaced {
+            let _ = tokio::time::timeout(std::time::Duration::from_millis(100), displaced.closed())
+                .await;
+        }
+        // Let the new connection read its request before the next accept: a burst of accepts
+        // (up to the runtime's budget) could otherwise make room with connections whose
+        // complete header is already waiting to be read.
+        tokio::task::yield_now().await;
     }
     tracing::info!("shutdown requested: draining in-flight requests");
     tokio::select! {

@@ -17,7 +17,9 @@
 //!
 //! `max_wait` is below the request timeout (checked in `config`), so a request that gets its
 //! turn is never the one that later runs into the timeout because others overtook it, and
-//! every refusal carries a `Retry-After` from the same estimate.
+//! every refusal carries a `Retry-After` from the same estimate; before any turn was measured,
+//! and after a wait of `max_wait` in vain, it is `max_wait` (the queue may be held that long),
+//! never a hopeful 1 s.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -144,10 +146,18 @@ impl Admission {
     }
 
     /// `Retry-After` for a request refused with `ahead` requests waiting: the estimated wait
-    /// (at least 1 s), or 1 s before any turn was measured.
+    /// (at least 1 s), or `max_wait` before any turn was measured (nothing says the queue
+    /// frees sooner: each queued request may wait that long).
     fn retry_secs(&self, ahead: usize) -> u64 {
-        self.estimated_wait(ahead)
-            .map_or(1, |wait| wait.as_secs_f64().ceil().max(1.0) as u64)
+        self.estimated_wait(ahead).map_or_else(
+            || self.max_wait_secs(),
+            |wait| wait.as_secs_f64().ceil().max(1.0) as u64,
+        )
+    }
+
+    /// `max_wait` in whole seconds, at least 1.
+    fn max_wait_secs(&self) -> u64 {
+        self.max_wait.as_secs_f64().ceil().max(1.0) as u64
     }
 
     fn record(&self, secs: f64) {
@@ -181,9 +191,10 @@ impl Reservation {
                 match tokio::time::timeout(admission.max_wait, acquire).await {
                     Ok(Ok(permit)) => permit,
                     // The semaphore is never closed; treat it as a full queue if it were.
+                    // Having waited `max_wait` in vain, the queue is held at least that long.
                     Ok(Err(_)) | Err(_) => {
                         return Err(Refusal::Waited {
-                            retry_after: admission.retry_secs(ahead),
+                            retry_after: admission.retry_secs(ahead).max(admission.max_wait_secs()),
                         })
                     }
                 }
@@ -272,6 +283,18 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_full_queue_never_claims_a_second_before_anything_is_known() {
+        // Nothing measured yet: the queue may be held for `max_wait` by each waiter.
+        let q = Arc::new(Admission::new(2, 1, Duration::from_secs(30)));
+        let _a = q.reserve().unwrap();
+        let _b = q.reserve().unwrap();
+        assert_eq!(q.reserve().unwrap_err().retry_after(), 30);
+        // Once turns are measured, the estimate says it.
+        q.record(4.0);
+        assert_eq!(q.reserve().unwrap_err().retry_after(), 4);
+    }
+
+    #[tokio::test]
     async fn a_wait_is_bounded_when_nothing_is_known_yet() {
         let q = Arc::new(Admission::new(4, 1, Duration::from_millis(50)));
         let running = q.reserve().unwrap().turn().await.unwrap();
@@ -279,6 +302,8 @@ mod tests {
         let refused = q.reserve().unwrap().turn().await.unwrap_err();
         assert!(matches!(refused, Refusal::Waited { .. }), "{refused:?}");
         assert!(started.elapsed() >= Duration::from_millis(50));
+        // It waited the whole bound in vain: retry no sooner than that (rounded up to 1 s).
+        assert_eq!(refused.retry_after(), 1);
         assert_eq!(q.waiting(), 0);
         drop(running);
         // The place and the turn were given back.

@@ -1,9 +1,12 @@
-//! Request bodies with a bound in time: [`deadline`], the middleware that gives every request
-//! body a deadline for arriving whole (`--body-deadline-secs`). The gap timeout between bytes
-//! (`--body-read-timeout-secs`) alone lets one byte every few seconds hold a request, and
-//! whatever it holds, until the request timeout. Past the deadline the next read fails with
-//! [`BodyDeadlineExceeded`], which the extractors answer 408 `body_timeout`
-//! ([`super::extract::is_body_timeout`]).
+//! Request and response bodies with a bound in time or a hook on their end:
+//!
+//! * [`deadline`], the middleware that gives every request body a deadline for arriving whole
+//!   (`--body-deadline-secs`): the gap timeout between bytes (`--body-read-timeout-secs`) alone
+//!   lets one byte every few seconds hold a request, and whatever it holds, until the request
+//!   timeout. Past the deadline the next read fails with [`BodyDeadlineExceeded`], which the
+//!   extractors answer 408 `body_timeout` ([`super::extract::is_body_timeout`]).
+//! * [`OnDrop`], a body that runs a closure once it is dropped (sent whole, or abandoned): the
+//!   connection cap marks a connection idle again with it.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -68,6 +71,50 @@ pub async fn deadline(State(limit): State<Duration>, req: Request, next: Next) -
     next.run(Request::from_parts(parts, body)).await
 }
 
+/// A body that calls `on_drop` once, when it is dropped.
+pub struct OnDrop<F: FnOnce()> {
+    inner: Body,
+    on_drop: Option<F>,
+}
+
+impl<F: FnOnce()> OnDrop<F> {
+    /// `inner`, with `on_drop` to run when it is dropped.
+    pub fn new(inner: Body, on_drop: F) -> Self {
+        OnDrop {
+            inner,
+            on_drop: Some(on_drop),
+        }
+    }
+}
+
+impl<F: FnOnce()> Drop for OnDrop<F> {
+    fn drop(&mut self) {
+        if let Some(f) = self.on_drop.take() {
+            f();
+        }
+    }
+}
+
+impl<F: FnOnce() + Unpin> HttpBody for OnDrop<F> {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
+        Pin::new(&mut self.inner).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -105,5 +152,16 @@ mod tests {
             super::super::extract::is_body_timeout(&err),
             "{err}: not recognised as a body timeout"
         );
+    }
+
+    #[test]
+    fn on_drop_runs_once() {
+        let n = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let m = std::sync::Arc::clone(&n);
+        let b = OnDrop::new(Body::empty(), move || {
+            m.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        });
+        drop(b);
+        assert_eq!(n.load(std::sync::atomic::Ordering::Relaxed), 1);
     }
 }

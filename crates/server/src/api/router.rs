@@ -1,16 +1,20 @@
 //! The application: every resource's routes, the fallbacks, and the tower layers that enforce
 //! limits and record requests.
 //!
-//! Layers, outermost first: request id (`x-request-id`, generated when absent) -> trace span
-//! carrying it (and the API key's name once known) -> request id copied to the response ->
-//! JSON bodies for limit errors -> metrics -> `Host` check (421, when `--allowed-host` is set)
-//! -> CORS (when `--cors-origin` is set; answers preflights before any key is asked for) ->
-//! access control ([`super::auth`]: 401/403, per-key in-flight cap 429) -> panic guard (a
-//! handler that panics answers 500 `internal` in the API's error shape and is logged, instead
-//! of dropping the connection) -> load shedding (503
-//! `overloaded`) over a global concurrency limit -> timeout (503 `timeout`) -> body read
-//! timeout (a body that stalls fails with 408 `body_timeout`) -> body size limit (413). Axum's own 2 MB extractor default is disabled so the configured limit is the only
-//! one.
+//! Layers, outermost first: request id (`x-request-id` kept when it is a short token,
+//! [`request_id_ok`], otherwise replaced by a generated one, so a client's 16 KB id is neither
+//! echoed nor logged) -> trace span carrying it (and the API key's name once known) -> request
+//! id copied to the response -> JSON bodies for limit errors -> metrics (labels from closed
+//! sets) -> `Host` check (421, [`crate::config::HostPolicy`]) -> cross-site guard of a server
+//! without keys (403 `cross_site_request`, [`cross_site`]) -> CORS (when `--cors-origin` is
+//! set; answers preflights before any key is asked for) -> access control ([`super::auth`]:
+//! 401/403, per-key in-flight cap 429) -> panic guard (a handler that panics answers 500
+//! `internal` in the API's error shape and is logged, instead of dropping the connection) ->
+//! load shedding (503 `overloaded`) over a global concurrency limit, which the probes and `/`
+//! are outside of ([`UNLIMITED`]) -> timeout (503 `timeout`) -> body deadline (a body not
+//! whole within `--body-deadline-secs` fails with 408 `body_timeout`, [`super::body`]) -> body
+//! read timeout (a body that stalls fails with 408 `body_timeout`) -> body size limit (413).
+//! Axum's own 2 MB extractor default is disabled so the configured limit is the only one.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -73,6 +77,9 @@ const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
 /// front page. They are cheap and never read a body.
 pub const UNLIMITED: &[&str] = &["/healthz", "/readyz", "/"];
 
+/// Longest `x-request-id` kept from a client (longer ones are replaced).
+pub const MAX_REQUEST_ID: usize = 128;
+
 /// The whole service as an axum router.
 pub fn app(state: AppState) -> Router {
     let s = &state.settings;
@@ -82,6 +89,7 @@ pub fn app(state: AppState) -> Router {
         .timeout(timeout);
     let global = Arc::new(Semaphore::new(s.max_concurrent_requests));
     let edge = ServiceBuilder::new()
+        .layer(middleware::map_request(drop_bad_request_id))
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
         .layer(
             TraceLayer::new_for_http()
@@ -146,6 +154,31 @@ pub fn app(state: AppState) -> Router {
         .layer(edge)
         .layer(axum::Extension(BodyLimit(max_body)))
         .with_state(state)
+}
+
+/// Whether a client's `x-request-id` is kept: 1 to [`MAX_REQUEST_ID`] characters of
+/// `A-Z a-z 0-9 - _ . : + / =` (a UUID, a trace id, a short token). Anything else is replaced
+/// by a generated id, so what is echoed and logged is bounded.
+pub fn request_id_ok(id: &[u8]) -> bool {
+    !id.is_empty()
+        && id.len() <= MAX_REQUEST_ID
+        && id
+            .iter()
+            .all(|b| b.is_ascii_alphanumeric() || b"-_.:+/=".contains(b))
+}
+
+/// Removes an `x-request-id` that [`request_id_ok`] refuses (the next layer generates one).
+async fn drop_bad_request_id(mut req: Request) -> Request {
+    let bad = req
+        .headers()
+        .get_all(REQUEST_ID)
+        .iter()
+        .any(|v| !request_id_ok(v.as_bytes()))
+        || req.headers().get_all(REQUEST_ID).iter().count() > 1;
+    if bad {
+        req.headers_mut().remove(REQUEST_ID);
+    }
+    req
 }
 
 /// The global concurrency limit (`--max-concurrent-requests`): a request past it is shed at
@@ -366,6 +399,17 @@ mod tests {
         let body: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
         assert_eq!(body["error"]["code"], "internal");
         assert!(!body.to_string().contains("secret"), "{body}");
+    }
+
+    #[test]
+    fn request_ids_are_short_tokens() {
+        assert!(request_id_ok(b"0f8fad5b-d9cb-469f-a165-70867728950e"));
+        assert!(request_id_ok(b"trace:abc/def+1=="));
+        assert!(request_id_ok(&[b'r'; MAX_REQUEST_ID]));
+        assert!(!request_id_ok(&[b'r'; MAX_REQUEST_ID + 1]));
+        assert!(!request_id_ok(b""));
+        assert!(!request_id_ok(b"has space"));
+        assert!(!request_id_ok(b"line\nbreak"));
     }
 
     fn post(headers: &[(&str, &str)]) -> Request {
