@@ -728,3 +728,39 @@ fn half_open_connections_past_the_descriptor_limit_do_not_starve_probes() {
     );
     assert!(server.alive());
 }
+
+// ---- S2: a localization without predictions says why --------------------------------------------
+
+#[test]
+fn a_localization_without_informative_predictions_says_why() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(60, 3);
+    let map = hog_map(&c, &route, 60);
+    let localize = format!("/v1/maps/{map}/localize");
+    // One image: with the column normalisation every reference scores alike.
+    let r = c.post_multipart(&localize, &frames(&route, 20..21, true));
+    assert_eq!(r.status, 200, "{}", r.message());
+    spec::check("post", "/v1/maps/{id}/localize", &r);
+    let one = r.json();
+    assert_eq!(one["reason"], "too_few_queries", "{one}");
+    // Stored, it says the same.
+    let id = one["id"].as_str().unwrap();
+    let stored = c.get(&format!("/v1/localizations/{id}"));
+    assert_eq!(stored.json()["reason"], "too_few_queries");
+    // A sequence localizes, and needs no reason.
+    let r = c.post_multipart(&localize, &frames(&route, 20..30, true));
+    assert_eq!(r.status, 200, "{}", r.message());
+    let seq = r.json();
+    assert!(!seq["predictions"].as_array().unwrap().is_empty(), "{seq}");
+    assert!(seq.get("reason").is_none(), "{seq}");
+    // Hiding a row cheaper than any match: every row hidden, no prediction, and that says why.
+    let mut parts = frames(&route, 20..30, true);
+    parts.push(Part::json("params", &json!({"hidden_cost": 1e-6})));
+    let r = c.post_multipart(&localize, &parts);
+    assert_eq!(r.status, 200, "{}", r.message());
+    spec::check("post", "/v1/maps/{id}/localize", &r);
+    let hidden = r.json();
+    assert_eq!(hidden["predictions"], json!([]), "{hidden}");
+    assert_eq!(hidden["reason"], "every_row_hidden", "{hidden}");
+}

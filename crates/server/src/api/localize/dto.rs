@@ -275,6 +275,45 @@ pub struct LocalizationResponse {
     /// the result has none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub picture: Option<PictureDto>,
+    /// Why the answer has no prediction, or why its predictions say nothing; absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<NoPredictionReason>,
+}
+
+/// Why a localization has no (informative) prediction, read from the result itself.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum NoPredictionReason {
+    /// One query with the column normalisation (Eq. 2) on: each reference's similarity is
+    /// divided by its mean over the queries, itself, so every reference scores alike and any
+    /// prediction is arbitrary. Send a sequence of queries (or `normalize: false`).
+    TooFewQueries,
+    /// Every query was left hidden: none looks enough like any place of the map.
+    EveryRowHidden,
+    /// Queries were matched, but the local evidence of each puts it off the map.
+    OffMap,
+}
+
+impl NoPredictionReason {
+    /// The reason a result has no informative prediction, if it has none.
+    pub fn of(r: &seasonloc_app::model::LocalizationResult) -> Option<Self> {
+        let flow = matches!(r.params.method, None | Some(CoocMethod::Flow));
+        if r.query_count < 2 && r.params.normalize && flow {
+            return Some(NoPredictionReason::TooFewQueries);
+        }
+        if !r.predictions.is_empty() {
+            return None;
+        }
+        let matched = r
+            .hypotheses
+            .iter()
+            .any(|h| h.rows.iter().any(|row| !row.matches.is_empty()));
+        Some(if matched {
+            NoPredictionReason::OffMap
+        } else {
+            NoPredictionReason::EveryRowHidden
+        })
+    }
 }
 
 /// The similarity-matrix picture of a localization: `rows` x `cols` grey pixels, each the
@@ -312,6 +351,7 @@ impl From<&LocalizationRecord> for LocalizationResponse {
                 lo: p.lo,
                 hi: p.hi,
             }),
+            reason: NoPredictionReason::of(r),
         }
     }
 }
