@@ -556,6 +556,7 @@ fn margin_predictions(
                 query: q,
                 reference: best,
                 confidence,
+                p_correct: None,
             })
         })
         .collect()

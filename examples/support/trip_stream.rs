@@ -43,6 +43,7 @@ pub fn predictions(e: &[FrameEstimate]) -> Vec<Prediction> {
                 query: e.frame,
                 reference: j,
                 confidence: e.confidence,
+                p_correct: None,
             })
         })
         .collect()

@@ -140,9 +140,13 @@ pub struct EvalArgs {
     /// Query index ranges left out of scoring, e.g. `0-16,100-120`.
     #[arg(long, default_value = "")]
     pub exclude: String,
-    /// Write `query_index,ref_index,confidence` of the main method here.
+    /// Write `query_index,ref_index,confidence,p_correct` of the main method here.
     #[arg(long)]
     pub predictions: Option<PathBuf>,
+    /// Write the reliability diagram of the main method's `p_correct` here (`.png`): per bin of
+    /// predicted probability, the fraction of predictions that are right.
+    #[arg(long)]
+    pub reliability: Option<PathBuf>,
     /// Write a precision-recall plot of all scored methods here (`.png`, or `.jpg`).
     #[arg(long)]
     pub plot: Option<PathBuf>,

@@ -373,6 +373,20 @@ mod tests {
     }
 }
 
+/// A `--tolerance`: reference frames, at most [`seasonloc_core::trip::MAX_TOLERANCE`].
+pub fn parse_tolerance(s: &str) -> Result<usize, String> {
+    let t: usize = s
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number of frames (an integer >= 0)"))?;
+    if t > seasonloc_core::trip::MAX_TOLERANCE {
+        return Err(format!(
+            "must be at most {}, got {t}",
+            seasonloc_core::trip::MAX_TOLERANCE
+        ));
+    }
+    Ok(t)
+}
+
 /// `--normalization` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum NormalizationArg {

@@ -1,4 +1,5 @@
-//! Precision-recall plots as PNG, one line per method, with a legend.
+//! Precision-recall plots as PNG, one line per method, with a legend; and the reliability
+//! diagram of a method's calibrated `p_correct`.
 //!
 //! Drawn with plotters' bitmap backend. Text uses the DejaVu Sans font embedded in the binary
 //! (the `dejavu` crate) and registered with plotters' `ab_glyph` text renderer under the family
@@ -10,6 +11,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
+use seasonloc_core::calibration::fit::ReliabilityBin;
 use seasonloc_core::eval::PrPoint;
 use seasonloc_core::{Error, Result};
 
@@ -99,6 +101,75 @@ pub fn plot_pr(path: &Path, title: &str, curves: &[(String, Vec<PrPoint>)]) -> R
         .map_err(|e| draw_err(&e))?;
     root.present().map_err(|e| draw_err(&e))?;
     Ok(())
+}
+
+/// Writes one PNG ([`PLOT_SIZE`]) to `path` with the reliability diagram of `bins`: for each
+/// bin of predicted probability, the observed fraction of right predictions (bars) against
+/// the mean predicted probability (points), with the diagonal of a perfect calibration and the
+/// count of each bin above it.
+pub fn plot_reliability(path: &Path, title: &str, bins: &[ReliabilityBin]) -> Result<()> {
+    ensure_font()?;
+    let err = |e: &dyn std::fmt::Display| Error::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(format!("cannot draw the reliability diagram: {e}")),
+    };
+    let root = BitMapBackend::new(path, PLOT_SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, (FONT_FAMILY, 22))
+        .margin(20)
+        .x_label_area_size(45)
+        .y_label_area_size(55)
+        .build_cartesian_2d(0.0f64..1.0, 0.0f64..1.0)
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("predicted p_correct")
+        .y_desc("observed fraction right")
+        .label_style((FONT_FAMILY, 15))
+        .draw()
+        .map_err(|e| err(&e))?;
+    chart
+        .draw_series(LineSeries::new([(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.4)))
+        .map_err(|e| err(&e))?
+        .label("perfect calibration")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.4)));
+    let filled: Vec<&ReliabilityBin> = bins.iter().filter(|b| b.count > 0).collect();
+    chart
+        .draw_series(filled.iter().map(|b| {
+            Rectangle::new(
+                [(b.lo + 0.005, 0.0), (b.hi - 0.005, b.observed)],
+                BLUE.mix(0.35).filled(),
+            )
+        }))
+        .map_err(|e| err(&e))?
+        .label("observed (bar), mean predicted (point)")
+        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], BLUE.mix(0.35).filled()));
+    chart
+        .draw_series(
+            filled
+                .iter()
+                .map(|b| Circle::new((b.predicted, b.observed), 4, BLUE.filled())),
+        )
+        .map_err(|e| err(&e))?;
+    chart
+        .draw_series(filled.iter().map(|b| {
+            Text::new(
+                format!("{}", b.count),
+                ((b.lo + b.hi) / 2.0 - 0.02, (b.observed + 0.03).min(0.97)),
+                (FONT_FAMILY, 13),
+            )
+        }))
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .label_font((FONT_FAMILY, 15))
+        .draw()
+        .map_err(|e| err(&e))?;
+    root.present().map_err(|e| err(&e))
 }
 
 #[cfg(test)]

@@ -29,6 +29,10 @@ pub struct SolveArgs {
     /// Graph and solver parameters.
     #[command(flatten)]
     pub solver: SolverArgs,
+    /// Reference frames within which a prediction counts as right: what each prediction's
+    /// `p_correct` is the probability of.
+    #[arg(long, default_value_t = seasonloc_core::trip::DEFAULT_TOLERANCE, value_parser = super::parse_tolerance)]
+    pub tolerance: usize,
 }
 
 /// Runs `solve` and returns the JSON document to print.
@@ -43,6 +47,7 @@ pub fn run(args: &SolveArgs) -> Result<Value> {
     };
     let options = LocalizeOptions {
         solver: params,
+        tolerance: args.tolerance,
         ..LocalizeOptions::default()
     };
     let (solution, predictions) = solve_with_confidence(&chat, &options)?;
@@ -78,10 +83,17 @@ pub fn solution_json(solution: &Solution, predictions: &[Prediction]) -> Value {
     })
 }
 
-/// `[{"query", "ref", "confidence"}]`.
+/// `[{"query", "ref", "confidence", "p_correct"}]` (`p_correct` only for methods that have
+/// one).
 pub fn predictions_json(predictions: &[Prediction]) -> Vec<Value> {
     predictions
         .iter()
-        .map(|p| json!({"query": p.query, "ref": p.reference, "confidence": p.confidence}))
+        .map(|p| {
+            let mut v = json!({"query": p.query, "ref": p.reference, "confidence": p.confidence});
+            if let (Some(pc), Some(o)) = (p.p_correct, v.as_object_mut()) {
+                o.insert("p_correct".into(), json!(pc));
+            }
+            v
+        })
         .collect()
 }

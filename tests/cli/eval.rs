@@ -9,6 +9,7 @@ fn eval_localizes_a_generated_route_and_writes_its_outputs() {
     let route = write_route(&dir, 40, 30);
     let preds = dir.path("out/p.csv");
     let plot = dir.path("out/pr.png");
+    let reliability = dir.path("out/reliability.png");
     std::fs::create_dir_all(dir.path("out")).unwrap();
     let out = seasonloc(&[
         "eval",
@@ -28,6 +29,8 @@ fn eval_localizes_a_generated_route_and_writes_its_outputs() {
         preds.to_str().unwrap(),
         "--plot",
         plot.to_str().unwrap(),
+        "--reliability",
+        reliability.to_str().unwrap(),
     ])
     .success_json();
     assert_eq!(out["method"], "flow");
@@ -59,12 +62,52 @@ fn eval_localizes_a_generated_route_and_writes_its_outputs() {
     assert_eq!(compared, vec!["best-match", "seqslam"]);
     let csv = std::fs::read_to_string(&preds).unwrap();
     assert!(
-        csv.starts_with("query_index,ref_index,confidence\n"),
+        csv.starts_with("query_index,ref_index,confidence,p_correct\n"),
         "{csv}"
     );
     assert!(csv.lines().count() > 20);
+    // Every flow prediction has a calibrated probability.
+    for line in csv.lines().skip(1) {
+        let p: f64 = line.rsplit(',').next().unwrap().parse().unwrap();
+        assert!((0.0..=1.0).contains(&p), "{line}");
+    }
     let png = std::fs::read(&plot).unwrap();
     assert_eq!(&png[1..4], b"PNG");
+    // The reliability diagram of p_correct, and its figures in the report.
+    let png = std::fs::read(&reliability).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    let cal = &out["calibration"];
+    let ece = cal["ece"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&ece), "{cal}");
+    let bins = cal["bins"].as_array().unwrap();
+    assert_eq!(bins.len(), 10, "{cal}");
+    let counted: u64 = bins.iter().map(|b| b["count"].as_u64().unwrap()).sum();
+    assert_eq!(counted, out["predicted"].as_u64().unwrap(), "{cal}");
+    assert!(cal["ranked_by_p_correct"]["ap"].as_f64().is_some(), "{cal}");
+}
+
+/// A reliability diagram needs a calibrated method: asked of one without `p_correct`, eval
+/// says so in one line.
+#[test]
+fn eval_reliability_needs_a_calibrated_method() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 20, 10);
+    let out = seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        &route.ground_truth,
+        "--cell-size",
+        "8",
+        "--method",
+        "best-match",
+        "--reliability",
+        dir.path("r.png").to_str().unwrap(),
+    ]);
+    out.failure_mentions("--reliability: method `best-match` gives no p_correct");
 }
 
 #[test]

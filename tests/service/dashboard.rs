@@ -389,7 +389,7 @@ fn dashboard_pages_in_a_browser_on_nordland() {
     assert_eq!(r.status, 201, "{}", body(&r));
     let trip = r.json()["id"].as_str().unwrap().to_string();
     let mut last = Value::Null;
-    for lo in (320..350).step_by(10) {
+    for lo in (360..390).step_by(10) {
         last = post_frames(&c, &trip, &nordland_parts(&winter, lo..lo + 10));
     }
     let first_status = last["status"].as_str().unwrap().to_string();

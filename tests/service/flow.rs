@@ -358,6 +358,18 @@ fn generated_route_end_to_end() {
         "only {correct} of {} queries localized",
         queries.len()
     );
+    // Every prediction of the flow method carries its calibrated probability; the right ones
+    // are, on this easy route, likely by it.
+    for p in preds {
+        let pc = p["p_correct"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&pc), "{p}");
+    }
+    let mean_p: f64 = preds
+        .iter()
+        .map(|p| p["p_correct"].as_f64().unwrap())
+        .sum::<f64>()
+        / preds.len() as f64;
+    assert!(mean_p > 0.5, "mean p_correct {mean_p}");
 
     let options = LocalizeOptions {
         solver: SolverParams {
@@ -413,6 +425,26 @@ fn generated_route_end_to_end() {
         metrics.contains("seasonloc_stage_duration_seconds_count{stage=\"solve\"} 2"),
         "{metrics}"
     );
+
+    // A wider tolerance makes the same predictions likelier, and is reported with the result.
+    let wide = run_localize(
+        &c,
+        &map,
+        &queries,
+        &json!({"fan_out": 4, "hidden_cost": 1.3, "flows": 2, "tolerance": 3}),
+    );
+    assert_eq!(wide["params"]["tolerance"], 3);
+    assert!(
+        result["params"].get("tolerance").is_none(),
+        "the default tolerance is not stated"
+    );
+    for (a, b) in preds.iter().zip(wide["predictions"].as_array().unwrap()) {
+        assert_eq!((&a["query"], &a["ref"]), (&b["query"], &b["ref"]));
+        assert!(
+            b["p_correct"].as_f64().unwrap() >= a["p_correct"].as_f64().unwrap(),
+            "{a} {b}"
+        );
+    }
 
     // Deleting the map deletes its results.
     let r = c.delete(&format!("/v1/maps/{map}"));

@@ -145,6 +145,105 @@ fn trip_flow_on_generated_images() {
     assert_eq!((r.status, r.code()), (404, "trip_not_found".into()));
 }
 
+/// Every estimate carries a calibrated `p_correct` and a status; the trip's `tolerance` and
+/// `threshold` are taken, reported and kept; out-of-range ones are refused with the field named.
+#[test]
+fn trip_estimates_carry_p_correct_and_a_status() {
+    let server = Server::start();
+    let c = server.client;
+    let route = Route::new(60, 5);
+    let map = route_map(&c, &route, 60);
+    let statuses = ["localized", "uncertain", "off_map", "lost"];
+    let check_estimate = |e: &Value| {
+        let p = e["p_correct"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&p), "{e}");
+        let status = e["status"].as_str().unwrap();
+        assert!(statuses.contains(&status), "{e}");
+        match status {
+            "off_map" => assert!(e["ref"].is_null(), "{e}"),
+            "localized" | "uncertain" => assert!(e["ref"].is_number(), "{e}"),
+            _ => {}
+        }
+        if e["ref"].is_null() {
+            assert_eq!(p, 0.0, "{e}");
+        }
+    };
+    for (threshold, strict) in [(0.9, false), (1.0, true)] {
+        let trip = open(
+            &c,
+            &map,
+            Some(json!({"tolerance": 2, "threshold": threshold})),
+        );
+        // A trip's first frame, alone, is `localized` only when its p_correct says so;
+        // otherwise `lost` (not enough evidence yet), never `uncertain` or `off_map`.
+        let first = post_frames(&c, &trip, &query_parts(&route, 0..1));
+        let e = &first["estimates"][0];
+        match e["status"].as_str().unwrap() {
+            "lost" => {}
+            "localized" => assert!(e["p_correct"].as_f64().unwrap() >= threshold, "{e}"),
+            other => panic!("the first frame is {other}: {first}"),
+        }
+        assert_eq!(first["latest_status"], e["status"], "{first}");
+        let mut last = Value::Null;
+        for b in 0..3u32 {
+            let frames = (b * 10).max(1)..b * 10 + 10;
+            last = post_frames(&c, &trip, &query_parts(&route, frames));
+            for e in last["estimates"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .chain(last["window"].as_array().unwrap())
+            {
+                check_estimate(e);
+                if e["status"] == "localized" {
+                    assert!(e["p_correct"].as_f64().unwrap() >= threshold, "{e}");
+                }
+            }
+            // The trip's status follows its latest frame (or says it relocalized).
+            let latest = last["estimates"].as_array().unwrap().last().unwrap();
+            assert_eq!(last["latest_status"], latest["status"], "{last}");
+            if last["status"] == "localized" {
+                assert_eq!(latest["status"], "localized", "{last}");
+            }
+        }
+        let t = c.get(&format!("/v1/trips/{trip}")).json();
+        assert_eq!(t["params"]["tolerance"], 2, "{t}");
+        assert_eq!(t["params"]["threshold"], threshold, "{t}");
+        assert_eq!(t["latest_status"], last["latest_status"], "{t}");
+        for e in t["estimates"].as_array().unwrap() {
+            check_estimate(e);
+        }
+        // The easy route is localized at the default threshold; nothing reaches p = 1 exactly.
+        let localized = t["estimates"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|e| e["status"] == "localized")
+            .count();
+        if strict {
+            assert_eq!(localized, 0, "{t}");
+        } else {
+            assert!(localized >= 10, "{localized} of 30 frames localized: {t}");
+        }
+    }
+    for (field, bad) in [
+        ("threshold", json!(0)),
+        ("threshold", json!(1.5)),
+        ("tolerance", json!(1001)),
+        ("tolerance", json!(-1)),
+    ] {
+        let r = c.post_json(&format!("/v1/maps/{map}/trips"), &json!({ field: bad }));
+        check("POST", OPEN, &r);
+        assert_eq!(
+            (r.status, r.code()),
+            (400, "invalid_parameter".into()),
+            "{field} = {bad}: {}",
+            body(&r)
+        );
+        assert!(body(&r).contains(field), "{}", body(&r));
+    }
+}
+
 #[test]
 fn bad_inputs_store_nothing_and_leave_the_trip_unchanged() {
     let server = Server::start_with(|a| a.max_batch_images = 12);

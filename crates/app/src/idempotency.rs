@@ -21,6 +21,7 @@ use super::error::{AppError, AppResult};
 use super::App;
 use crate::store::IdempotencyRecord;
 use crate::ErrorCode;
+use seasonloc_core::calibration::FrameStatus;
 use seasonloc_core::trip::{BatchUpdate, FrameEstimate, TripStatus};
 
 /// Longest accepted key.
@@ -160,6 +161,17 @@ struct FramesReplay {
     /// `[frame, reference or null, confidence]`.
     estimates: Vec<(usize, Option<usize>, f64)>,
     window: Vec<(usize, Option<usize>, f64)>,
+    /// `[p_correct, status code]` of each of `estimates` / `window` (absent in replays
+    /// stored before the calibration: read as `p_correct` 0 and
+    /// [`FrameStatus::before_calibration`]).
+    #[serde(default)]
+    estimates_trust: Vec<(f64, u8)>,
+    #[serde(default)]
+    window_trust: Vec<(f64, u8)>,
+}
+
+fn trust(e: &[FrameEstimate]) -> Vec<(f64, u8)> {
+    e.iter().map(|e| (e.p_correct, e.status.code())).collect()
 }
 
 fn status_code(s: TripStatus) -> u8 {
@@ -176,12 +188,21 @@ fn estimates(e: &[FrameEstimate]) -> Vec<(usize, Option<usize>, f64)> {
         .collect()
 }
 
-fn frames(e: Vec<(usize, Option<usize>, f64)>) -> Vec<FrameEstimate> {
+fn frames(e: Vec<(usize, Option<usize>, f64)>, trust: &[(f64, u8)]) -> Vec<FrameEstimate> {
     e.into_iter()
-        .map(|(frame, reference, confidence)| FrameEstimate {
-            frame,
-            reference,
-            confidence,
+        .enumerate()
+        .map(|(k, (frame, reference, confidence))| {
+            let (p_correct, status) = trust.get(k).map_or_else(
+                || (0.0, FrameStatus::before_calibration(reference)),
+                |&(p, code)| (p, FrameStatus::from_code(code).unwrap_or(FrameStatus::Lost)),
+            );
+            FrameEstimate {
+                frame,
+                reference,
+                confidence,
+                p_correct,
+                status,
+            }
         })
         .collect()
 }
@@ -198,6 +219,8 @@ pub(super) fn encode_frames(
         hidden_cost,
         estimates: estimates(&update.estimates),
         window: estimates(&update.window),
+        estimates_trust: trust(&update.estimates),
+        window_trust: trust(&update.window),
     })
     .map_err(|e| AppError::Internal(format!("encoding a replay: {e}")))
 }
@@ -215,8 +238,8 @@ pub(super) fn decode_frames(bytes: &[u8]) -> AppResult<(u64, BatchUpdate, f64)> 
     Ok((
         r.frame_count,
         BatchUpdate {
-            estimates: frames(r.estimates),
-            window: frames(r.window),
+            estimates: frames(r.estimates, &r.estimates_trust),
+            window: frames(r.window, &r.window_trust),
             status,
         },
         r.hidden_cost,
@@ -245,11 +268,15 @@ mod tests {
                 frame: 4,
                 reference: None,
                 confidence: 0.0,
+                p_correct: 0.0,
+                status: FrameStatus::OffMap,
             }],
             window: vec![FrameEstimate {
                 frame: 3,
                 reference: Some(9),
                 confidence: 0.25,
+                p_correct: 0.125,
+                status: FrameStatus::Uncertain,
             }],
             status: TripStatus::Relocalized,
         };

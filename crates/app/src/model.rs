@@ -178,6 +178,10 @@ pub struct LocalizationParams {
     /// The method of a `cooc` map (absent for other maps).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub method: Option<CoocMethod>,
+    /// The tolerance of the predictions' `p_correct`, when not the default of 1 (results stored
+    /// before it existed have none: they have no `p_correct` either).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<usize>,
 }
 
 impl LocalizationParams {
@@ -196,6 +200,8 @@ impl LocalizationParams {
             normalize: o.normalization != Normalization::None,
             stop_hidden_fraction: o.solver.stop_hidden_fraction,
             method,
+            tolerance: (o.tolerance != seasonloc_core::trip::DEFAULT_TOLERANCE)
+                .then_some(o.tolerance),
         }
     }
 }

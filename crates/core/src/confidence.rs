@@ -138,6 +138,10 @@ pub struct RowConfidence {
     /// the row would cost), and a localization leaves it without a prediction
     /// (ARCHITECTURE.md, "Off the map").
     pub off_map: bool,
+    /// The cheapest local route hidden at the row over the cheapest through the band (`+inf`
+    /// when none passes the band): how much the row's own evidence holds it on the map, an
+    /// input of the calibrated `p_correct` ([`crate::calibration`]).
+    pub hidden_ratio: f64,
 }
 
 /// Scores every matched row of `hypothesis` on the normalised similarity matrix `chat`.
@@ -216,6 +220,7 @@ fn read_hypotheses(
                 reference: j,
                 confidence: r.confidence,
                 off_map: r.off_map,
+                hidden_ratio: r.hidden_ratio,
             })
             .collect()
     };
@@ -244,6 +249,7 @@ fn read_hypotheses(
                         reference: r.at,
                         confidence: r.confidence,
                         off_map: r.off_map,
+                        hidden_ratio: r.hidden_ratio,
                     })
                     .collect()
             })
@@ -291,6 +297,8 @@ pub struct WindowReading {
     pub confidence: f64,
     /// The off-the-map test ([`off_the_map`], [`RowConfidence::off_map`]).
     pub off_map: bool,
+    /// `hidden / inside` ([`RowConfidence::hidden_ratio`]).
+    pub hidden_ratio: f64,
 }
 
 /// The local min-marginal ratio of matching `rows[scored]` at `j_star`, on the graph restricted
@@ -359,6 +367,11 @@ pub fn window_readout(
     let band = band_costs((&fx, &fh), (&bx, &bh), j_star, radius);
     WindowReading {
         confidence: band.ratio(),
+        hidden_ratio: if band.inside.is_finite() && band.inside > 0.0 {
+            band.hidden / band.inside
+        } else {
+            f64::INFINITY
+        },
         off_map: off_the_map(
             band.hidden,
             band.inside,

@@ -15,6 +15,7 @@
 #![warn(missing_docs)]
 
 pub mod baselines;
+pub mod calibration;
 pub mod codec;
 pub mod confidence;
 pub mod cooc;
@@ -24,6 +25,7 @@ pub mod features;
 pub mod localize;
 pub mod matrix;
 pub mod picture;
+pub mod prediction;
 pub mod similarity;
 pub mod solver;
 pub mod trip;

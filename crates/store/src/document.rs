@@ -164,6 +164,7 @@ mod tests {
                     query: 0,
                     reference: 1,
                     confidence: 0.5,
+                    p_correct: None,
                 }],
                 timings: LocalizationTimings::default(),
                 picture: None,

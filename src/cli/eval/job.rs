@@ -14,8 +14,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{json, Value};
 
 use super::{ConfidenceArg, EvalArgs, Method, ReferenceDrive};
-use crate::cli::plot::plot_pr;
+use crate::cli::plot::{plot_pr, plot_reliability};
 use seasonloc_core::baselines::{best_match, seqslam, SeqSlamParams};
+use seasonloc_core::calibration::fit::{expected_calibration_error, reliability, ReliabilityBin};
 use seasonloc_core::confidence::ConfidenceParams;
 use seasonloc_core::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use seasonloc_core::eval::{
@@ -166,6 +167,7 @@ pub(super) fn run_job(
             ..ConfidenceParams::default()
         },
         claim: args.claim.unwrap_or(args.tolerance),
+        tolerance: args.tolerance,
     };
     let cooc_options = CoocOptions {
         sequence,
@@ -189,6 +191,20 @@ pub(super) fn run_job(
 
     if let Some(path) = &args.predictions {
         write_predictions_csv(path, &scored[0].1)?;
+    }
+    let calibration = calibration_report(&scored[0].1, ground_truth, args.tolerance, &exclusions);
+    if let Some(path) = &args.reliability {
+        let Some((bins, ece)) = &calibration else {
+            bail!(
+                "--reliability: method `{}` gives no p_correct (only the flow methods are calibrated)",
+                scored[0].0.name()
+            );
+        };
+        plot_reliability(
+            path,
+            &format!("{} p_correct (ECE {ece:.3})", scored[0].0.name()),
+            bins,
+        )?;
     }
     if let Some(path) = &args.plot {
         let curves: Vec<(String, _)> = scored
@@ -258,6 +274,24 @@ pub(super) fn run_job(
         }),
     );
     obj.insert("compared".into(), Value::Array(reports));
+    if let Some((bins, ece)) = &calibration {
+        let by_p: Vec<Prediction> = scored[0]
+            .1
+            .iter()
+            .map(|p| Prediction {
+                confidence: p.p_correct.unwrap_or(0.0),
+                ..*p
+            })
+            .collect();
+        let metrics = evaluate(
+            &by_p,
+            ground_truth,
+            query_files.len(),
+            args.tolerance,
+            &exclusions,
+        )?;
+        obj.insert("calibration".into(), calibration_json(bins, *ece, &metrics));
+    }
     Ok(report)
 }
 
@@ -313,6 +347,50 @@ fn run_method(
             let (solution, predictions) = solve_with_confidence(chat, options)?;
             (predictions, flow_params(&solution))
         }
+    })
+}
+
+/// Bins of the reliability diagram and of the expected calibration error.
+const CALIBRATION_BINS: usize = 10;
+
+/// The reliability of `predictions`' `p_correct` against the ground truth (scored queries only;
+/// a prediction for a query without a true match is wrong): the diagram's bins and the expected
+/// calibration error. `None` when the method gives no `p_correct`.
+fn calibration_report(
+    predictions: &[Prediction],
+    ground_truth: &GroundTruth,
+    tolerance: usize,
+    exclusions: &Exclusions,
+) -> Option<(Vec<ReliabilityBin>, f64)> {
+    let pairs: Vec<(f64, bool)> = predictions
+        .iter()
+        .filter(|p| !exclusions.contains(p.query))
+        .map(|p| {
+            p.p_correct
+                .map(|pc| (pc, ground_truth.is_correct(p.query, p.reference, tolerance)))
+        })
+        .collect::<Option<_>>()?;
+    Some((
+        reliability(&pairs, CALIBRATION_BINS),
+        expected_calibration_error(&pairs, CALIBRATION_BINS),
+    ))
+}
+
+/// The report's `calibration` entry: ECE, the bins, and the metrics of the predictions ranked
+/// by `p_correct` instead of the method's confidence.
+fn calibration_json(bins: &[ReliabilityBin], ece: f64, by_p: &Metrics) -> Value {
+    json!({
+        "ece": ece,
+        "bins": bins
+            .iter()
+            .map(|b| json!({"lo": b.lo, "hi": b.hi, "count": b.count, "predicted": b.predicted, "observed": b.observed}))
+            .collect::<Vec<_>>(),
+        "ranked_by_p_correct": {
+            "ap": by_p.ap,
+            "recall_at_100p": by_p.recall_at_100p,
+            "recall_at_99p": by_p.recall_at_99p,
+            "max_f1": by_p.max_f1,
+        },
     })
 }
 

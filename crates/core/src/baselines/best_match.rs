@@ -28,6 +28,7 @@ pub fn best_match(c: &Matrix) -> Vec<Prediction> {
                 query: i,
                 reference: j,
                 confidence: f64::from(v),
+                p_correct: None,
             })
         })
         .collect()
@@ -54,12 +55,14 @@ mod tests {
                 Prediction {
                     query: 0,
                     reference: 1,
-                    confidence: f64::from(0.9f32)
+                    confidence: f64::from(0.9f32),
+                    p_correct: None,
                 },
                 Prediction {
                     query: 2,
                     reference: 0,
-                    confidence: 0.5
+                    confidence: 0.5,
+                    p_correct: None,
                 },
             ]
         );

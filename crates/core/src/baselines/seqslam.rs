@@ -214,6 +214,7 @@ pub fn seqslam(c: &Matrix, params: &SeqSlamParams) -> Result<Vec<Prediction>> {
                     query: i,
                     reference: j,
                     confidence: conf,
+                    p_correct: None,
                 })
             },
         )

@@ -52,6 +52,9 @@ pub(super) struct Reading {
     /// The row's own min-marginals put it off the map rather than at `at`
     /// ([`super::off_the_map`]).
     pub off_map: bool,
+    /// The cheapest route hidden at the row over the cheapest through the band around `at`
+    /// (`+inf` when no route passes the band; evidence for the calibration).
+    pub hidden_ratio: f64,
 }
 
 /// Reads row `i` out for the path's match `j_star`: see [`Reading`] and [`Readout`]. `row` is
@@ -71,9 +74,15 @@ pub(super) fn read(view: &RowView<'_>, ro: Readout, j_star: usize, row: &[f32], 
         far,
     };
     let (at, confidence) = pick(&band, ro, j_star);
+    let inside = band.band(at, ro.radius).0;
     Reading {
         at,
         confidence,
+        hidden_ratio: if inside.is_finite() && inside > 0.0 {
+            f64::from(view.hidden) / f64::from(inside)
+        } else {
+            f64::INFINITY
+        },
         off_map: super::off_the_map(
             f64::from(view.hidden),
             f64::from(band.band(at, ro.radius).0),
@@ -206,6 +215,7 @@ pub(super) fn discounted_readouts(
             at: j,
             confidence: 0.0,
             off_map: false,
+            hidden_ratio: f64::INFINITY,
         })
         .collect();
     for (t, r) in rows.into_iter().flat_map(|(_, r)| r) {

@@ -75,6 +75,16 @@ impl RowSpread {
         Some(RowSpread { median, scale })
     }
 
+    /// The row's median.
+    pub fn median(&self) -> f64 {
+        self.median
+    }
+
+    /// The row's robust standard deviation, `1.4826 · MAD`.
+    pub fn scale(&self) -> f64 {
+        self.scale
+    }
+
     /// The robust `z` of `v` in this row (`+inf` above the median of a row that does not
     /// spread, 0 at or below it; 0 for a non-finite `v`).
     pub fn contrast(&self, v: f32) -> f64 {

@@ -323,7 +323,12 @@ impl<'m> CoocQueries<'m> {
                 )?;
                 let similarity = started.elapsed().as_secs_f64();
                 let t = Instant::now();
-                let (solution, predictions) = solve_with_confidence(&chat, &options.flow)?;
+                let (solution, mut predictions) = solve_with_confidence(&chat, &options.flow)?;
+                // The calibration was fitted on descriptor similarities, not on co-occurrence
+                // scores: these predictions have no calibrated probability.
+                for p in &mut predictions {
+                    p.p_correct = None;
+                }
                 Ok(Localization {
                     solution,
                     predictions,
@@ -363,6 +368,7 @@ impl<'m> CoocQueries<'m> {
                         query: i,
                         reference: r.location,
                         confidence: r.score as f64,
+                        p_correct: None,
                     })
             })
             .collect())
@@ -385,6 +391,7 @@ pub fn best_per_query(scores: &Matrix) -> Vec<Prediction> {
                 query: i,
                 reference: best,
                 confidence: f64::from(s),
+                p_correct: None,
             })
         })
         .collect()

@@ -208,6 +208,7 @@ pub fn match_sequences(scores: &Matrix, params: &SequenceParams) -> Result<Vec<P
                 query: i,
                 reference: best_end,
                 confidence: f64::from(((second - best) / window).clamp(0.0, 1.0)),
+                p_correct: None,
             }
         })
         .collect();

@@ -166,6 +166,7 @@ mod tests {
             query,
             reference,
             confidence,
+            p_correct: None,
         }
     }
 

@@ -1,5 +1,6 @@
-//! Writing a method's predictions as CSV (`spec.md` §5, `--predictions`): header
-//! `query_index,ref_index,confidence`, one row per predicted query, sorted by query.
+//! Writing a method's predictions as CSV (`--predictions`): header
+//! `query_index,ref_index,confidence,p_correct`, one row per predicted query, sorted by query;
+//! `p_correct` is empty for a method without a calibration.
 //!
 //! Confidences are written with Rust's shortest round-trip formatting, so reading the file back
 //! gives the same `f64` values (and the same metrics).
@@ -20,9 +21,15 @@ pub fn write_predictions_csv(path: &Path, predictions: &[Prediction]) -> Result<
     sorted.sort_by_key(|p| (p.query, p.reference));
     let file = std::fs::File::create(path).map_err(io_err)?;
     let mut w = std::io::BufWriter::new(file);
-    writeln!(w, "query_index,ref_index,confidence").map_err(io_err)?;
+    writeln!(w, "query_index,ref_index,confidence,p_correct").map_err(io_err)?;
     for p in &sorted {
-        writeln!(w, "{},{},{}", p.query, p.reference, p.confidence).map_err(io_err)?;
+        let p_correct = p.p_correct.map(|v| v.to_string()).unwrap_or_default();
+        writeln!(
+            w,
+            "{},{},{},{p_correct}",
+            p.query, p.reference, p.confidence
+        )
+        .map_err(io_err)?;
     }
     w.flush().map_err(io_err)
 }
@@ -40,18 +47,21 @@ mod tests {
                 query: 7,
                 reference: 3,
                 confidence: 0.25,
+                p_correct: None,
             },
             Prediction {
                 query: 2,
                 reference: 9,
                 confidence: 1.0 / 3.0,
+                p_correct: Some(0.875),
             },
         ];
         write_predictions_csv(&path, &p).unwrap();
         let text = std::fs::read_to_string(&path).unwrap();
         let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines[0], "query_index,ref_index,confidence");
-        assert_eq!(lines[2], "7,3,0.25");
+        assert_eq!(lines[0], "query_index,ref_index,confidence,p_correct");
+        assert_eq!(lines[2], "7,3,0.25,");
+        assert!(lines[1].ends_with(",0.875"), "{}", lines[1]);
         assert!(lines[1].starts_with("2,9,0.333"));
         let back: f64 = lines[1].split(',').nth(2).unwrap().parse().unwrap();
         assert_eq!(back, 1.0 / 3.0);

@@ -28,7 +28,7 @@
 
 use std::cell::RefCell;
 
-use crate::confidence::{band_costs, GraphParams};
+use crate::confidence::{band_costs, BandCosts, GraphParams};
 use crate::solver::{forward_values_row, match_cost, RowScratch};
 use crate::window::leading_min_in_place;
 
@@ -142,12 +142,6 @@ impl Discount {
         }
     }
 
-    /// The ratio of a row from its forward and backward values, for the prediction `j_star`
-    /// (read as offline: [`band_costs`]).
-    fn ratio(&self, f: (&[f64], &[f64]), b: (&[f64], &[f64]), j_star: usize) -> f64 {
-        band_costs(f, b, j_star, self.radius).ratio()
-    }
-
     /// The forward pass over `rows` from `before` into `buf` (rows `0..rows.len()`).
     fn forward_pass(&self, rows: &[&[f32]], before: Option<&[f64]>, buf: &mut [f64]) {
         let d = rows[0].len();
@@ -182,16 +176,17 @@ impl Discount {
     /// the row before the window (`None` when the window starts at the trip's first row), and
     /// `targets` the `(window index, prediction)` pairs to score. The forward and the backward
     /// pass over the window run at the same time (two threads of the current pool), then each
-    /// target is scored from its row's values.
-    pub fn window_ratios(
+    /// target's band costs are read from its row's values ([`band_costs`]; `None` for an empty
+    /// window).
+    pub fn window_bands(
         &self,
         rows: &[&[f32]],
         before: Option<&[f64]>,
         targets: &[(usize, usize)],
-    ) -> Vec<f64> {
+    ) -> Vec<Option<BandCosts>> {
         let (n, d) = (rows.len(), rows.first().map_or(0, |r| r.len()));
         if n == 0 || d == 0 || targets.is_empty() {
-            return vec![0.0; targets.len()];
+            return vec![None; targets.len()];
         }
         // Backward rows from the first scored row on (the earlier ones are not needed).
         let first = targets.iter().map(|t| t.0).min().unwrap_or(0).min(n - 1);
@@ -213,7 +208,7 @@ impl Discount {
             .map(|&(i, j)| {
                 let f = fwd[2 * i * d..2 * (i + 1) * d].split_at(d);
                 let b = bwd[2 * (i - first) * d..2 * (i - first + 1) * d].split_at(d);
-                self.ratio(f, b, j)
+                Some(band_costs(f, b, j, self.radius))
             })
             .collect();
         give_back(fwd);

@@ -44,11 +44,13 @@
 
 use std::collections::VecDeque;
 
+use crate::calibration::{self, FrameStatus};
 use crate::confidence::GraphParams;
 use crate::solver::auto_hidden_cost;
 use crate::{Error, Matrix, Result};
 
 mod confidence;
+mod evidence;
 mod normalize;
 pub mod online;
 mod params;
@@ -58,12 +60,13 @@ mod storage;
 mod stretch;
 
 use confidence::{Discount, DiscountedForward};
+pub use evidence::FrameEvidence;
 pub use normalize::column_prior;
 use normalize::{NormScratch, Prior, Sums};
 use online::{OnlineParams, OnlineSolver, RowEstimate};
 pub use params::{
-    BatchUpdate, FrameEstimate, TripParams, TripStatus, DEFAULT_RELOCALIZATION_COST, LOST_RATIO,
-    MAX_CONFIDENCE_WINDOW,
+    BatchUpdate, FrameEstimate, TripParams, TripStatus, DEFAULT_RELOCALIZATION_COST,
+    DEFAULT_TOLERANCE, LOST_RATIO, MAX_CONFIDENCE_WINDOW, MAX_TOLERANCE,
 };
 pub use persist::{StateDelta, StoredState};
 use stretch::WindowStretch;
@@ -109,6 +112,10 @@ pub struct Trip {
     pending: StateDelta,
     /// The stretch rule on the lag window (a cache of the window rows: not persisted).
     stretch: WindowStretch,
+    /// The prior over its median (derived from the prior: not persisted).
+    prior_rel: Vec<f32>,
+    /// The evidence of every frame the last batch reported (not persisted: an answer).
+    last_evidence: Vec<FrameEvidence>,
 }
 
 impl Trip {
@@ -134,6 +141,13 @@ impl Trip {
             ));
         }
         let prior_mean = prior.iter().map(|v| f64::from(*v)).sum::<f64>() / d as f64;
+        let mut sorted = prior.clone();
+        let mid = sorted.len() / 2;
+        let median = *sorted.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let prior_rel = prior
+            .iter()
+            .map(|&p| if median > 0.0 { p / median } else { 0.0 })
+            .collect();
         Ok(Trip {
             params,
             sums: Sums::new(d),
@@ -153,7 +167,15 @@ impl Trip {
             },
             pending: StateDelta::default(),
             stretch: WindowStretch::new(&params),
+            prior_rel,
+            last_evidence: Vec::new(),
         })
+    }
+
+    /// The evidence of every frame the last batch reported (its new frames and the
+    /// re-traced lag window), in frame order; see [`FrameEvidence`].
+    pub fn last_evidence(&self) -> &[FrameEvidence] {
+        &self.last_evidence
     }
 
     /// Frames consumed so far.
@@ -192,6 +214,8 @@ impl Trip {
             + log
             + self.pending.heap_bytes()
             + self.stretch.heap_bytes()
+            + self.prior_rel.capacity() * 4
+            + self.last_evidence.capacity() * std::mem::size_of::<FrameEvidence>()
     }
 
     /// The graph and discount the confidence scores with (the solver's `W` once resolved).
@@ -257,35 +281,81 @@ impl Trip {
         Ok(())
     }
 
-    /// The best path over the lag window with each matched row's confidence; a row the
-    /// stretch rule puts off the map (`stretch.rs`) is reported without a reference, at 0.
-    fn score_window(&mut self) -> Vec<(RowEstimate, f64)> {
-        let scored = self.window_ratios();
+    /// The best path over the lag window with each matched row's confidence and evidence; a
+    /// row the stretch rule puts off the map (`stretch.rs`) is reported without a reference,
+    /// at 0.
+    fn score_window(&mut self) -> Vec<(RowEstimate, f64, FrameEvidence)> {
+        let bands = self.window_bands();
         let Some(solver) = &self.solver else {
-            return scored;
+            return Vec::new();
         };
         let rows = solver.window_rows();
         let first = solver.rows() - rows.len();
-        let trace: Vec<RowEstimate> = scored.iter().map(|&(e, _)| e).collect();
-        let mut marks = self.stretch.marks(first, rows, &trace).into_iter();
-        scored
+        let w = solver.params().graph.hidden_cost;
+        let trace: Vec<RowEstimate> = bands.iter().map(|&(e, _)| e).collect();
+        let (marks, contrasts) = self.stretch.marks_and_contrasts(first, rows, &trace);
+        let (mut marks, mut contrasts) = (marks.into_iter(), contrasts.into_iter());
+        let inputs: Vec<evidence::RowInputs<'_>> = bands
+            .iter()
+            .map(|&(e, band)| {
+                let (marked, contrast) = match e.reference {
+                    Some(_) => (
+                        marks.next().unwrap_or(false),
+                        Some(contrasts.next().unwrap_or(0.0)),
+                    ),
+                    None => (false, None),
+                };
+                evidence::RowInputs {
+                    row: e.row,
+                    reference: e.reference,
+                    relocalized: e.relocalized,
+                    band,
+                    contrast,
+                    marked,
+                    chat: &rows[e.row - first],
+                    spread: self.stretch.spread(e.row),
+                }
+            })
+            .collect();
+        let evidence = evidence::window_evidence(
+            &inputs,
+            self.stretch.len(),
+            &self.prior_rel,
+            w,
+            self.params.confidence.radius,
+        );
+        bands
             .into_iter()
-            .map(|(e, conf)| match e.reference {
-                Some(_) if marks.next().unwrap_or(false) => (
+            .zip(inputs.iter().map(|i| i.marked))
+            .zip(evidence)
+            .map(|(((e, band), marked), ev)| match e.reference {
+                Some(_) if marked => (
                     RowEstimate {
                         reference: None,
                         ..e
                     },
                     0.0,
+                    ev,
                 ),
-                _ => (e, conf),
+                Some(_) => (e, band.map_or(0.0, |b| b.ratio()), ev),
+                None => (e, 0.0, ev),
             })
             .collect()
     }
 
     /// The best path over the lag window with each matched row's confidence (the discounted
     /// ratio on the frames so far; 0 for a hidden row).
+    #[cfg(test)]
     fn window_ratios(&self) -> Vec<(RowEstimate, f64)> {
+        self.window_bands()
+            .into_iter()
+            .map(|(e, b)| (e, b.map_or(0.0, |b| b.ratio())))
+            .collect()
+    }
+
+    /// The best path over the lag window with each matched row's band costs (the discounted
+    /// readout on the frames so far; `None` for a hidden row).
+    fn window_bands(&self) -> Vec<(RowEstimate, Option<crate::confidence::BandCosts>)> {
         let Some(solver) = &self.solver else {
             return Vec::new();
         };
@@ -296,22 +366,54 @@ impl Trip {
             .iter()
             .filter_map(|e| e.reference.map(|j| (e.row - first, j)))
             .collect();
-        let ratios = self.discount(solver.params().graph).window_ratios(
+        let bands = self.discount(solver.params().graph).window_bands(
             &rows,
             self.disc.0.as_deref(),
             &targets,
         );
-        let mut ratios = ratios.into_iter();
+        let mut bands = bands.into_iter();
         trace
             .into_iter()
             .map(|e| {
-                let conf = match e.reference {
-                    Some(_) => ratios.next().unwrap_or(0.0),
-                    None => 0.0,
+                let band = match e.reference {
+                    Some(_) => bands.next().flatten(),
+                    None => None,
                 };
-                (e, conf)
+                (e, band)
             })
             .collect()
+    }
+
+    /// A frame's answer: its estimate with `p_correct` and status read from its evidence
+    /// ([`crate::calibration`]).
+    fn estimate(
+        &self,
+        frame: usize,
+        reference: Option<usize>,
+        confidence: f64,
+        evidence: Option<&FrameEvidence>,
+    ) -> FrameEstimate {
+        let (p_correct, status) = match evidence {
+            Some(ev) => {
+                let p = if reference.is_some() {
+                    calibration::trip_p_correct(ev, self.params.tolerance)
+                } else {
+                    0.0
+                };
+                let settle = self.stretch.len();
+                let status =
+                    calibration::frame_status(reference, p, ev, self.params.threshold, settle);
+                (p, status)
+            }
+            None => (0.0, FrameStatus::Lost),
+        };
+        FrameEstimate {
+            frame,
+            reference,
+            confidence,
+            p_correct,
+            status,
+        }
     }
 
     /// Extends the trip by a batch of raw cosine rows (one per new frame, one column per map
@@ -352,6 +454,7 @@ impl Trip {
         }
         let first_new = self.frames;
         let mut found: Vec<Option<(RowEstimate, f64)>> = vec![None; c.rows()];
+        let mut found_evidence: Vec<Option<FrameEvidence>> = vec![None; c.rows()];
         let mut window = Vec::new();
         // Chunks of at most `lag` frames: each frame is traced while in the window.
         let mut start = 0;
@@ -361,20 +464,25 @@ impl Trip {
                 self.push_row(c.row(k), chat.row(k).to_vec())?;
             }
             window = self.score_window();
-            for &(e, conf) in &window {
+            for &(e, conf, ev) in &window {
                 if e.row >= first_new {
                     found[e.row - first_new] = Some((e, conf));
+                    found_evidence[e.row - first_new] = Some(ev);
                 }
             }
             start = end;
         }
         let estimates: Vec<FrameEstimate> = found
             .iter()
+            .zip(&found_evidence)
             .enumerate()
-            .map(|(k, f)| FrameEstimate {
-                frame: first_new + k,
-                reference: f.and_then(|(e, _)| e.reference),
-                confidence: f.map_or(0.0, |(_, conf)| conf),
+            .map(|(k, (f, ev))| {
+                self.estimate(
+                    first_new + k,
+                    f.and_then(|(e, _)| e.reference),
+                    f.map_or(0.0, |(_, conf)| conf),
+                    ev.as_ref(),
+                )
             })
             .collect();
         let latest = estimates
@@ -382,12 +490,12 @@ impl Trip {
             .copied()
             .ok_or_else(|| Error::Empty("the batch has no frames".into()))?;
         let jumped = found.iter().flatten().any(|(e, _)| e.relocalized);
-        let status = if latest.is_lost() {
-            TripStatus::Lost
-        } else if jumped {
+        let status = if jumped {
             TripStatus::Relocalized
-        } else {
+        } else if latest.status == FrameStatus::Localized {
             TripStatus::Localized
+        } else {
+            TripStatus::Lost
         };
         if self.log.is_some() {
             for (k, row) in c.iter_rows().enumerate() {
@@ -397,13 +505,19 @@ impl Trip {
             }
         }
         self.update_snapshot();
+        let mut last_evidence: Vec<FrameEvidence> = window.iter().map(|w| w.2).collect();
+        let window_first = last_evidence.first().map_or(usize::MAX, |e| e.frame);
+        last_evidence.extend(
+            found_evidence
+                .into_iter()
+                .flatten()
+                .filter(|e| e.frame < window_first),
+        );
+        last_evidence.sort_by_key(|e| e.frame);
+        self.last_evidence = last_evidence;
         let window = window
             .into_iter()
-            .map(|(e, conf)| FrameEstimate {
-                frame: e.row,
-                reference: e.reference,
-                confidence: conf,
-            })
+            .map(|(e, conf, ev)| self.estimate(e.row, e.reference, conf, Some(&ev)))
             .collect();
         Ok(BatchUpdate {
             estimates,
@@ -450,6 +564,75 @@ mod tests {
         }
         // The largest lag on a small map.
         assert!(Trip::new(prior(1_000), with_lag(10_000)).is_ok());
+    }
+
+    #[test]
+    fn every_estimate_carries_p_correct_and_the_status_read_from_it() {
+        let d = 30;
+        let mut localized = 0;
+        for threshold in [0.9, 1.0] {
+            let params = TripParams {
+                threshold,
+                ..TripParams::default()
+            };
+            let wide = TripParams {
+                tolerance: 3,
+                ..params
+            };
+            let (mut trip, mut loose) = (
+                Trip::new(prior(d), params).unwrap(),
+                Trip::new(prior(d), wide).unwrap(),
+            );
+            for b in 0..8 {
+                let u = trip.push_batch(&batch(b * 10, 10, d, 1)).unwrap();
+                let v = loose.push_batch(&batch(b * 10, 10, d, 1)).unwrap();
+                let seen: Vec<usize> = trip.last_evidence().iter().map(|e| e.frame).collect();
+                for (e, w) in u
+                    .estimates
+                    .iter()
+                    .chain(&u.window)
+                    .zip(v.estimates.iter().chain(&v.window))
+                {
+                    assert!((0.0..=1.0).contains(&e.p_correct), "{e:?}");
+                    assert!(seen.contains(&e.frame), "no evidence for {e:?}");
+                    match e.reference {
+                        None => {
+                            assert_eq!(e.p_correct, 0.0);
+                            assert!(matches!(e.status, FrameStatus::OffMap | FrameStatus::Lost));
+                        }
+                        Some(_) => {
+                            assert_eq!(
+                                e.status == FrameStatus::Localized,
+                                e.p_correct >= threshold
+                            );
+                            localized += usize::from(e.status == FrameStatus::Localized);
+                        }
+                    }
+                    // The same estimate at a larger tolerance is at least as probable.
+                    assert_eq!((e.frame, e.reference), (w.frame, w.reference));
+                    assert!(w.p_correct >= e.p_correct, "{e:?} vs {w:?}");
+                }
+                assert_eq!(u.latest_status(), u.estimates.last().unwrap().status);
+            }
+        }
+        // The generated route is easy: the default threshold localizes most frames.
+        assert!(localized > 100, "{localized}");
+        let bad = |p: TripParams| Trip::new(prior(d), p).err().unwrap().to_string();
+        assert!(bad(TripParams {
+            threshold: 0.0,
+            ..TripParams::default()
+        })
+        .contains("threshold"));
+        assert!(bad(TripParams {
+            threshold: 1.5,
+            ..TripParams::default()
+        })
+        .contains("threshold"));
+        assert!(bad(TripParams {
+            tolerance: 5000,
+            ..TripParams::default()
+        })
+        .contains("tolerance"));
     }
 
     pub(super) fn prior(d: usize) -> Vec<f32> {
@@ -583,11 +766,18 @@ mod confidence_tests {
                 let ratios: Vec<FrameEstimate> = trip
                     .window_ratios()
                     .into_iter()
-                    .map(|(e, conf)| FrameEstimate { frame: e.row, reference: e.reference, confidence: conf })
+                    .map(|(e, conf)| FrameEstimate {
+                        frame: e.row,
+                        reference: e.reference,
+                        confidence: conf,
+                        p_correct: 0.0,
+                        status: FrameStatus::Lost,
+                    })
                     .collect();
                 prop_assert_eq!(ratios.len(), u.window.len());
                 for (a, b) in ratios.iter().zip(&u.window) {
-                    prop_assert!(a == b || (a.reference.is_some() && b.reference.is_none() && b.confidence == 0.0),
+                    let same = (a.frame, a.reference, a.confidence) == (b.frame, b.reference, b.confidence);
+                    prop_assert!(same || (a.reference.is_some() && b.reference.is_none() && b.confidence == 0.0),
                         "{:?} vs {:?}", a, b);
                 }
                 let window_frames: Vec<usize> = ratios.iter().map(|e| e.frame).collect();

@@ -3,6 +3,7 @@
 //! and the thresholds they are read with. Kept apart from the [`super::Trip`] driver so the
 //! service and the CLI can build and check parameters without the state machine.
 
+use crate::calibration::{FrameStatus, DEFAULT_THRESHOLD};
 use crate::confidence::{ConfidenceParams, DEFAULT_DISCOUNT};
 use crate::solver::{check_fan_out, check_hidden_cost};
 use crate::{Error, Result};
@@ -43,7 +44,31 @@ pub struct TripParams {
         serde(skip, default = "TripParams::default_confidence")
     )]
     pub confidence: ConfidenceParams,
+    /// Map images within which an estimate counts as right: what `p_correct` is the
+    /// probability of ([`crate::calibration`]). Default 1. Stored only when not the default,
+    /// so trips stored before it existed read back (and re-encode) unchanged.
+    #[cfg_attr(
+        feature = "serde",
+        serde(
+            default = "TripParams::default_tolerance",
+            skip_serializing_if = "TripParams::is_default_tolerance"
+        )
+    )]
+    pub tolerance: usize,
+    /// `p_correct` at which an estimate is `localized` (default
+    /// [`crate::calibration::DEFAULT_THRESHOLD`], 0.9), in `(0, 1]`; stored like `tolerance`.
+    #[cfg_attr(
+        feature = "serde",
+        serde(
+            default = "TripParams::default_threshold",
+            skip_serializing_if = "TripParams::is_default_threshold"
+        )
+    )]
+    pub threshold: f64,
 }
+
+/// Largest accepted [`TripParams::tolerance`].
+pub const MAX_TOLERANCE: usize = 1000;
 
 impl TripParams {
     /// Checks every parameter's range, without a map: the graph (fan-out cap, `W`) with the
@@ -79,6 +104,18 @@ impl TripParams {
                 format!("must be within (0, 1), got {g}"),
             ));
         }
+        if self.tolerance > MAX_TOLERANCE {
+            return Err(Error::param(
+                "tolerance",
+                format!("must be at most {MAX_TOLERANCE}, got {}", self.tolerance),
+            ));
+        }
+        if !(self.threshold > 0.0 && self.threshold <= 1.0) {
+            return Err(Error::param(
+                "threshold",
+                format!("must be within (0, 1], got {}", self.threshold),
+            ));
+        }
         Ok(())
     }
 
@@ -101,6 +138,8 @@ impl Default for TripParams {
             prior_weight: 100.0,
             normalize: true,
             confidence: TripParams::default_confidence(),
+            tolerance: DEFAULT_TOLERANCE,
+            threshold: DEFAULT_THRESHOLD,
         }
     }
 }
@@ -113,7 +152,34 @@ impl TripParams {
             ..ConfidenceParams::default()
         }
     }
+
+    #[cfg(feature = "serde")]
+    fn default_tolerance() -> usize {
+        DEFAULT_TOLERANCE
+    }
+
+    #[cfg(feature = "serde")]
+    fn default_threshold() -> f64 {
+        DEFAULT_THRESHOLD
+    }
+
+    #[cfg(feature = "serde")]
+    fn is_default_tolerance(t: &usize) -> bool {
+        *t == DEFAULT_TOLERANCE
+    }
+
+    #[cfg(feature = "serde")]
+    #[allow(
+        clippy::trivially_copy_pass_by_ref,
+        reason = "serde's skip_serializing_if signature"
+    )]
+    fn is_default_threshold(t: &f64) -> bool {
+        *t == DEFAULT_THRESHOLD
+    }
 }
+
+/// Default [`TripParams::tolerance`]: one map image either side.
+pub const DEFAULT_TOLERANCE: usize = 1;
 
 /// Default relocalization cost `R`, in units of summed node costs.
 pub const DEFAULT_RELOCALIZATION_COST: f64 = 1.0;
@@ -129,6 +195,11 @@ pub struct FrameEstimate {
     /// The discounted min-marginal ratio on the frames so far (0 without a reference): causal for the
     /// newest frame, re-scored with the later frames for the others (see `trip/confidence.rs`).
     pub confidence: f64,
+    /// The calibrated probability that `reference` is within the trip's tolerance of the true
+    /// place ([`crate::calibration::trip_p_correct`]); 0 without a reference.
+    pub p_correct: f64,
+    /// What the estimate means ([`crate::calibration::frame_status`]).
+    pub status: FrameStatus,
 }
 
 impl FrameEstimate {
@@ -140,15 +211,16 @@ impl FrameEstimate {
     }
 }
 
-/// Where the trip stands after a batch.
+/// Where the trip stands after a batch, in the three words of the service's contract (the
+/// four-way meaning of its latest frame is that frame's [`FrameStatus`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TripStatus {
-    /// The latest frame is matched with local support.
+    /// The latest frame is `localized` (its `p_correct` reaches the trip's threshold).
     Localized,
-    /// The latest frame has no reference (hidden, or off the map by the stretch) or no local
-    /// support.
+    /// The latest frame is not to be acted on (`uncertain`, `off_map` or `lost`).
     Lost,
-    /// The path re-entered the map by a jump during this batch.
+    /// The path re-entered the map by a jump during this batch (an event, whatever the latest
+    /// frame's status).
     Relocalized,
 }
 
@@ -162,4 +234,13 @@ pub struct BatchUpdate {
     pub window: Vec<FrameEstimate>,
     /// The trip's status after the batch.
     pub status: TripStatus,
+}
+
+impl BatchUpdate {
+    /// The status of the trip's latest frame ([`FrameStatus`]); `Lost` for an empty update.
+    pub fn latest_status(&self) -> FrameStatus {
+        self.estimates
+            .last()
+            .map_or(FrameStatus::Lost, |e| e.status)
+    }
 }

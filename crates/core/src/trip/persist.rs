@@ -110,6 +110,7 @@ fn read_params(r: &mut StateReader<'_>) -> Result<TripParams> {
             radius: r.usize()?,
             discount: None,
         },
+        ..TripParams::default()
     })
 }
 
@@ -136,6 +137,10 @@ pub(super) fn encode_base(t: &Trip) -> Vec<u8> {
     w.opt_f64(t.params.confidence.discount);
     w.u64(t.prior.len() as u64);
     w.f32s(&t.prior);
+    // Trailer (since the calibration): tolerance and threshold. A base without it (written
+    // before) reads with the defaults.
+    w.u64(t.params.tolerance as u64);
+    w.f64(t.params.threshold);
     w.into_bytes()
 }
 
@@ -152,6 +157,10 @@ pub(super) fn decode_base(bytes: &[u8]) -> Result<Trip> {
         )));
     }
     let prior = r.f32s(d)?;
+    if r.remaining() > 0 {
+        params.tolerance = r.usize()?;
+        params.threshold = r.f64()?;
+    }
     r.finish()?;
     Trip::new(prior, params).map_err(|e| corrupt_state(format!("base: {e}")))
 }

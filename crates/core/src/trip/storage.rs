@@ -204,6 +204,30 @@ mod tests {
     }
 
     #[test]
+    fn the_base_keeps_tolerance_and_threshold_and_an_older_base_reads_with_the_defaults() {
+        let d = 12;
+        let params = TripParams {
+            tolerance: 3,
+            threshold: 0.8,
+            ..TripParams::default()
+        };
+        let trip = Trip::new(prior(d), params).unwrap();
+        let base = trip.stored_state().base;
+        let read = super::super::persist::decode_base(&base).unwrap();
+        assert_eq!((read.params.tolerance, read.params.threshold), (3, 0.8));
+        // A base written before the calibration ends at the prior (no trailer).
+        let older = &base[..base.len() - 16];
+        let read = super::super::persist::decode_base(older).unwrap();
+        let d = TripParams::default();
+        assert_eq!(
+            (read.params.tolerance, read.params.threshold),
+            (d.tolerance, d.threshold)
+        );
+        // A trailer cut short is corrupt, not a default.
+        assert!(super::super::persist::decode_base(&base[..base.len() - 4]).is_err());
+    }
+
+    #[test]
     fn a_restored_trip_continues_bit_identically() {
         let d = 40;
         for params in [

@@ -50,15 +50,16 @@ impl WindowStretch {
         }
     }
 
-    /// For each matched entry of `trace` (in order), whether it is off the map by the stretch.
+    /// For each matched entry of `trace` (in order), whether it is off the map by the stretch,
+    /// and its contrast (the robust `z` of its match in its row).
     /// `rows` are the normalised rows of the lag window, the first of them frame `first`; every
     /// entry of `trace` is a frame of the window.
-    pub(super) fn marks(
+    pub(super) fn marks_and_contrasts(
         &mut self,
         first: usize,
         rows: &VecDeque<Vec<f32>>,
         trace: &[RowEstimate],
-    ) -> Vec<bool> {
+    ) -> (Vec<bool>, Vec<f64>) {
         self.sync(first, rows);
         let contrast: Vec<f64> = trace
             .iter()
@@ -75,13 +76,24 @@ impl WindowStretch {
         if contrast.len() < self.len.max(1) {
             // Too few matched frames for a stretch (`chance_marks` would mark none either):
             // the bar is not needed yet.
-            return vec![false; contrast.len()];
+            return (vec![false; contrast.len()], contrast);
         }
         let fan_out = self.fan_out;
         let bar = *self
             .bar
             .get_or_insert_with(|| chance_contrast(fan_out.saturating_add(1)));
-        chance_marks(&contrast, self.len, bar)
+        (chance_marks(&contrast, self.len, bar), contrast)
+    }
+
+    /// The cached spread of window frame `frame` (after [`WindowStretch::marks_and_contrasts`]).
+    pub(super) fn spread(&self, frame: usize) -> Option<RowSpread> {
+        let k = frame.checked_sub(self.first)?;
+        self.spreads.get(k).copied().flatten()
+    }
+
+    /// The stretch length `L`.
+    pub(super) fn len(&self) -> usize {
+        self.len
     }
 
     /// Aligns the cached spreads with the window `rows` (first frame `first`): drops those of

@@ -1,12 +1,13 @@
 // `/localizations/{id}`: the figure both papers explain their results with: queries (rows,
 // downwards) against references (columns), every route hypothesis drawn over it and each
-// query's prediction as a dot coloured by its confidence; below it the confidence along the
+// query's prediction as a dot coloured by its p_correct (or its confidence for methods without a
+// calibration); below it the same along the
 // route, the parameters and the timings. Clicking a query (in the figure or the chart) shows
 // what it was matched to.
 
 import { getImageUrl, getJson, seg } from "./api.js";
 import { thumbnail } from "./thumbs.js";
-import { chart, confidenceColors, confidenceRange, legend, pathData, s, thin, widthOf } from "./plot.js";
+import { chart, confidenceColors, confidenceRange, legend, pathData, probabilityColors, s, thin, widthOf } from "./plot.js";
 import { crumbs, facts, fill, fmtConf, fmtInt, fmtNum, fmtSeconds, fmtTime, h, section, shortId, stat } from "./ui.js";
 
 /** Colours of hypotheses by rank (1 first); they cycle after the last. */
@@ -33,7 +34,14 @@ export async function render(main, id) {
   // and methods without a similarity matrix, have none: the figure then shows the paths only).
   const pictureUrl = loc.picture ? await getImageUrl(`/v1/localizations/${seg(loc.id)}/picture`) : null;
   const byQuery = new Map(loc.predictions.map((p) => [p.query, p]));
-  const colors = confidenceColors(loc.predictions.map((p) => p.confidence));
+  // Predictions with a calibrated p_correct (the flow method) are coloured and charted by it on
+  // one fixed 0-1 scale; the others (the co-occurrence methods) by their own confidence.
+  const calibrated = loc.predictions.length > 0 && loc.predictions.every((p) => typeof p.p_correct === "number");
+  const score = calibrated ? (p) => p.p_correct : (p) => p.confidence;
+  const scoreName = calibrated ? "p_correct" : "confidence";
+  const colors = calibrated ? probabilityColors() : confidenceColors(loc.predictions.map(score));
+  colors.score = score;
+  colors.scoreName = scoreName;
   const figure = h("div", { class: "figure", id: "matrix-figure" });
   const confidence = h("div", { class: "figure", id: "confidence-chart" });
   const selected = h("div", { class: "selected", id: "selected-query", "aria-live": "polite" }, h("p", { class: "muted" }, "Click a query row in the figure or the chart to see its match."));
@@ -61,13 +69,13 @@ export async function render(main, id) {
         { class: "muted" },
         "Each row is a query image, each column a reference image" +
           (pictureUrl ? `, bright where they look alike (normalised similarity ${fmtNum(loc.picture.lo)} or less is black, ${fmtNum(loc.picture.hi)} or more white${blockText(loc)})` : "") +
-          ". Lines are the route hypotheses (rank 1 thickest), dots the predictions coloured by confidence.",
+          ". Lines are the route hypotheses (rank 1 thickest), dots the predictions coloured by " + scoreName + ".",
       ),
       figure,
       h("div", { class: "legend-row", id: "figure-legend" }),
       selected,
     ),
-    section("Confidence along the route", confidence),
+    section(calibrated ? "p_correct along the route" : "Confidence along the route", confidence),
     h(
       "div",
       { class: "columns" },
@@ -109,7 +117,7 @@ export async function render(main, id) {
       m1(q);
       m2(q);
     };
-    fill(document.getElementById("figure-legend"), legend(colors, "confidence", Math.min(w, 460)));
+    fill(document.getElementById("figure-legend"), legend(colors, scoreName, Math.min(w, 460)));
     if (current !== null) drawMarkers(current);
   }
   draw();
@@ -195,7 +203,7 @@ function drawMatrix(el, loc, colors, width, select, pictureUrl) {
   const r = Math.max(2, Math.min(5, cell * 0.45));
   const dots = s("g", { class: "predictions" });
   for (const p of thin(loc.predictions, MAX_DOTS)) {
-    dots.append(s("circle", { class: "prediction-dot", cx: cx(p.ref), cy: cy(p.query), r, fill: colors(p.confidence), "data-query": p.query }));
+    dots.append(s("circle", { class: "prediction-dot", cx: cx(p.ref), cy: cy(p.query), r, fill: colors(colors.score(p)), "data-query": p.query }));
   }
   const marks = s("g", { class: "marks" });
   c.plot.append(paths, dots, marks);
@@ -218,17 +226,17 @@ function drawConfidence(el, loc, byQuery, colors, width, select) {
     width,
     height: 220,
     x: [0, Q],
-    y: confidenceRange(loc.predictions.map((p) => p.confidence)),
+    y: colors.fixed ? [0, 1] : confidenceRange(loc.predictions.map(colors.score)),
     xLabel: "query image",
-    yLabel: "confidence",
-    title: "Confidence of each query's prediction along the route",
+    yLabel: colors.scoreName,
+    title: `${colors.scoreName === "p_correct" ? "p_correct" : "Confidence"} of each query's prediction along the route`,
   });
   const g = s("g", { class: "confidence" });
   const colW = c.w / Q;
   const pts = [];
   for (let q = 0; q < Q; q++) {
     const p = byQuery.get(q);
-    pts.push(p ? [c.sx(q + 0.5), c.sy(p.confidence)] : null);
+    pts.push(p ? [c.sx(q + 0.5), c.sy(colors.score(p))] : null);
     if (!p) {
       g.append(s("rect", { class: "unmatched", x: c.sx(q), y: c.h - 4, width: Math.max(1, colW - 0.5), height: 4 }, s("title", {}, `query ${q}: no prediction`)));
     }
@@ -236,7 +244,8 @@ function drawConfidence(el, loc, byQuery, colors, width, select) {
   g.append(s("path", { class: "confidence-line", d: pathData(thin(pts, MAX_PATH_POINTS)) }));
   const r = Math.max(1.5, Math.min(3.5, colW * 0.4));
   for (const p of thin(loc.predictions, MAX_DOTS)) {
-    g.append(s("circle", { class: "confidence-dot", cx: c.sx(p.query + 0.5), cy: c.sy(p.confidence), r, fill: colors(p.confidence) }, s("title", {}, `query ${p.query}: confidence ${fmtConf(p.confidence)}`)));
+    const tip = typeof p.p_correct === "number" ? `query ${p.query}: p_correct ${fmtNum(p.p_correct, 2)} (confidence ${fmtConf(p.confidence)})` : `query ${p.query}: confidence ${fmtConf(p.confidence)}`;
+    g.append(s("circle", { class: "confidence-dot", cx: c.sx(p.query + 0.5), cy: c.sy(colors.score(p)), r, fill: colors(colors.score(p)) }, s("title", {}, tip)));
   }
   const marks = s("g", { class: "marks" });
   c.plot.append(g, marks);
@@ -265,7 +274,7 @@ function showSelection(el, loc, byQuery, q) {
     el,
     h("h3", {}, `Query ${q}`),
     p
-      ? h("p", { class: "match" }, "Matched to ", h("strong", { class: "matched-ref" }, `reference ${p.ref}`), ` with confidence ${fmtConf(p.confidence)}.`)
+      ? h("p", { class: "match" }, "Matched to ", h("strong", { class: "matched-ref" }, `reference ${p.ref}`), typeof p.p_correct === "number" ? ` with p_correct ${fmtNum(p.p_correct, 2)} (the probability that it is within ${loc.params.tolerance || 1} image${(loc.params.tolerance || 1) === 1 ? "" : "s"} of the true place; confidence ${fmtConf(p.confidence)}).` : ` with confidence ${fmtConf(p.confidence)}.`)
       : h("p", { class: "match" }, "No prediction: this query is off the map in every hypothesis."),
     facts(rows),
     p ? h("div", { class: "selected-thumb" }, thumbnail(loc.map_id, p.ref, `reference ${p.ref} (matched)`)) : null,

@@ -152,7 +152,19 @@ export function confidenceColors(values) {
   return f;
 }
 
-/** A horizontal colour legend for `colors` (from confidenceColors), `width` px wide. */
+/**
+ * Colours for calibrated probabilities (`p_correct`): one fixed scale from 0 to 1, so a colour
+ * means the same on every page, route and map.
+ */
+export function probabilityColors() {
+  const f = (p) => viridis(Math.max(0, Math.min(1, p)));
+  f.lo = 0;
+  f.hi = 1;
+  f.fixed = true;
+  return f;
+}
+
+/** A horizontal colour legend for `colors` (from confidenceColors or probabilityColors), `width` px wide. */
 export function legend(colors, label, width) {
   const id = "grad" + Math.random().toString(36).slice(2, 9);
   const bar = Math.max(80, width - 150);
@@ -169,9 +181,9 @@ export function legend(colors, label, width) {
       ),
     ),
     s("text", { x: 0, y: 20 }, label),
-    s("text", { x: 140, y: 31, "text-anchor": "middle", class: "small" }, "≤ " + tickLabel(Number(colors.lo.toPrecision(3)))),
+    s("text", { x: 140, y: 31, "text-anchor": "middle", class: "small" }, (colors.fixed ? "" : "≤ ") + tickLabel(Number(colors.lo.toPrecision(3)))),
     s("rect", { x: 140, y: 6, width: bar - 30, height: 12, fill: `url(#${id})` }),
-    s("text", { x: 110 + bar, y: 31, "text-anchor": "middle", class: "small" }, "≥ " + tickLabel(Number(colors.hi.toPrecision(3)))),
+    s("text", { x: 110 + bar, y: 31, "text-anchor": "middle", class: "small" }, (colors.fixed ? "" : "≥ ") + tickLabel(Number(colors.hi.toPrecision(3)))),
   );
 }
 

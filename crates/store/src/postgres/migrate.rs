@@ -38,6 +38,11 @@ pub const MIGRATIONS: &[(u32, &str, &str)] = &[
         "0004_trip_state_parts",
         include_str!("../../../../migrations/postgres/0004_trip_state_parts.sql"),
     ),
+    (
+        5,
+        "0005_frame_trust",
+        include_str!("../../../../migrations/postgres/0005_frame_trust.sql"),
+    ),
 ];
 
 /// The newest schema version this build knows.

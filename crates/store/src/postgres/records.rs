@@ -19,6 +19,7 @@ use seasonloc_app::store::{
     now_ms, NewLocalization, NewTrip, Page, PageRequest, StoreError, StoreResult, TripBatch,
     TripState,
 };
+use seasonloc_core::calibration::FrameStatus;
 use seasonloc_core::trip::{FrameEstimate, TripStatus};
 
 /// The stored code of a trip status (0: no batch yet).
@@ -312,6 +313,11 @@ impl PgStore {
         let references: Vec<Option<i64>> =
             latest.values().map(|e| e.reference.map(index)).collect();
         let confidences: Vec<f64> = latest.values().map(|e| e.confidence).collect();
+        let p_correct: Vec<f64> = latest.values().map(|e| e.p_correct).collect();
+        let statuses: Vec<i16> = latest
+            .values()
+            .map(|e| i16::from(e.status.code()))
+            .collect();
         let mut client = self.client().await?;
         let tx = client.transaction().await.or_store()?;
         // Base and snapshot only when the batch changes them: an unchanged column keeps its
@@ -391,16 +397,28 @@ impl PgStore {
         if !frames.is_empty() {
             let upsert = tx
                 .prepare_cached(
-                    "INSERT INTO trip_frames (trip_id, frame, reference, confidence)
-                     SELECT $1, f, r, c
-                     FROM unnest($2::BIGINT[], $3::BIGINT[], $4::DOUBLE PRECISION[]) AS u (f, r, c)
+                    "INSERT INTO trip_frames (trip_id, frame, reference, confidence, p_correct, status)
+                     SELECT $1, f, r, c, p, s
+                     FROM unnest($2::BIGINT[], $3::BIGINT[], $4::DOUBLE PRECISION[],
+                                 $5::DOUBLE PRECISION[], $6::SMALLINT[]) AS u (f, r, c, p, s)
                      ON CONFLICT (trip_id, frame)
-                     DO UPDATE SET reference = EXCLUDED.reference, confidence = EXCLUDED.confidence",
+                     DO UPDATE SET reference = EXCLUDED.reference, confidence = EXCLUDED.confidence,
+                                   p_correct = EXCLUDED.p_correct, status = EXCLUDED.status",
                 )
                 .await.or_store()?;
-            tx.execute(&upsert, &[&key, &frames, &references, &confidences])
-                .await
-                .or_store()?;
+            tx.execute(
+                &upsert,
+                &[
+                    &key,
+                    &frames,
+                    &references,
+                    &confidences,
+                    &p_correct,
+                    &statuses,
+                ],
+            )
+            .await
+            .or_store()?;
         }
         tx.commit().await.or_store()?;
         Ok(record)
@@ -444,7 +462,7 @@ impl PgStore {
         let client = self.client().await?;
         let stmt = client
             .prepare_cached(
-                "SELECT t.id, f.frame, f.reference, f.confidence
+                "SELECT t.id, f.frame, f.reference, f.confidence, f.p_correct, f.status
                  FROM trips t LEFT JOIN trip_frames f ON f.trip_id = t.id AND f.frame >= $2
                  WHERE t.id = $1 ORDER BY f.frame",
             )
@@ -462,12 +480,30 @@ impl PgStore {
                 let frame: Option<i64> = row.get(1);
                 frame.map(|f| {
                     let reference: Option<i64> = row.get(2);
+                    let reference = reference
+                        .map(|r| small("trip_frames", key, r).map(|r| r as usize))
+                        .transpose()?;
+                    let p_correct: Option<f64> = row.get(4);
+                    let status: Option<i16> = row.get(5);
+                    // Rows of schema 1-4 have neither.
+                    let (p_correct, status) = match (p_correct, status) {
+                        (Some(p), Some(s)) => (
+                            p,
+                            u8::try_from(s)
+                                .ok()
+                                .and_then(FrameStatus::from_code)
+                                .ok_or_else(|| {
+                                    corrupt("trip_frames", key, format!("unknown status {s}"))
+                                })?,
+                        ),
+                        _ => (0.0, FrameStatus::before_calibration(reference)),
+                    };
                     Ok(FrameEstimate {
                         frame: small("trip_frames", key, f)? as usize,
-                        reference: reference
-                            .map(|r| small("trip_frames", key, r).map(|r| r as usize))
-                            .transpose()?,
+                        reference,
                         confidence: row.get(3),
+                        p_correct,
+                        status,
                     })
                 })
             })

@@ -6,6 +6,7 @@
 use super::*;
 use seasonloc_app::model::DescriptorSettings;
 use seasonloc_app::store::TripStateWrite;
+use seasonloc_core::calibration::FrameStatus;
 use seasonloc_core::trip::{TripParams, TripStatus};
 use seasonloc_test_support::postgres as testing;
 
@@ -305,6 +306,8 @@ async fn trip_batches_and_cooc_maps_are_conditional() {
                 frame: f as usize,
                 reference: (f % 2 == 0).then_some(f as usize + state as usize),
                 confidence: f as f64,
+                p_correct: 1.0 / (1.0 + f as f64),
+                status: FrameStatus::ALL[f as usize % 4],
             })
             .collect(),
         idempotency: None,

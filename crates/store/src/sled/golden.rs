@@ -9,6 +9,7 @@
 //! localization document, one trip with two batches and one closed trip. Never regenerate it:
 //! its point is that it was written by other code.
 
+use seasonloc_core::calibration::FrameStatus;
 use std::sync::Arc;
 
 use super::*;
@@ -174,10 +175,17 @@ fn every_golden_record_is_rewritten_byte_for_byte() {
                 let r = codec::decode_trip(k, v).unwrap();
                 assert_eq!(&codec::encode_trip(&r).unwrap(), v);
             }
-            b'F' => assert_eq!(
-                &codec::encode_frame(&codec::decode_frame(k, v).unwrap()).unwrap(),
-                v
-            ),
+            // Layout 7 appended `p_correct` and a status to a frame's value: a layout-4 frame
+            // reads as an estimate nothing calibrated, and its layout-7 encoding is the old
+            // value with the two fields after it.
+            b'F' => {
+                let f = codec::decode_frame(k, v).unwrap();
+                assert_eq!(f.p_correct, 0.0);
+                assert_eq!(f.status, FrameStatus::before_calibration(f.reference));
+                let now = codec::encode_frame(&f).unwrap();
+                assert_eq!((&now[..v.len()], now.len()), (&v[..], v.len() + 9));
+                assert_eq!(codec::decode_frame(k, &now).unwrap(), f);
+            }
             // Format-1 trip states are read (layout 6 replaces them by parts at the trip's
             // next batch; `the_pre_refactor_store_reads_back_through_the_trait`).
             b'S' => assert!(Trip::from_legacy_bytes(v).is_ok()),
@@ -287,7 +295,15 @@ async fn the_pre_refactor_store_reads_back_through_the_trait() {
             params: LocalizationParams::new(&options, result.solution.hidden_cost, None),
             total_cost: result.solution.total_cost(),
             hypotheses: result.solution.hypotheses.clone(),
-            predictions: result.predictions.clone(),
+            // Results stored before `p_correct` existed have none (today's carry it).
+            predictions: result
+                .predictions
+                .iter()
+                .map(|p| seasonloc_core::localize::Prediction {
+                    p_correct: None,
+                    ..*p
+                })
+                .collect(),
             timings: LocalizationTimings {
                 load_references: 0.000125,
                 features: 0.0,

@@ -46,10 +46,12 @@ pub const MIGRATIONS: &[Migration] = &[
     // Layout 6 stores a trip's state in parts (`b`, `s`, `r`); the `S` blobs of layouts 4-5
     // stay readable and each is replaced by parts at its trip's next batch.
     step!(6, "0006_trip_state_parts.md", nothing_to_convert),
+    // A frame value grew `p_correct` and a status; shorter (older) values are read as such.
+    step!(7, "0007_frame_trust.md", nothing_to_convert),
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 6;
+pub const CURRENT_VERSION: u32 = 7;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {

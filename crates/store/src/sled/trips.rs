@@ -222,6 +222,7 @@ impl SledStore {
 mod tests {
     use super::*;
     use crate::sled::test_map as map;
+    use seasonloc_core::calibration::FrameStatus;
     use seasonloc_core::trip::{TripParams, TripStatus};
 
     fn new_trip(map_id: u64, reference_count: u32, state: u8) -> NewTrip {
@@ -260,6 +261,8 @@ mod tests {
                     frame: f as usize,
                     reference: (f % 2 == 0).then_some(f as usize * 2),
                     confidence: f as f64 / 10.0,
+                    p_correct: f as f64 / 100.0,
+                    status: FrameStatus::ALL[f as usize % 4],
                 })
                 .collect(),
             idempotency: None,

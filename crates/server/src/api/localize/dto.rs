@@ -36,6 +36,9 @@ pub struct LocalizeParams {
     pub stop_hidden_fraction: Option<f64>,
     /// `cooc` maps only: `flow` (default), `cooc` or `cooc-seq`.
     pub method: Option<CoocMethodDto>,
+    /// Map images within which a prediction counts as right: what its `p_correct` is the
+    /// probability of (default 1).
+    pub tolerance: Option<usize>,
 }
 
 impl LocalizeParams {
@@ -82,9 +85,22 @@ impl LocalizeParams {
         } else {
             Normalization::None
         };
+        let tolerance = self
+            .tolerance
+            .unwrap_or(seasonloc_core::trip::DEFAULT_TOLERANCE);
+        if tolerance > seasonloc_core::trip::MAX_TOLERANCE {
+            return Err(ApiError::param(
+                "tolerance",
+                format!(
+                    "must be at most {}, got {tolerance}",
+                    seasonloc_core::trip::MAX_TOLERANCE
+                ),
+            ));
+        }
         Ok(LocalizeOptions {
             solver,
             normalization,
+            tolerance,
             ..LocalizeOptions::default()
         })
     }
@@ -123,6 +139,9 @@ pub struct ParamsUsed {
     /// The method of a `cooc` map (absent for other maps).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub method: Option<CoocMethodDto>,
+    /// The tolerance of the predictions' `p_correct` (absent when 1, the default).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<usize>,
 }
 
 impl From<&LocalizationParams> for ParamsUsed {
@@ -144,6 +163,7 @@ impl From<&LocalizationParams> for ParamsUsed {
                 CoocMethod::Single => CoocMethodDto::Cooc,
                 CoocMethod::Sequence => CoocMethodDto::CoocSeq,
             }),
+            tolerance: p.tolerance,
         }
     }
 }
@@ -210,8 +230,12 @@ pub struct PredictionDto {
     /// Predicted reference index.
     #[serde(rename = "ref")]
     pub reference: usize,
-    /// Higher = more certain.
+    /// Higher = more certain: the method's own score (its scale differs between routes).
     pub confidence: f64,
+    /// The calibrated probability that `ref` is within the tolerance of the true place
+    /// (absent for methods without a calibration and in results stored before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub p_correct: Option<f64>,
 }
 
 impl From<&Prediction> for PredictionDto {
@@ -220,6 +244,7 @@ impl From<&Prediction> for PredictionDto {
             query: p.query,
             reference: p.reference,
             confidence: p.confidence,
+            p_correct: p.p_correct,
         }
     }
 }

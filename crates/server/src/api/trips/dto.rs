@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::api::error::ApiError;
+use seasonloc_core::calibration::FrameStatus;
 use seasonloc_core::trip::{FrameEstimate, TripParams};
 
 /// Optional parameters of a trip (JSON body of `POST /v1/maps/{id}/trips`).
@@ -34,6 +35,13 @@ pub struct TripParamsDto {
     /// Online column normalisation (default true).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub normalize: Option<bool>,
+    /// Map images within which an estimate counts as right: what `p_correct` is the
+    /// probability of (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<usize>,
+    /// `p_correct` from which a frame is `localized` (default 0.9).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
 }
 
 impl TripParamsDto {
@@ -76,6 +84,8 @@ impl TripParamsDto {
             prior_weight: self.prior_weight.unwrap_or(d.prior_weight),
             normalize: self.normalize.unwrap_or(d.normalize),
             confidence: d.confidence,
+            tolerance: self.tolerance.unwrap_or(d.tolerance),
+            threshold: self.threshold.unwrap_or(d.threshold),
         };
         // Every range is checked by the core.
         params.validate()?;
@@ -100,6 +110,10 @@ pub struct TripParamsUsed {
     pub prior_weight: f64,
     /// Online column normalisation.
     pub normalize: bool,
+    /// Map images within which an estimate counts as right.
+    pub tolerance: usize,
+    /// `p_correct` from which a frame is `localized`.
+    pub threshold: f64,
 }
 
 impl From<&TripParams> for TripParamsUsed {
@@ -112,6 +126,33 @@ impl From<&TripParams> for TripParamsUsed {
             relocalization_cost: p.relocalization,
             prior_weight: p.prior_weight,
             normalize: p.normalize,
+            tolerance: p.tolerance,
+            threshold: p.threshold,
+        }
+    }
+}
+
+/// What a frame estimate means for a vehicle, on the wire.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameStatusDto {
+    /// Act on it.
+    Localized,
+    /// A reference not to be acted on.
+    Uncertain,
+    /// Not on the mapped route.
+    OffMap,
+    /// Not enough evidence yet, or relocalizing.
+    Lost,
+}
+
+impl From<FrameStatus> for FrameStatusDto {
+    fn from(s: FrameStatus) -> Self {
+        match s {
+            FrameStatus::Localized => FrameStatusDto::Localized,
+            FrameStatus::Uncertain => FrameStatusDto::Uncertain,
+            FrameStatus::OffMap => FrameStatusDto::OffMap,
+            FrameStatus::Lost => FrameStatusDto::Lost,
         }
     }
 }
@@ -124,8 +165,16 @@ pub struct FrameEstimateDto {
     /// Estimated reference index, `null` when not on the map.
     #[serde(rename = "ref")]
     pub reference: Option<usize>,
-    /// The discounted min-marginal ratio on the trip's frames so far (0 when not on the map).
+    /// The discounted min-marginal ratio on the trip's frames so far (0 when not on the map):
+    /// the raw evidence, for research; its scale differs between routes.
     pub confidence: f64,
+    /// The calibrated probability that `ref` is within the trip's `tolerance` of the true place
+    /// (0 without a reference).
+    pub p_correct: f64,
+    /// `localized` (act on it: `p_correct` reaches the trip's threshold), `uncertain` (a
+    /// reference not to be acted on), `off_map` (no reference: not on the mapped route) or `lost`
+    /// (not enough evidence yet, or relocalizing).
+    pub status: FrameStatusDto,
 }
 
 impl From<&FrameEstimate> for FrameEstimateDto {
@@ -134,6 +183,8 @@ impl From<&FrameEstimate> for FrameEstimateDto {
             frame: e.frame,
             reference: e.reference,
             confidence: e.confidence,
+            p_correct: e.p_correct,
+            status: e.status.into(),
         }
     }
 }
@@ -153,8 +204,13 @@ pub struct TripResponse {
     pub frame_count: u64,
     /// Map images the trip localizes against (the map's count when it was opened).
     pub reference_count: u32,
-    /// Status after the last batch, `null` before the first.
+    /// Status after the last batch (`localized`, `lost` or `relocalized`), `null` before the
+    /// first.
     pub status: Option<String>,
+    /// The status of the trip's latest frame (`localized`, `uncertain`, `off_map` or `lost`;
+    /// `GET /v1/trips/{id}` only, `null` before the first batch).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latest_status: Option<Option<FrameStatusDto>>,
     /// Parameters.
     pub params: TripParamsUsed,
     /// Every frame's latest estimate (`GET /v1/trips/{id}` only).
@@ -193,8 +249,11 @@ pub struct FramesResponse {
     pub frame_count: u64,
     /// One estimate per new frame.
     pub estimates: Vec<FrameEstimateDto>,
-    /// `localized`, `lost` or `relocalized`.
+    /// `localized` (the latest frame is localized), `lost` (it is not) or `relocalized` (the
+    /// path re-entered the map by a jump during this batch).
     pub status: String,
+    /// The status of the latest frame: `localized`, `uncertain`, `off_map` or `lost`.
+    pub latest_status: FrameStatusDto,
     /// The current best hypothesis over the lag window (older frames first).
     pub window: Vec<FrameEstimateDto>,
     /// The hidden cost `W` in use.

@@ -62,6 +62,7 @@ fn response(r: &TripRecord) -> TripResponse {
         frame_count: r.frame_count,
         reference_count: r.reference_count,
         status: r.status.map(status_name),
+        latest_status: None,
         params: TripParamsUsed::from(&r.params),
         estimates: None,
     }
@@ -139,6 +140,7 @@ async fn frames(
                 .map(FrameEstimateDto::from)
                 .collect(),
             status: status_name(update.status),
+            latest_status: update.latest_status().into(),
             window: update.window.iter().map(FrameEstimateDto::from).collect(),
             hidden_cost: outcome.hidden_cost,
             timings: BatchTimings {
@@ -160,6 +162,14 @@ async fn read(
     let since = q.since.unwrap_or(0);
     let (record, estimates) = state.app.get_trip(trip_id(&id)?, since).await?;
     let mut r = response(&record);
+    // The latest frame is in every read (a poll's `since` is at most the frame count).
+    let latest = record.frame_count.checked_sub(1);
+    r.latest_status = Some(
+        estimates
+            .iter()
+            .find(|e| Some(e.frame as u64) == latest)
+            .map(|e| e.status.into()),
+    );
     r.estimates = Some(estimates.iter().map(FrameEstimateDto::from).collect());
     Ok(Json(r))
 }

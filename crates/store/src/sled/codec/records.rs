@@ -5,6 +5,7 @@
 use super::value::{Reader, Writer};
 use seasonloc_app::model::{LocalizationRecord, TripRecord};
 use seasonloc_app::store::{IdempotencyRecord, StoreError};
+use seasonloc_core::calibration::FrameStatus;
 use seasonloc_core::trip::FrameEstimate;
 use seasonloc_core::trip::TripStatus;
 
@@ -134,7 +135,8 @@ pub fn small_index(i: usize) -> Result<u32, StoreError> {
     u32::try_from(i).map_err(|_| StoreError::Backend(format!("index {i} is over 2^32").into()))
 }
 
-/// Encodes a frame's estimate.
+/// Encodes a frame's estimate (layout 7): the reference, the confidence, `p_correct` and the
+/// status's code.
 pub fn encode_frame(f: &FrameEstimate) -> Result<Vec<u8>, StoreError> {
     let mut w = Writer::new();
     match f.reference {
@@ -145,6 +147,8 @@ pub fn encode_frame(f: &FrameEstimate) -> Result<Vec<u8>, StoreError> {
         }
     }
     w.f64(f.confidence);
+    w.f64(f.p_correct);
+    w.u8(f.status.code());
     Ok(w.into_bytes())
 }
 
@@ -162,11 +166,24 @@ pub fn decode_frame(key: &[u8], value: &[u8]) -> Result<FrameEstimate, StoreErro
         t => return Err(StoreError::corrupt(key, format!("bad option tag {t}"))),
     };
     let confidence = r.f64()?;
+    let reference = reference.map(|j| j as usize);
+    // Layouts up to 6 stored neither `p_correct` nor a status.
+    let (p_correct, status) = if r.remaining() == 0 {
+        (0.0, FrameStatus::before_calibration(reference))
+    } else {
+        let p = r.f64()?;
+        let code = r.u8()?;
+        let status = FrameStatus::from_code(code)
+            .ok_or_else(|| StoreError::corrupt(key, format!("unknown frame status {code}")))?;
+        (p, status)
+    };
     r.finish()?;
     Ok(FrameEstimate {
         frame: frame as usize,
-        reference: reference.map(|j| j as usize),
+        reference,
         confidence,
+        p_correct,
+        status,
     })
 }
 
@@ -212,7 +229,7 @@ mod tests {
                     predictions: confidences
                         .iter()
                         .enumerate()
-                        .map(|(k, &c)| Prediction { query: k, reference: k + 1, confidence: c })
+                        .map(|(k, &c)| Prediction { query: k, reference: k + 1, confidence: c, p_correct: None })
                         .collect(),
                     timings: LocalizationTimings::default(),
                     picture: None,

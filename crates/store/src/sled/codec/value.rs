@@ -122,6 +122,11 @@ impl<'a> Reader<'a> {
         let read = self.buf.opt_f64();
         self.check(read)
     }
+    /// Bytes not read yet (a value that grew a field in a later layout ends earlier when
+    /// written by an earlier one).
+    pub(super) fn remaining(&self) -> usize {
+        self.buf.remaining()
+    }
     pub(super) fn finish(self) -> Result<(), StoreError> {
         if self.buf.remaining() == 0 {
             Ok(())
