@@ -39,7 +39,7 @@ use serde_json::Value;
 use super::cooc::CoocArgs;
 use super::{DescriptorArgs, SolverArgs};
 use seasonloc_core::cooc::CoocMethod;
-use seasonloc_core::eval::{Exclusions, GroundTruth};
+use seasonloc_core::eval::{Exclusions, GroundTruth, GroundTruthFiles};
 use seasonloc_core::features::list_images;
 use seasonloc_core::Error;
 
@@ -123,6 +123,10 @@ pub struct EvalArgs {
     /// `--leave-one-out`, where it defaults to query k -> location k.
     #[arg(long)]
     pub ground_truth: Option<PathBuf>,
+    /// Refuse (exit non-zero) a ground truth whose `query_file` / `ref_file` columns name other
+    /// files than the folders' files at those indices; without it that is a warning on stderr.
+    #[arg(long)]
+    pub strict: bool,
     /// The co-occurrence paper's protocol over the `--reference` folders (all traversals of one
     /// route, at least two): each traversal in turn is the query, the others form the map.
     #[arg(long, conflicts_with = "query")]
@@ -265,6 +269,7 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
         (query, query_files.len()),
         (&drives[0].folder, drives[0].files.len()),
     )?;
+    check_file_names(gt_path, &query_files, &drives[0].files, args.strict)?;
     let job = Job {
         references: drives.iter().collect(),
         query,
@@ -324,6 +329,32 @@ fn check_ground_truth(
             }
         }
     }
+    Ok(())
+}
+
+/// Compares the ground truth's file columns with the folders (`eval::GroundTruthFiles`): rows
+/// naming other files are a warning on stderr, or with `--strict` an error.
+fn check_file_names(
+    gt_path: &Path,
+    queries: &[PathBuf],
+    references: &[PathBuf],
+    strict: bool,
+) -> Result<()> {
+    let check = GroundTruthFiles::from_csv(gt_path)?.check(queries, references);
+    if check.holds() {
+        return Ok(());
+    }
+    let what = format!(
+        "ground truth {}: {} of its {} rows with file columns name files that are not the          folders' files at their index ({}); it may belong to other folders or another dataset",
+        gt_path.display(),
+        check.mismatched,
+        check.checked,
+        check.first.as_deref().unwrap_or("")
+    );
+    if strict {
+        bail!("{what} (--strict)");
+    }
+    eprintln!("warning: {what}; scoring anyway (--strict refuses it)");
     Ok(())
 }
 

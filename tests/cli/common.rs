@@ -28,7 +28,7 @@ pub fn shared(rel: &str) -> Option<PathBuf> {
 /// The result of one `seasonloc` run.
 pub struct Run {
     args: Vec<String>,
-    output: Output,
+    pub output: Output,
 }
 
 /// Runs the built `seasonloc` binary.

@@ -285,3 +285,60 @@ fn eval_brings_images_of_any_size_to_the_map_geometry() {
     let explicit = run(&twice, &["--resize", "32x16"]);
     assert_eq!(explicit["input_geometry"], serde_json::json!([32, 16]));
 }
+
+/// Issue 42, silent mistake S1: a ground truth whose `query_file` / `ref_file` columns name
+/// other files than the folders' (here another dataset's `night_right/Image000.jpg`) is scored
+/// with a warning on stderr naming the first such row, and refused with `--strict`; one naming
+/// the folders' own files passes `--strict` without a warning. Before, both ran silently.
+#[test]
+fn a_ground_truth_naming_other_files_warns_and_strict_refuses_it() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 24, 16);
+    let write = |name: &str, row: &dyn Fn(usize) -> String| {
+        let mut text = String::from("query_index,query_file,ref_index,ref_file\n");
+        for k in 0..16 {
+            text.push_str(&format!("{k},{}\n", row(k)));
+        }
+        let path = dir.path(name);
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_string()
+    };
+    let own = write("own.csv", &|k| {
+        format!("query/frame-{k:05}.png,{k},reference/frame-{k:05}.png")
+    });
+    let foreign = write("foreign.csv", &|k| {
+        format!("night_right/Image{k:03}.jpg,{k},day_right/Image{k:03}.jpg")
+    });
+    let run = |gt: &str, strict: bool| {
+        let mut args = vec![
+            "eval",
+            "--reference",
+            &route.reference,
+            "--query",
+            &route.query,
+            "--ground-truth",
+            gt,
+            "--cell-size",
+            "8",
+        ];
+        if strict {
+            args.push("--strict");
+        }
+        seasonloc(&args)
+    };
+    let warned = run(&foreign, false);
+    warned.success_json();
+    let stderr = String::from_utf8_lossy(&warned.output.stderr);
+    assert!(
+        stderr.contains("warning: ground truth")
+            && stderr.contains("16 of its 16 rows")
+            && stderr.contains("night_right/Image000.jpg")
+            && stderr.contains("frame-00000.png"),
+        "{stderr}"
+    );
+    run(&foreign, true).failure_mentions("query_file is `night_right/Image000.jpg`");
+    let clean = run(&own, true);
+    clean.success_json();
+    let stderr = String::from_utf8_lossy(&clean.output.stderr);
+    assert!(!stderr.contains("warning"), "{stderr}");
+}

@@ -383,3 +383,84 @@ fn trips_on_a_cnn_map_use_its_model_and_refuse_a_changed_one() {
     assert_eq!(r.code(), "model_mismatch");
     assert_eq!(c.get(&format!("/v1/trips/{trip}")).json()["frame_count"], 8);
 }
+
+/// The model file is read under the model directory's rules at every use (issue 42, defect 6):
+/// replaced by a FIFO while three appends wait on two CPU-pool threads, every append is a 409
+/// `model_mismatch` at once and another map's localize answers; replaced by a link to
+/// `/dev/zero`, an append is a 409 too. Before, the FIFO held both pool threads (the HOG
+/// localize below timed out) and `/dev/zero` was read until memory ran out.
+#[cfg(unix)]
+#[test]
+fn a_model_replaced_by_a_fifo_or_a_device_is_refused_without_holding_the_pool() {
+    use std::sync::mpsc;
+    use std::time::Duration;
+    let Some((_dir, model, server)) = server_with_model_copy() else {
+        return;
+    };
+    let c = &server.client;
+    let r = create(c, json!({"kind": "cnn", "model": model, "layer": "pooled"}));
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let cnn = r.json()["id"].as_str().unwrap().to_string();
+    let route = Route::new(8, 9);
+    let refs: Vec<Vec<u8>> = (0..8u32).map(|i| route.reference_png(i)).collect();
+    let r = images(c, &format!("/v1/maps/{cnn}/images"), &refs[..3], None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let hog = crate::common::create_hog_map(c, "hog", 8);
+    let r = images(c, &format!("/v1/maps/{hog}/images"), &refs, None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+
+    std::fs::remove_file(&model).unwrap();
+    let made = std::process::Command::new("mkfifo").arg(&model).status();
+    if !made.is_ok_and(|s| s.success()) {
+        eprintln!("skipped: mkfifo is not available");
+        return;
+    }
+    let (tx, rx) = mpsc::channel();
+    for _ in 0..3 {
+        let (client, tx, path) = (*c, tx.clone(), format!("/v1/maps/{cnn}/images"));
+        let part = refs[3].clone();
+        std::thread::spawn(move || {
+            let parts = [Part::image("f.png", part)];
+            let _ = tx.send(client.post_multipart(&path, &parts));
+        });
+    }
+    let localize = {
+        let (client, path) = (*c, format!("/v1/maps/{hog}/localize"));
+        let queries = refs[2..6].to_vec();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(500));
+            let _ = tx.send(images(&client, &path, &queries, None));
+        });
+        rx.recv_timeout(Duration::from_secs(30))
+    };
+    let appends: Vec<_> = (0..3)
+        .map(|_| rx.recv_timeout(Duration::from_secs(30)))
+        .collect();
+    // Before the fix the appends block in open(2) until a writer comes: release them.
+    let fifo = model.clone();
+    std::thread::spawn(move || {
+        for _ in 0..3 {
+            let _ = std::fs::OpenOptions::new().write(true).open(&fifo);
+        }
+    });
+    let localize = localize.expect("a HOG localize on another map did not answer within 30 s");
+    assert_eq!(localize.status, 200, "{}", localize.message());
+    for a in appends {
+        let a = a.expect("a CNN append with the model replaced by a FIFO hung");
+        assert_eq!(a.status, 409, "{}", String::from_utf8_lossy(&a.body));
+        assert_eq!(a.code(), "model_mismatch");
+    }
+
+    std::fs::remove_file(&model).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", &model).unwrap();
+    let r = images(c, &format!("/v1/maps/{cnn}/images"), &refs[3..4], None);
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.code(), "model_mismatch");
+    assert!(
+        r.message().contains("may no longer be read"),
+        "{}",
+        r.message()
+    );
+    assert_eq!(c.get(&format!("/v1/maps/{cnn}")).json()["image_count"], 3);
+}

@@ -19,6 +19,7 @@ mod hardening;
 mod http;
 mod idempotency;
 mod outside;
+mod ownership;
 mod spec;
 mod stored;
 mod trips;

@@ -21,6 +21,7 @@
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
 mod cache;
+pub mod caller;
 mod error;
 mod idempotency;
 pub mod ids;
@@ -48,7 +49,7 @@ pub use kind::descriptors::map_extractor;
 pub use kind::{AppendOutcome, Queries, Upload};
 pub use localize::LocalizeInput;
 pub use maps::{DescriptorSpec, NewMapSpec};
-pub use models::ModelPolicy;
+pub use models::{ModelPolicy, ModelRules};
 pub use pool::CpuPool;
 pub use trips::{FramesOutcome, FramesTimings};
 
@@ -99,6 +100,14 @@ impl App {
             open_trips: cache::OpenTrips::default(),
             trip_locks: cache::TripLocks::default(),
         })
+    }
+
+    /// The rules a map's model file is read under at every use.
+    pub(crate) fn model_rules(&self) -> ModelRules {
+        ModelRules {
+            policy: self.config.models.clone(),
+            default: self.config.default_cnn_model.clone(),
+        }
     }
 
     /// Where the store keeps its data (for logs).

@@ -108,6 +108,10 @@ pub struct TripRecord {
     pub status: Option<TripStatus>,
     /// The parameters the trip uses.
     pub params: TripParams,
+    /// The name of the API key that opened it (`None` when the service ran without keys, or
+    /// for a trip stored before owners were kept): only that key or an admin may post frames
+    /// to it or close it.
+    pub owner: Option<String>,
 }
 
 /// What a localization computed.

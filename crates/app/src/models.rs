@@ -10,6 +10,12 @@
 //!
 //! The server's own default model (`--cnn-model`) is the operator's choice and is not
 //! subject to this rule.
+//!
+//! The same rule holds at every use ([`ModelPolicy::check_in_use`]): a map's model is read
+//! again at each append, localize and trip batch (its content is checked against the identity
+//! recorded at creation), so a file replaced later by a FIFO, a link out of the directory or to
+//! `/dev/zero`, or a file over the cap is refused before any byte is read (and the loader opens
+//! it without blocking and reads only a regular file, `seasonloc_core`'s `cnn::model`).
 
 use std::path::{Component, Path, PathBuf};
 
@@ -79,6 +85,39 @@ impl ModelPolicy {
             ));
         }
         Ok(real)
+    }
+}
+
+/// What a map's model is checked against at every use: the policy and the server's default
+/// model (cheap to clone into a CPU-pool job).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ModelRules {
+    /// The model directory and size cap.
+    pub policy: ModelPolicy,
+    /// The server's own model (`--cnn-model`), the operator's choice.
+    pub default: Option<PathBuf>,
+}
+
+impl ModelRules {
+    /// [`ModelPolicy::check_in_use`] with this server's default model.
+    pub fn check_in_use(&self, model: &Path) -> Result<(), String> {
+        self.policy.check_in_use(model, self.default.as_deref())
+    }
+}
+
+impl ModelPolicy {
+    /// The rule of [`ModelPolicy::resolve`] applied again when a map's recorded model is about
+    /// to be read (blocking: stats only). `default` is the server's own model (`--cnn-model`),
+    /// which stays the operator's choice. The error says why the file may not be used.
+    pub fn check_in_use(&self, model: &Path, default: Option<&Path>) -> Result<(), String> {
+        if default == Some(model) {
+            return Ok(());
+        }
+        match self.resolve(model) {
+            Ok(_) => Ok(()),
+            Err(AppError::InconsistentParameter { reason, .. }) => Err(reason),
+            Err(other) => Err(other.to_string()),
+        }
     }
 }
 

@@ -374,6 +374,8 @@ pub struct NewTrip {
     pub reference_count: u32,
     /// Its parameters.
     pub params: TripParams,
+    /// The name of the API key that opens it (see [`TripRecord::owner`]).
+    pub owner: Option<String>,
     /// Its initial state's constant part (opaque bytes owned by `seasonloc_core::trip`).
     pub base: Vec<u8>,
     /// Its initial snapshot (opaque bytes owned by `seasonloc_core::trip`); the log starts empty.

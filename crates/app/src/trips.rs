@@ -23,6 +23,7 @@ use super::images::{self, ImageInput};
 use super::kind;
 use super::kind::RowSource;
 use super::{ids, map_extractor, App};
+use crate::caller::Caller;
 use crate::model::{MapRecord, TripRecord};
 use crate::store::{
     IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripState, TripStateWrite,
@@ -71,11 +72,13 @@ impl App {
         id: u64,
         params: TripParams,
         idempotency: Option<Idempotency>,
+        caller: Option<&Caller>,
     ) -> AppResult<(TripRecord, bool)> {
         let replay = |record: IdempotencyRecord| async move {
             Ok(self.store.get_trip(answered_id(&record)?).await?)
         };
-        let open = |record| self.open_new_trip(id, params, record);
+        let owner = caller.map(|c| c.name.clone());
+        let open = |record| self.open_new_trip(id, params, owner, record);
         let scope = IdempotencyRecord::images_scope(id);
         self.once(idempotency, scope, replay, open).await
     }
@@ -84,11 +87,13 @@ impl App {
         &self,
         id: u64,
         params: TripParams,
+        owner: Option<String>,
         idempotency: Option<IdempotencyRecord>,
     ) -> AppResult<TripRecord> {
         let map = self.get_map(id).await?;
         let prior = kind::of(&map).trip_prior(self, &map).await?;
-        self.create_trip(&map, prior, params, idempotency).await
+        self.create_trip(&map, prior, params, owner, idempotency)
+            .await
     }
 
     /// Stores a new trip on `map` (all its current images) with the map's prior column means.
@@ -97,6 +102,7 @@ impl App {
         map: &MapRecord,
         prior: std::sync::Arc<Vec<f32>>,
         params: TripParams,
+        owner: Option<String>,
         idempotency: Option<IdempotencyRecord>,
     ) -> AppResult<TripRecord> {
         let (id, count) = (map.id, map.image_count);
@@ -109,6 +115,7 @@ impl App {
             map_id: id,
             reference_count: count,
             params,
+            owner,
             base: state.base,
             snapshot: state.snapshot,
             idempotency,
@@ -134,6 +141,7 @@ impl App {
         id: u64,
         frames: Vec<ImageInput>,
         idempotency: Option<Idempotency>,
+        caller: Option<&Caller>,
     ) -> AppResult<FramesOutcome> {
         if frames.is_empty() {
             return Err(AppError::EmptyBatch("the batch has no frames".into()));
@@ -147,12 +155,12 @@ impl App {
             if let Some(key) = &idempotency {
                 let stored = self.store.idempotency_record(&scope, key.key()).await?;
                 if let Some(record) = key.replay(stored)? {
-                    return self.replayed_frames(id, &record).await;
+                    return self.replayed_frames(id, &record, caller).await;
                 }
             }
             let keyed = idempotency.as_ref().map(|k| (k, scope.clone()));
             match self
-                .apply_batch(id, std::sync::Arc::clone(&frames), keyed)
+                .apply_batch(id, std::sync::Arc::clone(&frames), keyed, caller)
                 .await
             {
                 Err(AppError::TripConflict(why)) if attempt < CONFLICT_RETRIES => {
@@ -169,9 +177,11 @@ impl App {
         &self,
         id: u64,
         record: &IdempotencyRecord,
+        caller: Option<&Caller>,
     ) -> AppResult<FramesOutcome> {
         let (frame_count, update, hidden_cost) = idempotency::decode_frames(&record.response)?;
         let mut trip = self.store.get_trip(id).await?;
+        Caller::may_change(caller, &trip)?;
         trip.frame_count = frame_count;
         tracing::info!(trip = %format!("{id:016x}"), key = %record.key, "idempotent retry answered from the stored batch");
         Ok(FramesOutcome {
@@ -188,9 +198,11 @@ impl App {
         id: u64,
         frames: std::sync::Arc<Vec<ImageInput>>,
         idempotency: Option<(&Idempotency, String)>,
+        caller: Option<&Caller>,
     ) -> AppResult<FramesOutcome> {
         let started = Instant::now();
         let mut record = self.store.get_trip(id).await?;
+        Caller::may_change(caller, &record)?;
         if record.closed_ms.is_some() {
             return Err(AppError::Store(StoreError::TripClosed(id)));
         }
@@ -213,6 +225,7 @@ impl App {
             .await?;
         let max_pixels = self.config.max_image_pixels;
         let max_len = self.config.max_descriptor_len;
+        let rules = self.model_rules();
         let frame_count = record.frame_count;
         let (update, live, delta, hidden_cost, mut timings) = self
             .pool
@@ -240,7 +253,7 @@ impl App {
                 let t = Instant::now();
                 let c = match &source {
                     RowSource::Descriptors(references) => {
-                        let Some(extractor) = map_extractor(&map)? else {
+                        let Some(extractor) = map_extractor(&map, &rules)? else {
                             return Err(AppError::MapKind(format!(
                                 "map `{:016x}` cannot describe images",
                                 map.id
@@ -327,9 +340,11 @@ impl App {
     }
 
     /// Closes trip `id` (after a batch in flight in this process); closing twice is harmless.
-    pub async fn close_trip(&self, id: u64) -> AppResult<TripRecord> {
+    /// Only the key that opened it or an admin may ([`Caller::may_change`]).
+    pub async fn close_trip(&self, id: u64, caller: Option<&Caller>) -> AppResult<TripRecord> {
         let lock = self.trip_locks.of(id);
         let _order = lock.lock().await;
+        Caller::may_change(caller, &self.store.get_trip(id).await?)?;
         let record = self.store.close_trip(id).await?;
         self.open_trips.forget(id);
         tracing::info!(trip = %format!("{id:016x}"), "trip closed");

@@ -106,6 +106,9 @@ pub enum AppError {
     /// An `Idempotency-Key` sent again with a different request.
     #[error("{0}")]
     IdempotencyKeyReused(String),
+    /// A key that did not open a trip tried to post frames to it or close it.
+    #[error("{0}")]
+    NotTripOwner(String),
     /// A bug or a broken store: the message is for logs, not for clients.
     #[error("internal error: {0}")]
     Internal(String),
@@ -165,6 +168,7 @@ impl AppError {
             AppError::NonFinite(_) => C::NonFinite,
             AppError::ShapeMismatch(_) => C::ShapeMismatch,
             AppError::IdempotencyKeyReused(_) => C::IdempotencyKeyReused,
+            AppError::NotTripOwner(_) => C::Forbidden,
             AppError::Internal(_) => C::Internal,
         }
     }

@@ -12,6 +12,7 @@ use super::{service_name, AppendOutcome, Computed, MapKind, Queries, RowSource, 
 use crate::error::{AppError, AppResult};
 use crate::images::{self, ImageInput};
 use crate::model::{DescriptorSettings, ImageMeta, MapRecord};
+use crate::models::ModelRules;
 use crate::store::{IdempotencyRecord, ImageBatch};
 use crate::App;
 use seasonloc_core::cooc::CoocMethod;
@@ -57,12 +58,13 @@ impl MapKind for DescriptorMaps {
         let max_pixels = app.config.max_image_pixels;
         let max_len = app.config.max_descriptor_len;
         let id = map.id;
+        let rules = app.model_rules();
         let (descriptors, thumbnails, geometry) = app
             .pool
             .run(move || {
                 let mut map = map;
                 let geometry = first_batch_geometry(&mut map, &images)?;
-                let Some(extractor) = map_extractor(&map)? else {
+                let Some(extractor) = map_extractor(&map, &rules)? else {
                     return Err(AppError::MapKind(format!(
                         "map `{id:016x}` stores precomputed descriptors; send descriptors, not \
                          images"
@@ -115,6 +117,7 @@ impl MapKind for DescriptorMaps {
         let max_pixels = app.config.max_image_pixels;
         let max_len = app.config.max_descriptor_len;
         let options = options.clone();
+        let rules = app.model_rules();
         app.pool
             .run(move || {
                 let started = Instant::now();
@@ -131,7 +134,7 @@ impl MapKind for DescriptorMaps {
                         m
                     }
                     Queries::Images(parts) => {
-                        let Some(extractor) = map_extractor(&map)? else {
+                        let Some(extractor) = map_extractor(&map, &rules)? else {
                             return Err(AppError::MapKind(format!(
                                 "map `{id:016x}` stores precomputed descriptors; send \
                                  descriptors, not images"
@@ -159,9 +162,10 @@ impl MapKind for DescriptorMaps {
     async fn trip_prior(&self, app: &App, map: &MapRecord) -> AppResult<Arc<Vec<f32>>> {
         let id = map.id;
         let checked = map.clone();
+        let rules = app.model_rules();
         let has_extractor = app
             .pool
-            .run(move || Ok(map_extractor(&checked)?.is_some()))
+            .run(move || Ok(map_extractor(&checked, &rules)?.is_some()))
             .await?;
         if !has_extractor {
             return Err(AppError::MapKind(format!(
@@ -236,12 +240,13 @@ pub(crate) fn first_batch_geometry(
 
 /// The extractor of a map's images (references and queries): `None` for precomputed maps.
 ///
-/// For a CNN map the model at the recorded path is loaded (from the shared cache when its
+/// For a CNN map the recorded path is first checked with the server's model rules, as at
+/// creation ([`ModelRules::check_in_use`]); then the model at that path is loaded (from the shared cache when its
 /// content is unchanged) and checked against the identity recorded at creation: a model file
 /// that changed, no longer loads or is gone is [`AppError::ModelMismatch`], never silently
 /// used. A co-occurrence map has no global descriptors ([`AppError::MapKind`]). Blocking (it
 /// hashes the model file): call it on the CPU pool.
-pub fn map_extractor(map: &MapRecord) -> AppResult<Option<Box<dyn Extractor>>> {
+pub fn map_extractor(map: &MapRecord, rules: &ModelRules) -> AppResult<Option<Box<dyn Extractor>>> {
     let id = map.id;
     match &map.descriptor {
         DescriptorSettings::Hog { cell_size, resize } => {
@@ -253,6 +258,13 @@ pub fn map_extractor(map: &MapRecord) -> AppResult<Option<Box<dyn Extractor>>> {
         DescriptorSettings::Precomputed { .. } => Ok(None),
         DescriptorSettings::Cnn(c) => {
             let path = c.options.model.display();
+            rules.check_in_use(&c.options.model).map_err(|reason| {
+                AppError::ModelMismatch(format!(
+                    "map `{id:016x}` was created with the model at {path} (sha256 {}), which may \
+                     no longer be read: {reason}",
+                    c.identity.sha256
+                ))
+            })?;
             let spec = CnnSpec::new(c.options.clone()).map_err(|e| {
                 AppError::ModelMismatch(format!(
                     "map `{id:016x}` was created with the model at {path} (sha256 {}), which no \

@@ -5,10 +5,12 @@
 //! the confidence threshold over them. The protocol is method-agnostic: it only sees
 //! `(query, reference, confidence)` triples.
 
+mod file_names;
 mod ground_truth;
 mod metrics;
 mod predictions;
 
+pub use file_names::{FileNameCheck, GroundTruthFiles};
 pub use ground_truth::{Exclusions, GroundTruth};
 pub use metrics::{evaluate, Metrics, PrPoint};
 pub use predictions::write_predictions_csv;

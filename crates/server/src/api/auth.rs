@@ -18,6 +18,9 @@
 //!   `WWW-Authenticate: Bearer`; a known key without the right gets 403 `forbidden`.
 //! * Each key may have at most `max_requests_per_key` requests in flight; beyond that 429
 //!   `too_many_requests` with `Retry-After`, so one misbehaving vehicle cannot starve the fleet.
+//! * The key's name and whether it is an admin go to the handlers as a request extension
+//!   ([`seasonloc_app::caller::Caller`]): a trip is extended and closed only by the key that
+//!   opened it, or an admin.
 //! * The key's `name` goes into the request's log span (`key=...`) and, through a response
 //!   extension ([`KeyName`]), into the per-key metrics counter.
 
@@ -332,7 +335,7 @@ fn bearer(req: &Request) -> Result<&[u8], ApiError> {
 /// module does not depend on `state` (which holds an [`Auth`]).
 pub async fn authorize(
     State(auth): State<Option<Arc<Auth>>>,
-    req: Request,
+    mut req: Request,
     next: Next,
 ) -> Response {
     let Some(auth) = auth.as_ref() else {
@@ -365,6 +368,10 @@ pub async fn authorize(
         ))
         .into_response()
     } else if let Some(_permit) = auth.admit(&key.name) {
+        req.extensions_mut().insert(seasonloc_app::caller::Caller {
+            name: key.name.clone(),
+            admin: key.role == Role::Admin,
+        });
         next.run(req).await
     } else {
         ApiError::TooManyRequests(format!(

@@ -43,6 +43,11 @@ pub const MIGRATIONS: &[(u32, &str, &str)] = &[
         "0005_frame_trust",
         include_str!("../../../../migrations/postgres/0005_frame_trust.sql"),
     ),
+    (
+        6,
+        "0006_trip_owner",
+        include_str!("../../../../migrations/postgres/0006_trip_owner.sql"),
+    ),
 ];
 
 /// The newest schema version this build knows.

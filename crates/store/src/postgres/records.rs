@@ -47,9 +47,9 @@ fn ms(value: u64) -> i64 {
 }
 
 const TRIP_COLUMNS: &str =
-    "id, map_id, created_ms, closed_ms, frame_count, reference_count, status, params";
+    "id, map_id, created_ms, closed_ms, frame_count, reference_count, status, params, owner";
 
-/// A `trips` row (the first eight columns [`TRIP_COLUMNS`]) as a record.
+/// A `trips` row (the first nine columns [`TRIP_COLUMNS`]) as a record.
 fn trip_from_row(row: &Row) -> StoreResult<TripRecord> {
     let id: i64 = row.get(0);
     let closed: Option<i64> = row.get(3);
@@ -63,6 +63,7 @@ fn trip_from_row(row: &Row) -> StoreResult<TripRecord> {
         reference_count: small("trips", id, row.get(5))?,
         status: status_of(id, row.get(6))?,
         params: document::trip_params_from_json(format!("trips/{id}").as_bytes(), params)?,
+        owner: row.get(8),
     })
 }
 
@@ -195,8 +196,8 @@ impl PgStore {
         let stmt = tx
             .prepare_cached(
                 "INSERT INTO trips (id, map_id, created_ms, closed_ms, frame_count,
-                                    reference_count, status, params, base, snapshot)
-                 VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5, $7) RETURNING id",
+                                    reference_count, status, params, base, snapshot, owner)
+                 VALUES ($6, $1, $2, NULL, 0, $3, 0, $4, $5, $7, $8) RETURNING id",
             )
             .await
             .or_store()?;
@@ -211,6 +212,7 @@ impl PgStore {
                     &new.base,
                     &id,
                     &new.snapshot,
+                    &new.owner,
                 ],
             )
             .await
@@ -235,6 +237,7 @@ impl PgStore {
             reference_count: new.reference_count,
             status: None,
             params: new.params,
+            owner: new.owner,
         })
     }
 
@@ -269,11 +272,11 @@ impl PgStore {
             return Err(StoreError::TripNotFound(id));
         };
         let record = trip_from_row(&row)?;
-        let legacy: Option<Vec<u8>> = row.get(8);
-        let base: Option<Vec<u8>> = row.get(9);
-        let snapshot: Option<Vec<u8>> = row.get(10);
-        let frames: Vec<i64> = row.get(11);
-        let rows: Vec<Vec<u8>> = row.get(12);
+        let legacy: Option<Vec<u8>> = row.get(9);
+        let base: Option<Vec<u8>> = row.get(10);
+        let snapshot: Option<Vec<u8>> = row.get(11);
+        let frames: Vec<i64> = row.get(12);
+        let rows: Vec<Vec<u8>> = row.get(13);
         let state = match (base, snapshot, legacy) {
             (Some(base), Some(snapshot), None) => TripState::Parts {
                 base,

@@ -48,10 +48,12 @@ pub const MIGRATIONS: &[Migration] = &[
     step!(6, "0006_trip_state_parts.md", nothing_to_convert),
     // A frame value grew `p_correct` and a status; shorter (older) values are read as such.
     step!(7, "0007_frame_trust.md", nothing_to_convert),
+    // A trip record may end with its owner (the key that opened it); older records have none.
+    step!(8, "0008_trip_owner.md", nothing_to_convert),
 ];
 
 /// The layout this build writes.
-pub const CURRENT_VERSION: u32 = 7;
+pub const CURRENT_VERSION: u32 = 8;
 
 /// The stored layout version, if any.
 pub fn read_version(db: &sled::Db) -> StoreResult<Option<u32>> {
@@ -239,6 +241,7 @@ mod tests {
                 map_id,
                 reference_count: 2,
                 params: seasonloc_core::trip::TripParams::default(),
+                owner: None,
                 base: vec![7],
                 snapshot: vec![8],
                 idempotency: None,

@@ -42,6 +42,7 @@ impl SledStore {
             reference_count: new.reference_count,
             status: None,
             params: new.params,
+            owner: new.owner,
         };
         let mut batch = sled::Batch::default();
         batch.insert(&codec::trip_key(record.id), codec::encode_trip(&record)?);
@@ -231,6 +232,7 @@ mod tests {
             map_id,
             reference_count,
             params: TripParams::default(),
+            owner: None,
             base: vec![b'B', state],
             snapshot: vec![b'S', state],
             idempotency: None,

@@ -109,6 +109,7 @@ on_both_engines!(
     an_append_on_one_replica_is_seen_by_the_next_localize_on_another,
     a_trip_alternating_between_replicas_equals_one_replica,
     concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_other,
+    a_trip_is_extended_and_closed_only_by_its_opener_or_an_admin,
 );
 
 fn app(store: Arc<dyn Store>) -> App {
@@ -264,16 +265,16 @@ async fn a_trip_alternating_between_replicas_equals_one_replica(engine: Engine) 
         lag: 6,
         ..TripParams::default()
     };
-    let shared = a.open_trip(map.id, params, None).await.unwrap().0;
-    let single = a.open_trip(map.id, params, None).await.unwrap().0;
+    let shared = a.open_trip(map.id, params, None, None).await.unwrap().0;
+    let single = a.open_trip(map.id, params, None, None).await.unwrap().0;
     for (k, start) in (0..30).step_by(5).enumerate() {
         let batch: Vec<ImageInput> = (start..start + 5).map(|i| frame(i, true)).collect();
         let replica = if k % 2 == 0 { &a } else { &b };
         let x = replica
-            .post_frames(shared.id, batch.clone(), None)
+            .post_frames(shared.id, batch.clone(), None, None)
             .await
             .unwrap();
-        let y = a.post_frames(single.id, batch, None).await.unwrap();
+        let y = a.post_frames(single.id, batch, None, None).await.unwrap();
         assert_eq!(x.update, y.update, "batch {k}");
     }
     let (_, s1) = store.trip_state(shared.id).await.unwrap();
@@ -419,15 +420,15 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     let (a, b) = (app(Arc::clone(&gated)), app(Arc::clone(&gated)));
     let map = hog_map(&app(Arc::clone(&plain)), 0..30).await;
     let trip = a
-        .open_trip(map.id, TripParams::default(), None)
+        .open_trip(map.id, TripParams::default(), None, None)
         .await
         .unwrap()
         .0;
     let first: Vec<ImageInput> = (0..4).map(|i| frame(i, true)).collect();
     let second: Vec<ImageInput> = (4..10).map(|i| frame(i, true)).collect();
     let (x, y) = tokio::join!(
-        a.post_frames(trip.id, first.clone(), None),
-        b.post_frames(trip.id, second.clone(), None)
+        a.post_frames(trip.id, first.clone(), None, None),
+        b.post_frames(trip.id, second.clone(), None, None)
     );
     let (x, y) = (x.unwrap(), y.unwrap());
     // Both applied, once each: one saw the other's frames already in the trip.
@@ -445,14 +446,83 @@ async fn concurrent_batches_of_one_trip_on_two_replicas_apply_one_after_the_othe
     };
     let single = app(Arc::clone(&plain));
     let reference = single
-        .open_trip(map.id, TripParams::default(), None)
+        .open_trip(map.id, TripParams::default(), None, None)
         .await
         .unwrap()
         .0;
     for batch in order {
-        single.post_frames(reference.id, batch, None).await.unwrap();
+        single
+            .post_frames(reference.id, batch, None, None)
+            .await
+            .unwrap();
     }
     let (_, want) = plain.trip_state(reference.id).await.unwrap();
     let (_, got) = plain.trip_state(trip.id).await.unwrap();
     assert_eq!(got, want);
+}
+
+/// Issue 42, defect 8: the key that opened a trip is stored with it (read back by another
+/// replica), and another non-admin key may neither post frames to it nor close it (403,
+/// nothing applied); the opener and an admin may. A trip opened without a caller (keyless
+/// serving) has no owner and refuses no one.
+async fn a_trip_is_extended_and_closed_only_by_its_opener_or_an_admin(engine: Engine) {
+    use seasonloc_app::caller::Caller;
+    let Some((store, _dir)) = fresh(engine).await else {
+        return;
+    };
+    let (a, b) = (app(Arc::clone(&store)), app(Arc::clone(&store)));
+    let map = hog_map(&a, 0..30).await;
+    let key = |name: &str, admin: bool| Caller {
+        name: name.into(),
+        admin,
+    };
+    let (va, vb, ops) = (
+        key("vehicle-a", false),
+        key("vehicle-b", false),
+        key("ops", true),
+    );
+    let trip = a
+        .open_trip(map.id, TripParams::default(), None, Some(&va))
+        .await
+        .unwrap()
+        .0;
+    assert_eq!(trip.owner.as_deref(), Some("vehicle-a"));
+    let batch = |lo: u32| (lo..lo + 3).map(|i| frame(i, true)).collect::<Vec<_>>();
+    let e = b
+        .post_frames(trip.id, batch(0), None, Some(&vb))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), ErrorCode::Forbidden, "{e}");
+    let e = b.close_trip(trip.id, Some(&vb)).await.unwrap_err();
+    assert_eq!(e.code(), ErrorCode::Forbidden, "{e}");
+    let stored = store.get_trip(trip.id).await.unwrap();
+    assert_eq!((stored.frame_count, stored.closed_ms), (0, None));
+    assert_eq!(stored.owner.as_deref(), Some("vehicle-a"));
+    b.post_frames(trip.id, batch(0), None, Some(&va))
+        .await
+        .unwrap();
+    a.post_frames(trip.id, batch(3), None, Some(&ops))
+        .await
+        .unwrap();
+    assert!(b
+        .close_trip(trip.id, Some(&ops))
+        .await
+        .unwrap()
+        .closed_ms
+        .is_some());
+    let open = b
+        .open_trip(map.id, TripParams::default(), None, None)
+        .await
+        .unwrap()
+        .0;
+    assert_eq!(store.get_trip(open.id).await.unwrap().owner, None);
+    a.post_frames(open.id, batch(0), None, Some(&vb))
+        .await
+        .unwrap();
+    assert!(a
+        .close_trip(open.id, Some(&vb))
+        .await
+        .unwrap()
+        .closed_ms
+        .is_some());
 }

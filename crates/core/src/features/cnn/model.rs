@@ -358,11 +358,38 @@ fn output_names(model: &InferenceModel) -> Vec<String> {
         .unwrap_or_default()
 }
 
+/// Reads a model file and hashes it. The file is opened without blocking (`O_NONBLOCK`: a
+/// FIFO put at the model's path must not hold a CPU-pool thread until a writer comes) and must
+/// be a regular file by the opened handle's own metadata (not a FIFO, a device such as
+/// `/dev/zero` behind a link, or a directory); at most the length that metadata gives is read,
+/// so a file that grows while it is read cannot make the read unbounded.
 fn read_and_hash(path: &Path) -> Result<(Vec<u8>, String)> {
-    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+    use std::io::Read;
+    let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
-    })?;
+    };
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path).map_err(io)?;
+    let meta = file.metadata().map_err(io)?;
+    if !meta.is_file() {
+        return Err(Error::inconsistent(
+            "cnn_model",
+            format!(
+                "{}: not a regular file (a model is read only from a regular file)",
+                path.display()
+            ),
+        ));
+    }
+    let len = meta.len();
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    file.take(len).read_to_end(&mut bytes).map_err(io)?;
     let sha256 = sha256_hex(&bytes);
     Ok((bytes, sha256))
 }
@@ -402,6 +429,45 @@ mod tests {
                 assert!(reason.contains("not-a-model.onnx"), "{reason}");
             }
             other => panic!("expected cnn_model error, got {other:?}"),
+        }
+    }
+
+    /// A FIFO or a link to `/dev/zero` at a model's path is refused at once: before the
+    /// non-blocking open and the regular-file check, the FIFO held the reading thread until a
+    /// writer came (the test's bounded wait failed) and `/dev/zero` was read until memory ran out.
+    #[cfg(unix)]
+    #[test]
+    fn fifos_and_devices_at_a_model_path_are_refused_without_blocking() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("fifo.onnx");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if !made.is_ok_and(|s| s.success()) {
+            eprintln!("skipped: mkfifo is not available");
+            return;
+        }
+        let zero = dir.path().join("zero.onnx");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        for path in [fifo, zero] {
+            let (tx, rx) = std::sync::mpsc::channel();
+            let p = path.clone();
+            std::thread::spawn(move || {
+                let _ = tx.send(LoadedModel::shared(&p, "x", (8, 8)).map(|_| ()));
+            });
+            let got = rx
+                .recv_timeout(std::time::Duration::from_secs(10))
+                .unwrap_or_else(|_| {
+                    panic!("loading {} did not return within 10 s", path.display())
+                });
+            match got {
+                Err(Error::Inconsistent { name, reason }) => {
+                    assert_eq!(name, "cnn_model");
+                    assert!(reason.contains("not a regular file"), "{reason}");
+                }
+                other => panic!(
+                    "{}: expected a cnn_model error, got {other:?}",
+                    path.display()
+                ),
+            }
         }
     }
 

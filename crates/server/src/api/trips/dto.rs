@@ -213,6 +213,9 @@ pub struct TripResponse {
     pub latest_status: Option<Option<FrameStatusDto>>,
     /// Parameters.
     pub params: TripParamsUsed,
+    /// The name of the API key that opened the trip (only it or an admin may post frames to
+    /// it or close it); `null` when the service runs without keys.
+    pub opened_by: Option<String>,
     /// Every frame's latest estimate (`GET /v1/trips/{id}` only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub estimates: Option<Vec<FrameEstimateDto>>,

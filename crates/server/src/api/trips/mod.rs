@@ -15,6 +15,7 @@ use axum::extract::rejection::BytesRejection;
 use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::routing::{get, post};
+use axum::Extension;
 use axum::{Json, Router};
 pub mod dto;
 
@@ -27,6 +28,7 @@ use crate::api::extract::{bytes_rejection, map_id, parse_json_object};
 use crate::api::state::AppState;
 use crate::api::wire::{format_id, parse_id, DEFAULT_PAGE, MAX_PAGE};
 use crate::api::{idempotency, upload};
+use seasonloc_app::caller::Caller;
 use seasonloc_app::model::TripRecord;
 use seasonloc_app::store::PageRequest;
 use seasonloc_core::trip::TripStatus;
@@ -64,6 +66,7 @@ fn response(r: &TripRecord) -> TripResponse {
         status: r.status.map(status_name),
         latest_status: None,
         params: TripParamsUsed::from(&r.params),
+        opened_by: r.owner.clone(),
         estimates: None,
     }
 }
@@ -71,6 +74,7 @@ fn response(r: &TripRecord) -> TripResponse {
 async fn open(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    caller: Option<Extension<Caller>>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<(StatusCode, HeaderMap, Json<TripResponse>), ApiError> {
@@ -94,7 +98,10 @@ async fn open(
     };
     let params = dto.into_params()?;
     let key = idempotency::from_parts(&headers, "trips", &[&body])?;
-    let (record, replayed) = state.app.open_trip(map, params, key).await?;
+    let (record, replayed) = state
+        .app
+        .open_trip(map, params, key, caller.as_deref())
+        .await?;
     Ok((
         StatusCode::CREATED,
         idempotency::headers(replayed),
@@ -105,6 +112,7 @@ async fn open(
 async fn frames(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    caller: Option<Extension<Caller>>,
     headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<(HeaderMap, Json<FramesResponse>), ApiError> {
@@ -119,7 +127,10 @@ async fn frames(
     )
     .await?;
     let key = idempotency::from_request(&headers, &batch)?;
-    let outcome = state.app.post_frames(trip, batch.images, key).await?;
+    let outcome = state
+        .app
+        .post_frames(trip, batch.images, key, caller.as_deref())
+        .await?;
     let t = &outcome.timings;
     if !outcome.replayed {
         let m = &state.metrics;
@@ -177,8 +188,12 @@ async fn read(
 async fn close(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    caller: Option<Extension<Caller>>,
 ) -> Result<Json<TripResponse>, ApiError> {
-    let record = state.app.close_trip(trip_id(&id)?).await?;
+    let record = state
+        .app
+        .close_trip(trip_id(&id)?, caller.as_deref())
+        .await?;
     Ok(Json(response(&record)))
 }
 

@@ -98,6 +98,10 @@ pub fn encode_trip(t: &TripRecord) -> Result<Vec<u8>, StoreError> {
     w.u32(t.reference_count);
     w.u8(status_code(t.status));
     w.bytes(&crate::document::trip_params_json(&t.params)?);
+    // The owner is a trailer: records written before it end after the parameters.
+    if let Some(owner) = &t.owner {
+        w.str(owner);
+    }
     Ok(w.into_bytes())
 }
 
@@ -116,6 +120,11 @@ pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
     let reference_count = r.u32()?;
     let status = status_of(key, r.u8()?)?;
     let params = crate::document::trip_params_from_json(key, r.bytes()?)?;
+    let owner = if r.remaining() == 0 {
+        None
+    } else {
+        Some(r.str()?)
+    };
     r.finish()?;
     Ok(TripRecord {
         id,
@@ -126,6 +135,7 @@ pub fn decode_trip(key: &[u8], value: &[u8]) -> Result<TripRecord, StoreError> {
         reference_count,
         status,
         params,
+        owner,
     })
 }
 
@@ -238,4 +248,34 @@ mod tests {
                 prop_assert_eq!(decode_localization(b"L", &encode_localization(&l).unwrap()).unwrap(), l);
             }
         }
+
+    /// A trip's owner is a trailer: a record with one reads it back, a record without one
+    /// (every layout before 8) reads as none, and bytes after the owner are refused.
+    #[test]
+    fn a_trip_record_keeps_its_owner_and_older_records_have_none() {
+        use seasonloc_core::trip::TripParams;
+        let mut t = TripRecord {
+            id: 9,
+            map_id: 3,
+            created_ms: 5,
+            closed_ms: Some(6),
+            frame_count: 40,
+            reference_count: 12,
+            status: Some(TripStatus::Localized),
+            params: TripParams::default(),
+            owner: None,
+        };
+        let plain = encode_trip(&t).unwrap();
+        assert_eq!(decode_trip(b"T", &plain).unwrap(), t);
+        t.owner = Some("vehicle-7".into());
+        let owned = encode_trip(&t).unwrap();
+        assert!(
+            owned.starts_with(&plain),
+            "the owner is appended after the parameters"
+        );
+        assert_eq!(decode_trip(b"T", &owned).unwrap(), t);
+        let mut longer = owned.clone();
+        longer.push(0);
+        assert!(decode_trip(b"T", &longer).is_err());
+    }
 }
