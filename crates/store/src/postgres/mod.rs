@@ -57,6 +57,9 @@ const POOL_SIZE: usize = 16;
 /// up on a database that does not answer at all (a hung server enforces no timeout).
 pub const ANSWER_MARGIN: Duration = Duration::from_secs(1);
 
+/// A store call's bound while the database is suspected hung (the last call had no answer).
+pub const SUSPECT_DEADLINE: Duration = Duration::from_secs(1);
+
 /// Timeouts of the connections to PostgreSQL, so that a hung or unreachable database fails
 /// requests with [`StoreError::Unavailable`] (503) within seconds instead of holding them.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -86,6 +89,8 @@ pub struct PgStore {
     location: String,
     /// The longest a store call may take (the statement timeout plus [`ANSWER_MARGIN`]).
     deadline: Duration,
+    /// Set when a call went unanswered, cleared by the next answer ([`PgStore::bounded`]).
+    unanswered: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl PgStore {
@@ -146,6 +151,7 @@ impl PgStore {
             pool,
             location,
             deadline: options.statement_timeout + ANSWER_MARGIN,
+            unanswered: Default::default(),
         };
         let mut client = store.client().await.map_err(|e| StoreError::Open {
             location: store.location.clone(),
@@ -158,16 +164,35 @@ impl PgStore {
     /// `call`, abandoned with [`StoreError::Unavailable`] when it has no answer within the
     /// deadline (a hung database). A connection left with a pending statement goes back to
     /// the pool and answers (or is dropped by its TCP timeouts) once the server moves again.
+    ///
+    /// Once a call has gone unanswered, later calls get only [`SUSPECT_DEADLINE`] until one
+    /// is answered: requests queued behind each other (a trip's batches take turns) then fail
+    /// one after another within seconds instead of each waiting the full deadline.
     async fn bounded<T>(
         &self,
         call: impl std::future::Future<Output = StoreResult<T>>,
     ) -> StoreResult<T> {
-        match tokio::time::timeout(self.deadline, call).await {
-            Ok(result) => result,
-            Err(_) => Err(StoreError::Unavailable(format!(
-                "the database did not answer within {} ms",
-                self.deadline.as_millis()
-            ))),
+        use std::sync::atomic::Ordering;
+        let suspect = self.unanswered.load(Ordering::Relaxed);
+        let deadline = if suspect {
+            SUSPECT_DEADLINE.min(self.deadline)
+        } else {
+            self.deadline
+        };
+        match tokio::time::timeout(deadline, call).await {
+            Ok(result) => {
+                if suspect {
+                    self.unanswered.store(false, Ordering::Relaxed);
+                }
+                result
+            }
+            Err(_) => {
+                self.unanswered.store(true, Ordering::Relaxed);
+                Err(StoreError::Unavailable(format!(
+                    "the database did not answer within {} ms",
+                    deadline.as_millis()
+                )))
+            }
         }
     }
 
