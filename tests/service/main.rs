@@ -20,6 +20,7 @@ mod http;
 mod idempotency;
 mod outside;
 mod spec;
+mod store_faults;
 mod stored;
 mod trips;
 mod views;

@@ -366,9 +366,9 @@ impl SledStore {
         if full {
             let _ = std::fs::remove_file(self.shared.path.join(RESERVE_FILE));
         }
-        if let Ok(mut last) = self.shared.reopen.lock() {
-            *last = Some(Instant::now());
-        }
+        // Held meanwhile, so a concurrent `ensure_open` does not reopen a second time.
+        let mut last = self.shared.reopen.lock().unwrap_or_else(|p| p.into_inner());
+        *last = Some(Instant::now());
         self.reopen();
     }
 
