@@ -9,7 +9,7 @@
 //!   fail here rather than as a 500 (or a panic) on the request that first reads them. The cost
 //!   is one sequential read of the store at start, nothing on the write path;
 //! * **the generation**: the store's `meta/generation` (stored in every write batch) must be
-//!   at least the [`ledger`](super::ledger)'s, else acknowledged writes are missing (a
+//!   at least the [`ledger`]'s, else acknowledged writes are missing (a
 //!   truncated or rolled-back file that sled recovered to an older, consistent state).
 //!
 //! A panic inside sled while it opens or reads a damaged file is caught
