@@ -21,6 +21,7 @@ mod idempotency;
 mod outside;
 mod ownership;
 mod spec;
+mod store_faults;
 mod stored;
 mod trips;
 mod views;

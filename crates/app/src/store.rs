@@ -68,6 +68,23 @@ pub enum StoreError {
     /// A read or write failed inside the engine.
     #[error("store I/O: {0}")]
     Backend(#[source] BoxError),
+    /// A write found no space left on the store's disk (or a quota reached); nothing was
+    /// acknowledged. The store stays readable and takes writes again once space is freed,
+    /// without a restart. The API answers 507 `storage_full`.
+    #[error("no space left for the store: {0}")]
+    StorageFull(String),
+    /// The store's files are damaged (truncated, rolled back to an older state, or unreadable
+    /// in places): it is refused at start rather than served with data silently missing.
+    #[error(
+        "the store at {location} is damaged and was not opened: {reason}. Restore the data \
+         folder from a backup, or see docs/operations.md (damaged embedded store) to repair it"
+    )]
+    Damaged {
+        /// The data folder.
+        location: String,
+        /// What the start-up check found.
+        reason: String,
+    },
     /// A stored value could not be decoded.
     #[error("corrupt record at key {key}: {reason}")]
     Corrupt {
@@ -155,7 +172,9 @@ impl StoreError {
             StoreError::DimensionMismatch { .. } => C::DescriptorLength,
             StoreError::Conflict(_) | StoreError::IdempotencyKeyTaken { .. } => C::MapChanged,
             StoreError::Unavailable(_) => C::NotReady,
+            StoreError::StorageFull(_) => C::StorageFull,
             StoreError::Open { .. }
+            | StoreError::Damaged { .. }
             | StoreError::IdTaken(_)
             | StoreError::Backend(_)
             | StoreError::Corrupt { .. }

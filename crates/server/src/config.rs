@@ -23,6 +23,27 @@ pub struct ServeArgs {
     /// database. Its schema is created or upgraded at start-up.
     #[arg(long, env = "SEASONLOC_DATABASE_URL", hide_env_values = true)]
     pub database_url: Option<String>,
+    /// Page cache of the embedded store in bytes (sled keeps this much of the store in memory;
+    /// unused with `--database-url`).
+    #[arg(long, env = "SEASONLOC_STORE_CACHE_BYTES", default_value_t = 128 * 1024 * 1024)]
+    pub store_cache_bytes: u64,
+    /// Statement timeout on PostgreSQL, in seconds: the database cancels a longer statement,
+    /// and a store call without an answer one second later (a hung database) answers 503
+    /// `not_ready`.
+    #[arg(
+        long,
+        env = "SEASONLOC_DATABASE_STATEMENT_TIMEOUT_SECS",
+        default_value_t = 5
+    )]
+    pub database_statement_timeout_secs: u64,
+    /// TCP user timeout of PostgreSQL connections, in seconds: a connection whose sent data
+    /// stays unacknowledged this long (or whose keepalive probes go unanswered) is closed.
+    #[arg(
+        long,
+        env = "SEASONLOC_DATABASE_TCP_USER_TIMEOUT_SECS",
+        default_value_t = 10
+    )]
+    pub database_tcp_user_timeout_secs: u64,
     /// Largest accepted request body in bytes (uploads included); larger bodies get 413.
     #[arg(long, env = "SEASONLOC_MAX_BODY_BYTES", default_value_t = 64 * 1024 * 1024)]
     pub max_body_bytes: usize,
@@ -135,6 +156,9 @@ impl Default for ServeArgs {
             addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("./seasonloc-data"),
             database_url: None,
+            store_cache_bytes: 128 * 1024 * 1024,
+            database_statement_timeout_secs: 5,
+            database_tcp_user_timeout_secs: 10,
             max_body_bytes: 64 * 1024 * 1024,
             max_batch_images: 4096,
             max_image_pixels: 16_000_000,
@@ -171,6 +195,12 @@ pub struct Settings {
     pub data_dir: PathBuf,
     /// The shared PostgreSQL database, when set (instead of `data_dir`).
     pub database_url: Option<DatabaseUrl>,
+    /// The embedded store's page cache in bytes, > 0.
+    pub store_cache_bytes: u64,
+    /// PostgreSQL's statement timeout (and, plus a second, a store call's bound), > 0.
+    pub database_statement_timeout: Duration,
+    /// PostgreSQL connections' TCP user timeout, > 0.
+    pub database_tcp_user_timeout: Duration,
     /// Body limit in bytes, > 0.
     pub max_body_bytes: usize,
     /// Batch limit, > 0.
@@ -337,6 +367,15 @@ impl ServeArgs {
         positive("body_read_timeout_secs", self.body_read_timeout_secs)?;
         positive("body_deadline_secs", self.body_deadline_secs)?;
         positive("max_batch_pixels", self.max_batch_pixels)?;
+        positive("store_cache_bytes", self.store_cache_bytes)?;
+        positive(
+            "database_statement_timeout_secs",
+            self.database_statement_timeout_secs,
+        )?;
+        positive(
+            "database_tcp_user_timeout_secs",
+            self.database_tcp_user_timeout_secs,
+        )?;
         if self.localize_max_wait_secs >= self.request_timeout_secs {
             return Err(ConfigError {
                 name: "localize_max_wait_secs",
@@ -460,6 +499,9 @@ impl ServeArgs {
             addr: self.addr,
             data_dir: self.data_dir.clone(),
             database_url,
+            store_cache_bytes: self.store_cache_bytes,
+            database_statement_timeout: Duration::from_secs(self.database_statement_timeout_secs),
+            database_tcp_user_timeout: Duration::from_secs(self.database_tcp_user_timeout_secs),
             max_body_bytes: self.max_body_bytes,
             max_batch_images: self.max_batch_images,
             max_image_pixels: self.max_image_pixels,
@@ -515,6 +557,51 @@ mod tests {
         }
         assert!(s.worker_threads >= 1);
         assert_eq!(ServeArgs::default().addr, cli.serve.addr);
+        if std::env::var_os("SEASONLOC_STORE_CACHE_BYTES").is_none() {
+            assert_eq!(
+                s.store_cache_bytes,
+                seasonloc_store::sled::DEFAULT_CACHE_BYTES
+            );
+        }
+        if std::env::var_os("SEASONLOC_DATABASE_STATEMENT_TIMEOUT_SECS").is_none() {
+            assert_eq!(
+                s.database_statement_timeout,
+                seasonloc_store::PgOptions::default().statement_timeout
+            );
+        }
+        if std::env::var_os("SEASONLOC_DATABASE_TCP_USER_TIMEOUT_SECS").is_none() {
+            assert_eq!(
+                s.database_tcp_user_timeout,
+                seasonloc_store::PgOptions::default().tcp_user_timeout
+            );
+        }
+    }
+
+    /// The store's cache and the database's timeouts come from flags, and none may be 0.
+    #[test]
+    fn store_flags_are_parsed_and_zero_is_refused() {
+        let cli = Cli::try_parse_from([
+            "seasonloc",
+            "--store-cache-bytes",
+            "1048576",
+            "--database-statement-timeout-secs",
+            "3",
+            "--database-tcp-user-timeout-secs",
+            "7",
+        ])
+        .unwrap();
+        let s = cli.serve.validate().unwrap();
+        assert_eq!(s.store_cache_bytes, 1 << 20);
+        assert_eq!(s.database_statement_timeout, Duration::from_secs(3));
+        assert_eq!(s.database_tcp_user_timeout, Duration::from_secs(7));
+        for flag in [
+            "--store-cache-bytes",
+            "--database-statement-timeout-secs",
+            "--database-tcp-user-timeout-secs",
+        ] {
+            let cli = Cli::try_parse_from(["seasonloc", flag, "0"]).unwrap();
+            assert!(cli.serve.validate().is_err(), "{flag} 0 was accepted");
+        }
     }
 
     #[test]

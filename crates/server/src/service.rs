@@ -29,7 +29,7 @@ use crate::config::{descriptor_room, ServeArgs, Settings};
 use crate::connections::ConnectionCap;
 use seasonloc_app::store::Store;
 use seasonloc_app::{App, AppConfig};
-use seasonloc_store::{PgStore, SledStore};
+use seasonloc_store::{PgOptions, PgStore, SledOptions, SledStore};
 
 /// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
 /// `info`), and serves until SIGTERM or Ctrl-C.
@@ -75,6 +75,24 @@ pub fn app_config(settings: &Settings) -> AppConfig {
     }
 }
 
+/// Runs `f` (opening the embedded store) with the panic hook replaced by one log line: the
+/// store turns a panic of its engine on a damaged file into `StoreError::Damaged`, and the
+/// operator should read that error, not a panic message and a backtrace.
+fn quiet_panics<T>(f: impl FnOnce() -> T) -> T {
+    let previous = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|info| {
+        let at = info
+            .location()
+            .map(|l| format!("{}:{}", l.file(), l.line()))
+            .unwrap_or_default();
+        tracing::error!(at, "the storage engine stopped on bytes it could not read");
+    }));
+    let out = f();
+    let _ = std::panic::take_hook();
+    std::panic::set_hook(previous);
+    out
+}
+
 /// Serves on `listener` until `shutdown` completes, then drains and flushes the store.
 pub async fn serve(
     settings: Settings,
@@ -84,15 +102,24 @@ pub async fn serve(
     // The key file first: a deployment that forgot to mount it fails before touching the store.
     let auth = AppState::load_auth(&settings)?;
     let store: Arc<dyn Store> = match &settings.database_url {
-        Some(url) => Arc::new(PgStore::connect(&url.0).await?),
+        Some(url) => {
+            let options = PgOptions {
+                statement_timeout: settings.database_statement_timeout,
+                tcp_user_timeout: settings.database_tcp_user_timeout,
+            };
+            Arc::new(PgStore::connect_with(&url.0, &options).await?)
+        }
         None => {
             let dir = settings.data_dir.clone();
+            let options = SledOptions {
+                cache_bytes: settings.store_cache_bytes,
+            };
             Arc::new(
                 tokio::task::spawn_blocking(move || -> anyhow::Result<SledStore> {
                     std::fs::create_dir_all(&dir).with_context(|| {
                         format!("cannot create the data folder {}", dir.display())
                     })?;
-                    Ok(SledStore::open(&dir)?)
+                    Ok(quiet_panics(|| SledStore::open_with(&dir, options))?)
                 })
                 .await??,
             )

@@ -12,8 +12,8 @@ pub mod document;
 pub mod postgres;
 pub mod sled;
 
-pub use self::postgres::PgStore;
-pub use self::sled::SledStore;
+pub use self::postgres::{PgOptions, PgStore};
+pub use self::sled::{SledOptions, SledStore};
 
 /// Distinct, increasing ids for the engines' unit tests (the service draws random ones in
 /// `seasonloc_app::ids`).
@@ -33,7 +33,16 @@ pub(crate) trait OrStore<T> {
 
 impl<T> OrStore<T> for Result<T, ::sled::Error> {
     fn or_store(self) -> seasonloc_app::store::StoreResult<T> {
-        self.map_err(|e| seasonloc_app::store::StoreError::Backend(Box::new(e)))
+        self.map_err(|e| {
+            if let ::sled::Error::Io(io) = &e {
+                if sled::is_storage_full(io) {
+                    return seasonloc_app::store::StoreError::StorageFull(format!(
+                        "the embedded store: {io}"
+                    ));
+                }
+            }
+            seasonloc_app::store::StoreError::Backend(Box::new(e))
+        })
     }
 }
 

@@ -71,7 +71,8 @@ pub fn require(test: &str) -> Option<PathBuf> {
 }
 
 /// Whether this process runs as root (then the server runs as `postgres`).
-fn is_root() -> bool {
+/// Whether this process runs as root.
+pub fn is_root() -> bool {
     static ROOT: OnceLock<bool> = OnceLock::new();
     *ROOT.get_or_init(|| {
         Command::new("id")
@@ -253,6 +254,55 @@ impl TestServer {
             .arg(&self.dir)
             .args(["-m", "fast", "-w", "stop"]);
         run(stop, "pg_ctl stop")
+    }
+
+    /// The server's processes: the postmaster of this server's folder and its children.
+    fn pids(&self) -> Vec<u32> {
+        let Some(master) = std::fs::read_to_string(self.dir.join("postmaster.pid"))
+            .ok()
+            .and_then(|t| t.lines().next().and_then(|l| l.trim().parse::<u32>().ok()))
+        else {
+            return Vec::new();
+        };
+        let mut out = vec![master];
+        for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+            let Some(pid) = e.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else {
+                continue;
+            };
+            let stat = std::fs::read_to_string(e.path().join("stat")).unwrap_or_default();
+            let ppid = stat
+                .rsplit_once(')')
+                .and_then(|(_, rest)| rest.split_whitespace().nth(1))
+                .and_then(|p| p.parse::<u32>().ok());
+            if ppid == Some(master) {
+                out.push(pid);
+            }
+        }
+        out
+    }
+
+    fn signal(&self, sig: &str) -> Result<(), String> {
+        let pids = self.pids();
+        if pids.is_empty() {
+            return Err("no server process found".into());
+        }
+        let mut kill = Command::new("kill");
+        kill.arg(sig).args(pids.iter().map(u32::to_string));
+        run(kill, "kill")
+    }
+
+    /// Hangs the server: every one of its processes stopped (SIGSTOP), its sockets open, so
+    /// the kernel still accepts connections and acknowledges data that nobody answers.
+    pub fn freeze(&self) -> Result<(), String> {
+        // Twice: a child forked while the first signal went out is stopped by the second.
+        self.signal("-STOP")?;
+        std::thread::sleep(Duration::from_millis(50));
+        self.signal("-STOP")
+    }
+
+    /// Lets a [`TestServer::freeze`]d server run again.
+    pub fn thaw(&self) -> Result<(), String> {
+        self.signal("-CONT")
     }
 
     /// Creates a new empty database and returns its URL.

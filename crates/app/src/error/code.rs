@@ -129,6 +129,9 @@ error_codes! {
     Timeout = "timeout", 503, retry;
     /// The store cannot be reached now.
     NotReady = "not_ready", 503, retry, hidden;
+    /// The store's disk is full: the write was not stored; reads still work, and writes
+    /// succeed again once space is freed (no restart needed).
+    StorageFull = "storage_full", 507, retry;
 }
 
 impl std::fmt::Display for ErrorCode {
@@ -154,9 +157,12 @@ mod tests {
             );
             assert!((400..600).contains(&c.status()), "{c}");
             // Retry-After belongs to answers that can succeed later.
-            assert!(!c.retry_after() || matches!(c.status(), 429 | 503), "{c}");
+            assert!(
+                !c.retry_after() || matches!(c.status(), 429 | 503 | 507),
+                "{c}"
+            );
         }
-        assert_eq!(ErrorCode::ALL.len(), 39);
+        assert_eq!(ErrorCode::ALL.len(), 40);
         assert!(ErrorCode::NotReady.retry_after() && ErrorCode::NotReady.hides_message());
         assert!(ErrorCode::Internal.hides_message() && !ErrorCode::Internal.retry_after());
         assert!(!ErrorCode::QueueFull.hides_message());

@@ -321,4 +321,16 @@ mod tests {
         assert!(retry.is_some());
         assert!(!body.to_string().contains("db.internal"), "{body}");
     }
+
+    #[tokio::test]
+    async fn a_full_disk_is_507_storage_full_with_retry_after() {
+        let e: ApiError = AppError::from(seasonloc_app::store::StoreError::StorageFull(
+            "the embedded store: No space left on device".into(),
+        ))
+        .into();
+        let (status, body, retry) = body_of(e).await;
+        assert_eq!(status, StatusCode::INSUFFICIENT_STORAGE);
+        assert_eq!(body["error"]["code"], "storage_full");
+        assert!(retry.is_some());
+    }
 }

@@ -73,8 +73,14 @@ pub async fn current_version(client: &Client) -> StoreResult<Option<u32>> {
     Ok(v.map(|v| u32::try_from(v).unwrap_or(0)))
 }
 
-/// Brings the schema to [`newest_version`], holding [`LOCK_KEY`] meanwhile.
+/// Brings the schema to [`newest_version`], holding [`LOCK_KEY`] meanwhile. The session's
+/// `statement_timeout` (a request's bound) is lifted meanwhile: waiting for another replica's
+/// migration, or a long step, is not a hung database.
 pub async fn migrate(client: &mut Client) -> StoreResult<()> {
+    client
+        .batch_execute("SET statement_timeout = 0")
+        .await
+        .or_store()?;
     client
         .execute("SELECT pg_advisory_lock($1)", &[&LOCK_KEY])
         .await
@@ -83,8 +89,10 @@ pub async fn migrate(client: &mut Client) -> StoreResult<()> {
     let unlocked = client
         .execute("SELECT pg_advisory_unlock($1)", &[&LOCK_KEY])
         .await;
+    let reset = client.batch_execute("RESET statement_timeout").await;
     result?;
     unlocked.or_store()?;
+    reset.or_store()?;
     Ok(())
 }
 

@@ -53,19 +53,57 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
 /// Connections per replica.
 const POOL_SIZE: usize = 16;
 
+/// How long the service waits for a store call beyond the statement timeout before it gives
+/// up on a database that does not answer at all (a hung server enforces no timeout).
+pub const ANSWER_MARGIN: Duration = Duration::from_secs(1);
+
+/// A store call's bound while the database is suspected hung (the last call had no answer).
+pub const SUSPECT_DEADLINE: Duration = Duration::from_secs(1);
+
+/// Timeouts of the connections to PostgreSQL, so that a hung or unreachable database fails
+/// requests with [`StoreError::Unavailable`] (503) within seconds instead of holding them.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PgOptions {
+    /// `statement_timeout` of every session (the database cancels a statement that runs
+    /// longer); the service also abandons any store call that has no answer after this plus
+    /// [`ANSWER_MARGIN`] (a stopped or hung server cancels nothing).
+    pub statement_timeout: Duration,
+    /// `TCP_USER_TIMEOUT` of every connection (sent data unacknowledged this long closes the
+    /// connection), and the keepalive probing that detects a silent peer in about as long.
+    pub tcp_user_timeout: Duration,
+}
+
+impl Default for PgOptions {
+    fn default() -> Self {
+        PgOptions {
+            statement_timeout: Duration::from_secs(5),
+            tcp_user_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
 /// The PostgreSQL engine: a pool of connections to one database. Cheap to clone.
 #[derive(Clone)]
 pub struct PgStore {
     pool: Pool,
     location: String,
+    /// The longest a store call may take (the statement timeout plus [`ANSWER_MARGIN`]).
+    deadline: Duration,
+    /// Set when a call went unanswered, cleared by the next answer ([`PgStore::bounded`]).
+    unanswered: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl PgStore {
     /// Connects to the database at `url` (`postgres://user[:password]@host[:port]/database`),
     /// and brings its schema to the newest version this build knows ([`migrate`]; safe when
     /// several replicas start at once). Fails with [`StoreError::Open`] when the URL is invalid
-    /// or the database cannot be reached.
+    /// or the database cannot be reached. Uses the default [`PgOptions`].
     pub async fn connect(url: &str) -> StoreResult<PgStore> {
+        PgStore::connect_with(url, &PgOptions::default()).await
+    }
+
+    /// [`PgStore::connect`] with these timeouts.
+    pub async fn connect_with(url: &str, options: &PgOptions) -> StoreResult<PgStore> {
         let mut config: tokio_postgres::Config = url.parse().map_err(|e| StoreError::Open {
             location: "the database URL".into(),
             source: Box::new(e),
@@ -77,7 +115,19 @@ impl PgStore {
             config.application_name("seasonloc");
         }
         config.keepalives(true);
-        config.keepalives_idle(Duration::from_secs(30));
+        // Probing starts after a third of the TCP user timeout, three probes over the rest.
+        let idle = (options.tcp_user_timeout / 3).max(Duration::from_secs(1));
+        config.keepalives_idle(idle);
+        config.keepalives_interval((idle / 3).max(Duration::from_secs(1)));
+        config.keepalives_retries(3);
+        config.tcp_user_timeout(options.tcp_user_timeout);
+        // A URL's own `options` keep theirs; ours come after, so they win for this setting.
+        let ms = options.statement_timeout.as_millis().max(1);
+        let session = match config.get_options() {
+            Some(o) if !o.is_empty() => format!("{o} -c statement_timeout={ms}"),
+            _ => format!("-c statement_timeout={ms}"),
+        };
+        config.options(session);
         let location = describe(&config);
         let manager = Manager::from_config(
             config,
@@ -97,13 +147,53 @@ impl PgStore {
                 location: location.clone(),
                 source: Box::new(e),
             })?;
-        let store = PgStore { pool, location };
+        let store = PgStore {
+            pool,
+            location,
+            deadline: options.statement_timeout + ANSWER_MARGIN,
+            unanswered: Default::default(),
+        };
         let mut client = store.client().await.map_err(|e| StoreError::Open {
             location: store.location.clone(),
             source: Box::new(e),
         })?;
         migrate::migrate(&mut client).await?;
         Ok(store)
+    }
+
+    /// `call`, abandoned with [`StoreError::Unavailable`] when it has no answer within the
+    /// deadline (a hung database). A connection left with a pending statement goes back to
+    /// the pool and answers (or is dropped by its TCP timeouts) once the server moves again.
+    ///
+    /// Once a call has gone unanswered, later calls get only [`SUSPECT_DEADLINE`] until one
+    /// is answered: requests queued behind each other (a trip's batches take turns) then fail
+    /// one after another within seconds instead of each waiting the full deadline.
+    async fn bounded<T>(
+        &self,
+        call: impl std::future::Future<Output = StoreResult<T>>,
+    ) -> StoreResult<T> {
+        use std::sync::atomic::Ordering;
+        let suspect = self.unanswered.load(Ordering::Relaxed);
+        let deadline = if suspect {
+            SUSPECT_DEADLINE.min(self.deadline)
+        } else {
+            self.deadline
+        };
+        match tokio::time::timeout(deadline, call).await {
+            Ok(result) => {
+                if suspect {
+                    self.unanswered.store(false, Ordering::Relaxed);
+                }
+                result
+            }
+            Err(_) => {
+                self.unanswered.store(true, Ordering::Relaxed);
+                Err(StoreError::Unavailable(format!(
+                    "the database did not answer within {} ms",
+                    deadline.as_millis()
+                )))
+            }
+        }
     }
 
     /// A pooled connection.
@@ -156,6 +246,8 @@ fn is_unavailable(e: &tokio_postgres::Error) -> bool {
                     SqlState::TOO_MANY_CONNECTIONS,
                     SqlState::T_R_DEADLOCK_DETECTED,
                     SqlState::T_R_SERIALIZATION_FAILURE,
+                    // `statement_timeout` ran out: a database too slow to answer now.
+                    SqlState::QUERY_CANCELED,
                 ]
                 .contains(code)
         }
@@ -337,7 +429,7 @@ impl Store for PgStore {
     }
 
     async fn check(&self) -> StoreResult<()> {
-        self.schema_version().await.map(|_| ())
+        self.bounded(self.schema_version()).await.map(|_| ())
     }
 
     async fn flush(&self) -> StoreResult<()> {
@@ -346,55 +438,55 @@ impl Store for PgStore {
     }
 
     async fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
-        self.insert_map(new).await
+        self.bounded(self.insert_map(new)).await
     }
 
     async fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
-        self.map(id).await
+        self.bounded(self.map(id)).await
     }
 
     async fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
-        self.all_maps().await
+        self.bounded(self.all_maps()).await
     }
 
     async fn delete_map(&self, id: u64) -> StoreResult<()> {
-        self.remove_map(id).await
+        self.bounded(self.remove_map(id)).await
     }
 
     async fn append_images(&self, batch: ImageBatch) -> StoreResult<Range<u32>> {
-        self.append(batch).await
+        self.bounded(self.append(batch)).await
     }
 
     async fn descriptors(&self, map: u64, rows: Range<u32>) -> StoreResult<Matrix> {
-        self.rows(map, rows).await
+        self.bounded(self.rows(map, rows)).await
     }
 
     async fn image_metadata(&self, map: u64, rows: Range<u32>) -> StoreResult<Vec<ImageMeta>> {
-        self.metas(map, rows).await
+        self.bounded(self.metas(map, rows)).await
     }
 
     async fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
-        self.thumbnail_of(map, index).await
+        self.bounded(self.thumbnail_of(map, index)).await
     }
 
     async fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
-        self.cooc(map).await
+        self.bounded(self.cooc(map)).await
     }
 
     async fn put_cooc_map(&self, write: CoocWrite) -> StoreResult<Range<u32>> {
-        self.replace_cooc(write).await
+        self.bounded(self.replace_cooc(write)).await
     }
 
     async fn create_localization(&self, new: NewLocalization) -> StoreResult<LocalizationRecord> {
-        self.insert_localization(new).await
+        self.bounded(self.insert_localization(new)).await
     }
 
     async fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
-        self.localization(id).await
+        self.bounded(self.localization(id)).await
     }
 
     async fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
-        self.picture(id).await
+        self.bounded(self.picture(id)).await
     }
 
     async fn list_localizations(
@@ -402,35 +494,35 @@ impl Store for PgStore {
         map: Option<u64>,
         page: PageRequest,
     ) -> StoreResult<Page<LocalizationRecord>> {
-        self.localizations(map, page).await
+        self.bounded(self.localizations(map, page)).await
     }
 
     async fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
-        self.insert_trip(new).await
+        self.bounded(self.insert_trip(new)).await
     }
 
     async fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
-        self.trip(id).await
+        self.bounded(self.trip(id)).await
     }
 
     async fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
-        self.trip_with_state(id).await
+        self.bounded(self.trip_with_state(id)).await
     }
 
     async fn put_trip_batch(&self, id: u64, batch: TripBatch) -> StoreResult<TripRecord> {
-        self.apply_trip_batch(id, batch).await
+        self.bounded(self.apply_trip_batch(id, batch)).await
     }
 
     async fn close_trip(&self, id: u64) -> StoreResult<TripRecord> {
-        self.close(id).await
+        self.bounded(self.close(id)).await
     }
 
     async fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
-        self.estimates(id, from).await
+        self.bounded(self.estimates(id, from)).await
     }
 
     async fn list_trips(&self, map: u64, page: PageRequest) -> StoreResult<Page<TripRecord>> {
-        self.trips(map, page).await
+        self.bounded(self.trips(map, page)).await
     }
 
     async fn idempotency_record(
@@ -438,7 +530,7 @@ impl Store for PgStore {
         scope: &str,
         key: &str,
     ) -> StoreResult<Option<IdempotencyRecord>> {
-        self.idempotency(scope, key).await
+        self.bounded(self.idempotency(scope, key)).await
     }
 }
 

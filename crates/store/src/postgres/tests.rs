@@ -489,3 +489,95 @@ async fn an_unreachable_database_is_unavailable_and_then_back() {
     store.check().await.unwrap();
     assert_eq!(store.get_map(map.id).await.unwrap().id, map.id);
 }
+
+/// A hung database (issue 42, defect 7: every server process SIGSTOPped, its sockets open, so
+/// nothing is refused and nothing answers): calls in flight and new calls fail with
+/// `Unavailable` within the statement timeout plus a second, calls after an unanswered one
+/// within about a second more, and the store answers again once the server runs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hung_database_fails_calls_within_the_timeouts_and_recovers() {
+    let Some(bin) = testing::require("hung database") else {
+        return;
+    };
+    let server = tokio::task::spawn_blocking(move || testing::TestServer::start(&bin).unwrap())
+        .await
+        .unwrap();
+    let server = std::sync::Arc::new(server);
+    let url = server.database().unwrap();
+    let options = PgOptions {
+        statement_timeout: Duration::from_secs(2),
+        tcp_user_timeout: Duration::from_secs(4),
+    };
+    let store = PgStore::connect_with(&url, &options).await.unwrap();
+    let map = store.create_map(precomputed(2)).await.unwrap();
+    // Several pooled connections, all idle when the server hangs.
+    let warm: Vec<_> = (0..4)
+        .map(|_| {
+            let s = store.clone();
+            tokio::spawn(async move { s.get_map(map.id).await.map(|_| ()) })
+        })
+        .collect();
+    for w in warm {
+        w.await.unwrap().unwrap();
+    }
+    let s = std::sync::Arc::clone(&server);
+    tokio::task::spawn_blocking(move || s.freeze().unwrap())
+        .await
+        .unwrap();
+    let bound = options.statement_timeout + ANSWER_MARGIN + Duration::from_millis(800);
+    let started = std::time::Instant::now();
+    let calls: Vec<_> = (0..3)
+        .map(|k| {
+            let s = store.clone();
+            tokio::spawn(async move {
+                let t = std::time::Instant::now();
+                let r = match k {
+                    0 => s.get_map(map.id).await.map(|_| ()),
+                    1 => s.list_maps().await.map(|_| ()),
+                    _ => s.create_map(precomputed(3)).await.map(|_| ()),
+                };
+                (r, t.elapsed())
+            })
+        })
+        .collect();
+    for c in calls {
+        let (r, took) = tokio::time::timeout(Duration::from_secs(30), c)
+            .await
+            .expect("a call on a hung database was still waiting after 30 s")
+            .unwrap();
+        assert!(
+            matches!(r, Err(StoreError::Unavailable(_))),
+            "a call on a hung database: {r:?}"
+        );
+        assert!(took < bound, "a call on a hung database took {took:?}");
+    }
+    // A call after an unanswered one (a request queued behind another) fails sooner.
+    let t = std::time::Instant::now();
+    let r = store.get_map(map.id).await;
+    assert!(matches!(r, Err(StoreError::Unavailable(_))), "{r:?}");
+    assert!(
+        t.elapsed() < SUSPECT_DEADLINE + Duration::from_millis(800),
+        "{:?}",
+        t.elapsed()
+    );
+    assert!(started.elapsed() < Duration::from_secs(10));
+    let s = std::sync::Arc::clone(&server);
+    tokio::task::spawn_blocking(move || s.thaw().unwrap())
+        .await
+        .unwrap();
+    let back = std::time::Instant::now();
+    loop {
+        match store.get_map(map.id).await {
+            Ok(m) => {
+                assert_eq!(m.id, map.id);
+                break;
+            }
+            Err(e) if back.elapsed() < Duration::from_secs(15) => {
+                eprintln!("after the hang: {e}");
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(e) => panic!("the store did not answer 15 s after the database resumed: {e}"),
+        }
+    }
+    store.check().await.unwrap();
+}

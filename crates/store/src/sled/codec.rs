@@ -6,6 +6,7 @@
 //! | key | value |
 //! | --- | --- |
 //! | `meta/schema_version` | layout version, `u32` big-endian |
+//! | `meta/generation` | the generation of the newest write, `u64` big-endian (in every write batch; checked against the ledger file at start, `sled/ledger.rs`) |
 //! | `M` + map id (`u64` BE) | [`MapRecord`](seasonloc_app::model::MapRecord) |
 //! | `I` + map id (`u64` BE) + index (`u32` BE) | an image record ([`encode_image`]: [`ImageMeta`](seasonloc_app::model::ImageMeta), then the descriptor as raw LE `f32`) |
 //! | `L` + localization id (`u64` BE) | [`LocalizationRecord`](seasonloc_app::model::LocalizationRecord) |

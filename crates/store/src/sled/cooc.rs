@@ -18,7 +18,7 @@ impl SledStore {
     pub fn cooc_map(&self, map: u64) -> StoreResult<Option<Vec<u8>>> {
         self.get_map(map)?;
         Ok(self
-            .db
+            .db()?
             .get(codec::cooc_key(map))
             .or_store()?
             .map(|v| v.to_vec()))
@@ -39,7 +39,7 @@ impl SledStore {
         let previous = previous.as_deref();
         let _guard = self.lock();
         let mut record = self.get_map(map)?;
-        let current = self.db.get(codec::cooc_key(map)).or_store()?;
+        let current = self.db()?.get(codec::cooc_key(map)).or_store()?;
         if current.as_deref() != previous {
             return Err(StoreError::Conflict(map));
         }
@@ -57,8 +57,7 @@ impl SledStore {
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
         batch.insert(&codec::cooc_key(map), encoded);
         self.claim_key(idempotency.as_ref(), Some(start..end), &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(start..end)
     }
 }

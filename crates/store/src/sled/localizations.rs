@@ -14,7 +14,7 @@ impl SledStore {
         self.get_map(new.map_id)?;
         let id = new.id;
         if self
-            .db
+            .db()?
             .contains_key(codec::localization_key(id))
             .or_store()?
         {
@@ -37,15 +37,14 @@ impl SledStore {
             batch.insert(&codec::picture_key(id), png.as_slice());
         }
         self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(record)
     }
 
     /// One stored result.
     pub fn get_localization(&self, id: u64) -> StoreResult<LocalizationRecord> {
         let key = codec::localization_key(id);
-        match self.db.get(key).or_store()? {
+        match self.db()?.get(key).or_store()? {
             Some(v) => codec::decode_localization(&key, &v),
             None => Err(StoreError::LocalizationNotFound(id)),
         }
@@ -53,7 +52,7 @@ impl SledStore {
 
     /// The PNG of a stored result's similarity picture, if it has one.
     pub fn localization_picture(&self, id: u64) -> StoreResult<Option<Vec<u8>>> {
-        match self.db.get(codec::picture_key(id)).or_store()? {
+        match self.db()?.get(codec::picture_key(id)).or_store()? {
             Some(v) => Ok(Some(v.to_vec())),
             None => {
                 self.get_localization(id)?;
@@ -159,7 +158,8 @@ mod tests {
         let r = put(&store, a, 7).unwrap();
         // The stored document itself names the record: its id, map and creation time.
         let raw = store
-            .db
+            .db()
+            .unwrap()
             .get(codec::localization_key(r.id))
             .unwrap()
             .unwrap();

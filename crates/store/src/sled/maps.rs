@@ -15,7 +15,7 @@ impl SledStore {
     /// Creates an empty map and returns it.
     pub fn create_map(&self, new: NewMap) -> StoreResult<MapRecord> {
         let _guard = self.lock();
-        if self.db.contains_key(codec::map_key(new.id)).or_store()? {
+        if self.db()?.contains_key(codec::map_key(new.id)).or_store()? {
             return Err(StoreError::IdTaken(new.id));
         }
         let record = MapRecord {
@@ -34,14 +34,13 @@ impl SledStore {
         let mut batch = sled::Batch::default();
         batch.insert(&codec::map_key(record.id), codec::encode_map(&record));
         self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(record)
     }
 
     /// All maps, oldest first.
     pub fn list_maps(&self) -> StoreResult<Vec<MapRecord>> {
-        self.db
+        self.db()?
             .scan_prefix([codec::MAP_PREFIX])
             .map(|kv| {
                 let (k, v) = kv.or_store()?;
@@ -53,7 +52,7 @@ impl SledStore {
     /// One map.
     pub fn get_map(&self, id: u64) -> StoreResult<MapRecord> {
         let key = codec::map_key(id);
-        match self.db.get(key).or_store()? {
+        match self.db()?.get(key).or_store()? {
             Some(v) => codec::decode_map(&key, &v),
             None => Err(StoreError::MapNotFound(id)),
         }
@@ -66,13 +65,13 @@ impl SledStore {
         let mut batch = sled::Batch::default();
         batch.remove(&codec::map_key(id));
         batch.remove(&codec::cooc_key(id));
-        for kv in self.db.scan_prefix(codec::images_prefix(id)) {
+        for kv in self.db()?.scan_prefix(codec::images_prefix(id)) {
             batch.remove(kv.or_store()?.0);
         }
-        for kv in self.db.scan_prefix(codec::thumbnails_prefix(id)) {
+        for kv in self.db()?.scan_prefix(codec::thumbnails_prefix(id)) {
             batch.remove(kv.or_store()?.0);
         }
-        for kv in self.db.scan_prefix(codec::by_map_prefix(id)) {
+        for kv in self.db()?.scan_prefix(codec::by_map_prefix(id)) {
             let (k, _) = kv.or_store()?;
             let loc = codec::id_at(&k, 9)?;
             batch.remove(&codec::localization_key(loc));
@@ -82,8 +81,7 @@ impl SledStore {
         self.remove_trips(id, &mut batch)?;
         self.remove_keys(&IdempotencyRecord::images_scope(id), &mut batch)?;
         self.remove_creation_key(id, &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(())
     }
 
@@ -138,8 +136,7 @@ impl SledStore {
         record.image_count = end;
         batch.insert(&codec::map_key(map), codec::encode_map(&record));
         self.claim_key(batch_in.idempotency(), Some(start..end), &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(start..end)
     }
 
@@ -166,7 +163,7 @@ impl SledStore {
         let from = codec::image_key(map, rows.start);
         let to = codec::image_key(map, rows.end);
         let mut got = 0usize;
-        for kv in self.db.range(from..to) {
+        for kv in self.db()?.range(from..to) {
             let (k, v) = kv.or_store()?;
             let before = data.len();
             codec::decode_image_into(&k, &v, &mut data)?;
@@ -194,7 +191,11 @@ impl SledStore {
 
     /// The JPEG thumbnail of image `index` of a map, if it has one.
     pub fn thumbnail(&self, map: u64, index: u32) -> StoreResult<Option<Vec<u8>>> {
-        match self.db.get(codec::thumbnail_key(map, index)).or_store()? {
+        match self
+            .db()?
+            .get(codec::thumbnail_key(map, index))
+            .or_store()?
+        {
             Some(v) => Ok(Some(v.to_vec())),
             None => {
                 self.get_map(map)?;
@@ -209,7 +210,7 @@ impl SledStore {
         let from = codec::image_key(map, range.start);
         let to = codec::image_key(map, range.end);
         let mut scratch = Vec::new();
-        self.db
+        self.db()?
             .range(from..to)
             .map(|kv| {
                 let (k, v) = kv.or_store()?;
@@ -354,7 +355,14 @@ mod tests {
             store.get_map(gone),
             Err(StoreError::MapNotFound(_))
         ));
-        assert_eq!(store.db.scan_prefix(codec::images_prefix(gone)).count(), 0);
+        assert_eq!(
+            store
+                .db()
+                .unwrap()
+                .scan_prefix(codec::images_prefix(gone))
+                .count(),
+            0
+        );
         assert_eq!(store.references(kept).unwrap().1.rows(), 2);
         assert_eq!(store.list_maps().unwrap().len(), 1);
     }
@@ -398,7 +406,11 @@ mod tests {
         ));
         store.delete_map(map).unwrap();
         assert_eq!(
-            store.db.scan_prefix(codec::thumbnails_prefix(map)).count(),
+            store
+                .db()
+                .unwrap()
+                .scan_prefix(codec::thumbnails_prefix(map))
+                .count(),
             0
         );
     }

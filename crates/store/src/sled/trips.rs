@@ -30,7 +30,11 @@ impl SledStore {
     pub fn create_trip(&self, new: NewTrip) -> StoreResult<TripRecord> {
         let _guard = self.lock();
         self.get_map(new.map_id)?;
-        if self.db.contains_key(codec::trip_key(new.id)).or_store()? {
+        if self
+            .db()?
+            .contains_key(codec::trip_key(new.id))
+            .or_store()?
+        {
             return Err(StoreError::IdTaken(new.id));
         }
         let record = TripRecord {
@@ -53,15 +57,14 @@ impl SledStore {
             &[] as &[u8],
         );
         self.claim_key(new.idempotency.as_ref(), None, &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(record)
     }
 
     /// One trip's record.
     pub fn get_trip(&self, id: u64) -> StoreResult<TripRecord> {
         let key = codec::trip_key(id);
-        match self.db.get(key).or_store()? {
+        match self.db()?.get(key).or_store()? {
             Some(v) => codec::decode_trip(&key, &v),
             None => Err(StoreError::TripNotFound(id)),
         }
@@ -71,10 +74,10 @@ impl SledStore {
     pub fn trip_state(&self, id: u64) -> StoreResult<(TripRecord, TripState)> {
         let _guard = self.lock();
         let record = self.get_trip(id)?;
-        let Some(base) = self.db.get(codec::trip_base_key(id)).or_store()? else {
+        let Some(base) = self.db()?.get(codec::trip_base_key(id)).or_store()? else {
             let key = codec::trip_state_key(id);
             let state = self
-                .db
+                .db()?
                 .get(key)
                 .or_store()?
                 .ok_or_else(|| StoreError::corrupt(&key, "the trip has no state"))?;
@@ -82,12 +85,12 @@ impl SledStore {
         };
         let key = codec::trip_snapshot_key(id);
         let snapshot = self
-            .db
+            .db()?
             .get(key)
             .or_store()?
             .ok_or_else(|| StoreError::corrupt(&key, "the trip has a base but no snapshot"))?;
         let log = self
-            .db
+            .db()?
             .scan_prefix(codec::trip_log_prefix(id))
             .map(|kv| {
                 let (k, v) = kv.or_store()?;
@@ -120,7 +123,7 @@ impl SledStore {
         }
         if let Some(before) = write.drop_log_before {
             let end = codec::trip_log_key(id, log_frame(id, before)?);
-            for kv in self.db.range(codec::trip_log_key(id, 0)..end) {
+            for kv in self.db()?.range(codec::trip_log_key(id, 0)..end) {
                 batch.remove(kv.or_store()?.0);
             }
         }
@@ -158,8 +161,7 @@ impl SledStore {
             );
         }
         self.claim_key(write.idempotency.as_ref(), None, &mut batch)?;
-        self.db.apply_batch(batch).or_store()?;
-        self.db.flush().or_store()?;
+        self.commit(batch)?;
         Ok(record)
     }
 
@@ -169,10 +171,9 @@ impl SledStore {
         let mut record = self.get_trip(id)?;
         if record.closed_ms.is_none() {
             record.closed_ms = Some(now_ms());
-            self.db
-                .insert(codec::trip_key(id), codec::encode_trip(&record)?)
-                .or_store()?;
-            self.db.flush().or_store()?;
+            let mut batch = sled::Batch::default();
+            batch.insert(&codec::trip_key(id), codec::encode_trip(&record)?);
+            self.commit(batch)?;
         }
         Ok(record)
     }
@@ -180,7 +181,7 @@ impl SledStore {
     /// Every frame's latest estimate, in frame order.
     pub fn trip_estimates(&self, id: u64, from: u32) -> StoreResult<Vec<FrameEstimate>> {
         self.get_trip(id)?;
-        self.db
+        self.db()?
             .range(codec::trip_frame_key(id, from)..=codec::trip_frame_key(id, u32::MAX))
             .map(|kv| {
                 let (k, v) = kv.or_store()?;
@@ -199,17 +200,17 @@ impl SledStore {
 
     /// Adds the removal of every trip of `map` (records, states, frames, index) to `batch`.
     pub(super) fn remove_trips(&self, map: u64, batch: &mut sled::Batch) -> StoreResult<()> {
-        for kv in self.db.scan_prefix(codec::trips_by_map_prefix(map)) {
+        for kv in self.db()?.scan_prefix(codec::trips_by_map_prefix(map)) {
             let (k, _) = kv.or_store()?;
             let trip = codec::id_at(&k, 9)?;
             batch.remove(&codec::trip_key(trip));
             batch.remove(&codec::trip_state_key(trip));
             batch.remove(&codec::trip_base_key(trip));
             batch.remove(&codec::trip_snapshot_key(trip));
-            for kv in self.db.scan_prefix(codec::trip_log_prefix(trip)) {
+            for kv in self.db()?.scan_prefix(codec::trip_log_prefix(trip)) {
                 batch.remove(kv.or_store()?.0);
             }
-            for kv in self.db.scan_prefix(codec::trip_frames_prefix(trip)) {
+            for kv in self.db()?.scan_prefix(codec::trip_frames_prefix(trip)) {
                 batch.remove(kv.or_store()?.0);
             }
             self.remove_keys(&IdempotencyRecord::trip_scope(trip), batch)?;
@@ -335,10 +336,19 @@ mod tests {
         let m = map(&store);
         let t = store.create_trip(new_trip(m, 7, 0)).unwrap();
         // What layouts 4-5 stored: the blob under `S`, no parts.
-        store.db.remove(codec::trip_base_key(t.id)).unwrap();
-        store.db.remove(codec::trip_snapshot_key(t.id)).unwrap();
         store
-            .db
+            .db()
+            .unwrap()
+            .remove(codec::trip_base_key(t.id))
+            .unwrap();
+        store
+            .db()
+            .unwrap()
+            .remove(codec::trip_snapshot_key(t.id))
+            .unwrap();
+        store
+            .db()
+            .unwrap()
             .insert(codec::trip_state_key(t.id), vec![7u8; 5])
             .unwrap();
         assert_eq!(
@@ -352,7 +362,12 @@ mod tests {
             parts(&store, t.id),
             (vec![b'B', 1], vec![b'S', 1], vec![0, 1])
         );
-        assert!(store.db.get(codec::trip_state_key(t.id)).unwrap().is_none());
+        assert!(store
+            .db()
+            .unwrap()
+            .get(codec::trip_state_key(t.id))
+            .unwrap()
+            .is_none());
     }
 
     #[test]
@@ -386,7 +401,7 @@ mod tests {
             codec::trip_base_key(mine[0]),
             codec::trip_snapshot_key(mine[0]),
         ] {
-            assert!(store.db.scan_prefix(prefix).next().is_none());
+            assert!(store.db().unwrap().scan_prefix(prefix).next().is_none());
         }
         assert_eq!(store.list_trips(b, page(None, 10)).unwrap().items.len(), 5);
         assert!(matches!(

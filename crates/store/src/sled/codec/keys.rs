@@ -7,6 +7,9 @@ use seasonloc_app::store::StoreError;
 
 /// Key of the layout version.
 pub const SCHEMA_VERSION_KEY: &[u8] = b"meta/schema_version";
+/// The generation of the newest write (`u64` BE), stored in every write batch and checked
+/// against the ledger file at start (`sled/ledger.rs`).
+pub const GENERATION_KEY: &[u8] = b"meta/generation";
 /// Prefix of map records.
 pub const MAP_PREFIX: u8 = b'M';
 /// Prefix of image records.
