@@ -3,16 +3,22 @@
 
 use std::process::ExitCode;
 
+use std::ffi::OsString;
+
 use clap::error::ErrorKind;
-use clap::Parser;
+use clap::{CommandFactory, FromArgMatches};
 mod cli;
 
 use cli::{Cli, Command};
 
 fn main() -> ExitCode {
-    let cli = match Cli::try_parse() {
+    let cli = match parse(std::env::args_os().collect()) {
         Ok(cli) => cli,
-        Err(err) => return usage_error(err),
+        Err(Usage::Clap(err)) => return usage_error(err),
+        Err(Usage::ConfigFile(err)) => {
+            eprintln!("seasonloc: {err}");
+            return ExitCode::from(2);
+        }
     };
     let result = match &cli.command {
         Command::Solve(args) => cli::solve::run(args).map(Some),
@@ -32,6 +38,47 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Why the command line could not be used.
+enum Usage {
+    Clap(clap::Error),
+    ConfigFile(seasonloc_server::config_file::ConfigFileError),
+}
+
+/// Parses the command line; for `serve --config FILE` (or `SEASONLOC_CONFIG`), parses it again
+/// with the file's settings appended, so that the file only supplies what the environment and
+/// the flags left at their defaults ([`seasonloc_server::config_file`]).
+fn parse(mut argv: Vec<OsString>) -> Result<Cli, Usage> {
+    let matches = Cli::command()
+        .try_get_matches_from(&argv)
+        .map_err(Usage::Clap)?;
+    let cli = Cli::from_arg_matches(&matches).map_err(Usage::Clap)?;
+    let config = match &cli.command {
+        Command::Serve(args) => args.config.clone().filter(|p| !p.as_os_str().is_empty()),
+        _ => None,
+    };
+    let (Some(path), Some(serve)) = (config, matches.subcommand_matches("serve")) else {
+        return Ok(cli);
+    };
+    let command = Cli::command();
+    let Some(serve_command) = command.find_subcommand("serve") else {
+        return Ok(cli);
+    };
+    let extra = seasonloc_server::config_file::file_args(&path, serve_command, serve)
+        .map_err(Usage::ConfigFile)?;
+    argv.extend(extra);
+    // The first parse succeeded, so what fails now is a value of the file.
+    let in_file = |err: clap::Error| {
+        Usage::ConfigFile(seasonloc_server::config_file::ConfigFileError {
+            path: path.display().to_string(),
+            reason: usage_line(&err.render().to_string()),
+        })
+    };
+    let matches = Cli::command()
+        .try_get_matches_from(&argv)
+        .map_err(in_file)?;
+    Cli::from_arg_matches(&matches).map_err(in_file)
 }
 
 /// The error and its causes joined by `: ` (as `{:#}` does), leaving out a cause whose text

@@ -154,6 +154,8 @@ impl Process {
         cmd.env_remove("SEASONLOC_ADDR")
             .env_remove("SEASONLOC_DATA_DIR")
             .env("RUST_LOG", "info")
+            // The tests read the text form; tests/service/logs.rs reads the JSON one.
+            .env("SEASONLOC_LOG_FORMAT", "text")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(file);
@@ -217,7 +219,10 @@ impl Drop for Process {
 /// The address in the "listening on http://ADDR" log line.
 pub fn listening_addr(log: &str) -> Option<SocketAddr> {
     let rest = log.split("listening on http://").nth(1)?;
-    let addr: String = rest.chars().take_while(|c| !c.is_whitespace()).collect();
+    let addr: String = rest
+        .chars()
+        .take_while(|c| !c.is_whitespace() && *c != '"')
+        .collect();
     // Strip ANSI colour codes that a terminal-aware logger might add.
     let addr = addr.split('\u{1b}').next()?;
     addr.parse().ok()

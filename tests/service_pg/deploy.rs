@@ -102,7 +102,8 @@ fn selects(selector: &Value, labels: &Value) {
 /// The container as the kubelet would run it.
 struct Container {
     env: BTreeMap<String, String>,
-    /// Mount path -> files (name -> content) of the Secret mounted there.
+    /// Mount path -> files (name -> content) of the Secret mounted there (none for an
+    /// emptyDir).
     mounts: Vec<(String, BTreeMap<String, String>)>,
     port: u16,
     readiness: String,
@@ -144,8 +145,16 @@ fn container(m: &Manifests) -> Container {
             .iter()
             .find(|v| &v["name"] == name)
             .unwrap_or_else(|| panic!("volumeMount {name:?} has no volume"));
+        // A writable scratch folder (the root file system is read-only): empty at the start.
+        if volume["emptyDir"].is_mapping() {
+            mounts.push((str_of(&vm["mountPath"]).to_string(), BTreeMap::new()));
+            continue;
+        }
         let secret = &volume["secret"];
-        assert!(secret.is_mapping(), "only Secret volumes are modelled here");
+        assert!(
+            secret.is_mapping(),
+            "only Secret and emptyDir volumes are modelled here"
+        );
         let data = string_map(&m.named("Secret", str_of(&secret["secretName"]))["stringData"]);
         let files = match secret["items"].as_sequence() {
             Some(items) => items

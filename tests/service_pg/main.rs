@@ -38,6 +38,8 @@ mod hardening;
 mod http;
 #[path = "../service/idempotency.rs"]
 mod idempotency;
+#[path = "../service/operations.rs"]
+mod operations;
 #[path = "../service/outside.rs"]
 mod outside;
 mod replicas;

@@ -29,7 +29,8 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// Reference descriptor matrices by map id.
 #[derive(Default)]
 pub struct References {
-    maps: Mutex<HashMap<u64, Arc<Matrix>>>,
+    /// Each map's matrix with its descriptor kind (for [`References::usage`]).
+    maps: Mutex<HashMap<u64, (Arc<Matrix>, &'static str)>>,
 }
 
 impl References {
@@ -43,7 +44,7 @@ impl References {
         map: &MapRecord,
         count: u32,
     ) -> AppResult<Arc<Matrix>> {
-        let cached = lock(&self.maps).get(&map.id).cloned();
+        let cached = lock(&self.maps).get(&map.id).map(|(m, _)| Arc::clone(m));
         let have = cached.as_ref().map_or(0, |m| m.rows());
         if have >= count as usize {
             if let Some(m) = cached {
@@ -80,9 +81,11 @@ impl References {
         };
         {
             let mut maps = lock(&self.maps);
-            let longer = maps.get(&map.id).is_none_or(|m| m.rows() < full.rows());
+            let longer = maps
+                .get(&map.id)
+                .is_none_or(|(m, _)| m.rows() < full.rows());
             if longer && full.rows() > 0 {
-                maps.insert(map.id, Arc::clone(&full));
+                maps.insert(map.id, (Arc::clone(&full), map.descriptor.kind_name()));
             }
         }
         prefix(pool, full, count).await
@@ -91,6 +94,17 @@ impl References {
     /// Drops a map's matrix (after it was deleted).
     pub fn forget(&self, map: u64) {
         lock(&self.maps).remove(&map);
+    }
+
+    /// Maps cached and their matrices' bytes, by descriptor kind.
+    pub fn usage(&self) -> std::collections::BTreeMap<&'static str, (usize, usize)> {
+        let mut out = std::collections::BTreeMap::new();
+        for (m, kind) in lock(&self.maps).values() {
+            let e: &mut (usize, usize) = out.entry(*kind).or_default();
+            e.0 += 1;
+            e.1 += std::mem::size_of_val(m.as_slice());
+        }
+        out
     }
 }
 

@@ -33,6 +33,7 @@ pub mod model;
 pub mod models;
 pub mod pool;
 pub mod store;
+pub mod timed_store;
 mod trips;
 
 use std::path::PathBuf;
@@ -51,7 +52,7 @@ pub use localize::LocalizeInput;
 pub use maps::{DescriptorSpec, NewMapSpec};
 pub use models::{ModelPolicy, ModelRules};
 pub use pool::CpuPool;
-pub use trips::{FramesOutcome, FramesTimings};
+pub use trips::{FramesOutcome, FramesTimings, OpenTripCounts};
 
 /// Settings of the use-case layer.
 #[derive(Clone, Debug, PartialEq)]

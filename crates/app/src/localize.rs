@@ -90,9 +90,15 @@ impl App {
             query_count,
             method,
             picture,
-        } = kind::of(&map)
-            .localize(self, map, queries, &options, method)
-            .await?;
+        } = {
+            // Describing the queries, the similarities and the solve, in a trace.
+            let span = tracing::info_span!("localize", descriptor = map.descriptor.kind_name());
+            tracing::Instrument::instrument(
+                kind::of(&map).localize(self, map, queries, &options, method),
+                span,
+            )
+            .await?
+        };
         cpu_done();
         // Bounded hidden costs keep every cost finite; a non-finite one would be stored and
         // sent as `null`, against the schema, so it is a bug, never a result.

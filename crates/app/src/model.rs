@@ -35,6 +35,19 @@ pub enum DescriptorSettings {
     Cooc(Box<seasonloc_core::cooc::CoocParams>),
 }
 
+impl DescriptorSettings {
+    /// The kind's name as the API spells it: `hog`, `precomputed`, `cnn` or `cooc` (a closed
+    /// set, fit for a metric label).
+    pub fn kind_name(&self) -> &'static str {
+        match self {
+            DescriptorSettings::Hog { .. } => "hog",
+            DescriptorSettings::Precomputed { .. } => "precomputed",
+            DescriptorSettings::Cnn(_) => "cnn",
+            DescriptorSettings::Cooc(_) => "cooc",
+        }
+    }
+}
+
 /// The CNN descriptor of a map: the settings to rebuild the extractor, and what the model was
 /// when the map was created, so that a changed model file is detected, never silently used.
 #[derive(Clone, Debug, PartialEq)]

@@ -29,7 +29,7 @@ use crate::store::{
     IdempotencyRecord, NewTrip, Page, PageRequest, StoreError, TripBatch, TripState, TripStateWrite,
 };
 use seasonloc_core::similarity;
-use seasonloc_core::trip::{BatchUpdate, FrameEstimate, Trip, TripParams};
+use seasonloc_core::trip::{BatchUpdate, FrameEstimate, Trip, TripParams, TripStatus};
 
 /// How often a batch is recomputed when another process changed the trip meanwhile.
 pub const CONFLICT_RETRIES: usize = 4;
@@ -45,6 +45,19 @@ pub struct FramesTimings {
     pub solve: f64,
     /// The atomic store write.
     pub store: f64,
+}
+
+/// Open trips by the status of their last batch ([`App::open_trip_counts`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct OpenTripCounts {
+    /// No batch yet.
+    pub new: usize,
+    /// Last batch `localized`.
+    pub localized: usize,
+    /// Last batch `lost`.
+    pub lost: usize,
+    /// Last batch `relocalized`.
+    pub relocalized: usize,
 }
 
 /// The result of a batch of frames.
@@ -227,6 +240,8 @@ impl App {
         let max_len = self.config.max_descriptor_len;
         let rules = self.model_rules();
         let frame_count = record.frame_count;
+        // The request's span, for the stages' spans on the pool's thread.
+        let parent = tracing::Span::current();
         let (update, live, delta, hidden_cost, mut timings) = self
             .pool
             .run(move || {
@@ -253,6 +268,7 @@ impl App {
                 let t = Instant::now();
                 let c = match &source {
                     RowSource::Descriptors(references) => {
+                        let describe = tracing::info_span!(parent: &parent, "describe").entered();
                         let Some(extractor) = map_extractor(&map, &rules)? else {
                             return Err(AppError::MapKind(format!(
                                 "map `{:016x}` cannot describe images",
@@ -266,18 +282,29 @@ impl App {
                             max_len,
                             map.dim,
                         )?;
+                        drop(describe);
+                        let _similarity =
+                            tracing::info_span!(parent: &parent, "similarity").entered();
                         similarity::cosine_matrix_normalized(&queries, references)?
                     }
-                    RowSource::Cooc(cooc) => RowSource::cooc_rows(cooc, &frames, max_pixels)?,
+                    RowSource::Cooc(cooc) => {
+                        let _describe =
+                            tracing::info_span!(parent: &parent, "describe", kind = "cooc")
+                                .entered();
+                        RowSource::cooc_rows(cooc, &frames, max_pixels)?
+                    }
                 };
                 // Features and scores for cooc maps (their rows come from the images at once).
                 let features = t.elapsed().as_secs_f64();
                 let t = Instant::now();
+                // The online solve and the confidence of each estimate.
+                let solve_span = tracing::info_span!(parent: &parent, "solve").entered();
                 let update = trip.push_batch(&c)?;
                 let hidden_cost = trip.hidden_cost().ok_or_else(|| {
                     AppError::Internal("the first batch did not resolve the hidden cost".into())
                 })?;
                 let delta = trip.take_delta();
+                drop(solve_span);
                 let solve = t.elapsed().as_secs_f64();
                 let timings = FramesTimings {
                     load,
@@ -362,6 +389,49 @@ impl App {
         let record = self.store.get_trip(id).await?;
         let estimates = self.store.trip_estimates(id, since).await?;
         Ok((record, estimates))
+    }
+
+    /// Open trips of every map by the status of their last batch, read from the store (so
+    /// every replica of a shared store counts the same trips). Pages through all trips: for
+    /// a metrics scrape, not a request path.
+    pub async fn open_trip_counts(&self) -> AppResult<OpenTripCounts> {
+        let mut counts = OpenTripCounts::default();
+        for map in self.store.list_maps().await? {
+            let mut before = None;
+            loop {
+                let page = match self
+                    .store
+                    .list_trips(map.id, PageRequest { before, limit: 500 })
+                    .await
+                {
+                    Ok(page) => page,
+                    // Deleted between the two calls.
+                    Err(StoreError::MapNotFound(_)) => break,
+                    Err(e) => return Err(e.into()),
+                };
+                for t in page.items.iter().filter(|t| t.closed_ms.is_none()) {
+                    match t.status {
+                        None => counts.new += 1,
+                        Some(TripStatus::Localized) => counts.localized += 1,
+                        Some(TripStatus::Lost) => counts.lost += 1,
+                        Some(TripStatus::Relocalized) => counts.relocalized += 1,
+                    }
+                }
+                match page.next {
+                    Some(next) => before = Some(next),
+                    None => break,
+                }
+            }
+        }
+        Ok(counts)
+    }
+
+    /// Maps whose descriptors this process caches, and the bytes of their matrices, by
+    /// descriptor kind (`hog`, `cnn`, `precomputed`).
+    pub fn descriptor_cache_usage(
+        &self,
+    ) -> std::collections::BTreeMap<&'static str, (usize, usize)> {
+        self.references.usage()
     }
 
     /// A page of map `id`'s trips, newest first.

@@ -12,6 +12,20 @@ use std::time::Duration;
 /// Flags of `seasonloc serve` (each with an environment-variable equivalent).
 #[derive(Clone, Debug, clap::Args)]
 pub struct ServeArgs {
+    /// TOML file of settings: the keys are these flags' names in snake_case
+    /// (`max_body_bytes = 1048576`); environment variables and flags win over it, and an
+    /// unknown key is refused with its name. Read by the binary's argument parser
+    /// ([`crate::config_file`]).
+    #[arg(long, env = "SEASONLOC_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Log format: `text` (human-readable) or `json` (one object per line, for Loki or
+    /// Elasticsearch). Default: `text` when stderr is a terminal, `json` otherwise.
+    #[arg(long, env = "SEASONLOC_LOG_FORMAT", value_enum)]
+    pub log_format: Option<LogFormat>,
+    /// OpenTelemetry collector to send traces to over OTLP/HTTP (JSON), as a base URL such as
+    /// `http://otel-collector:4318` (spans go to its `/v1/traces`). None: no traces.
+    #[arg(long, env = "OTEL_EXPORTER_OTLP_ENDPOINT")]
+    pub otlp_endpoint: Option<String>,
     /// Address to listen on (`HOST:PORT`; port 0 picks a free port).
     #[arg(long, env = "SEASONLOC_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
@@ -153,6 +167,9 @@ pub struct ServeArgs {
 impl Default for ServeArgs {
     fn default() -> Self {
         ServeArgs {
+            config: None,
+            log_format: None,
+            otlp_endpoint: None,
             addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("./seasonloc-data"),
             database_url: None,
@@ -184,6 +201,15 @@ impl Default for ServeArgs {
             allowed_hosts: Vec::new(),
         }
     }
+}
+
+/// How log lines are written (`--log-format`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// `tracing`'s human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
 }
 
 /// Validated service settings (see [`ServeArgs`] for the meaning of each field).

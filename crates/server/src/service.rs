@@ -32,32 +32,23 @@ use seasonloc_app::{App, AppConfig};
 use seasonloc_store::{PgOptions, PgStore, SledOptions, SledStore};
 
 /// Entry point of `seasonloc serve`: validates `args`, logs to stderr (`RUST_LOG`, default
-/// `info`), and serves until SIGTERM or Ctrl-C.
+/// `info`, in `--log-format`), and serves until SIGTERM or Ctrl-C.
 pub fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
-    init_tracing();
+    let telemetry = crate::telemetry::init(args.log_format, args.otlp_endpoint.as_deref())?;
     let settings = args.validate()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("seasonloc-http")
         .build()
         .context("starting the async runtime")?;
-    runtime.block_on(async move {
+    let served = runtime.block_on(async move {
         let listener = TcpListener::bind(settings.addr)
             .await
             .with_context(|| format!("cannot listen on {}", settings.addr))?;
         serve(settings, listener, shutdown_signal()).await
-    })
-}
-
-/// Installs the stderr logger unless one is installed already.
-pub fn init_tracing() {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .try_init();
+    });
+    telemetry.shutdown();
+    served
 }
 
 /// The use-case layer's settings from the service's.
@@ -126,8 +117,13 @@ pub async fn serve(
         }
     };
     let drain = settings.shutdown_timeout;
+    let metrics = Arc::new(api::metrics::Metrics::default());
+    let store: Arc<dyn Store> = Arc::new(seasonloc_app::timed_store::TimedStore::new(
+        store,
+        Arc::clone(&metrics) as Arc<dyn seasonloc_app::timed_store::StoreObserver>,
+    ));
     let use_cases = Arc::new(App::new(store, app_config(&settings))?);
-    let state = AppState::new(Arc::clone(&use_cases), settings, auth)?;
+    let state = AppState::with_metrics(Arc::clone(&use_cases), settings, auth, metrics)?;
     match &state.auth {
         Some(auth) => {
             tracing::info!(

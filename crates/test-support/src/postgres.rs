@@ -172,11 +172,24 @@ pub struct TestServer {
     port: u16,
     watchdog: Mutex<Option<(Child, ChildStdin)>>,
     databases: AtomicUsize,
+    /// Extra `postgres` options (`-c ssl=on ...` for [`TestServer::start_tls`]).
+    options: String,
 }
 
 impl TestServer {
     /// Copies the template cluster to a new folder and starts a server on a free port.
     pub fn start(bin: &Path) -> Result<TestServer, String> {
+        TestServer::start_with(bin, None)
+    }
+
+    /// [`TestServer::start`] with TLS on (`ssl=on`, this PEM certificate chain and key) and
+    /// TCP connections accepted over TLS only (`hostssl` in `pg_hba.conf`): a client that
+    /// does not encrypt is refused.
+    pub fn start_tls(bin: &Path, cert_pem: &str, key_pem: &str) -> Result<TestServer, String> {
+        TestServer::start_with(bin, Some((cert_pem, key_pem)))
+    }
+
+    fn start_with(bin: &Path, tls: Option<(&str, &str)>) -> Result<TestServer, String> {
         let cluster = template(bin)?;
         let dir = std::env::temp_dir().join(format!(
             "seasonloc-pg-{}-{}",
@@ -190,6 +203,32 @@ impl TestServer {
         let mut chmod = Command::new("chmod");
         chmod.arg("700").arg(&dir);
         run(chmod, "chmod")?;
+        let mut options = String::new();
+        if let Some((cert, key)) = tls {
+            let write = |name: &str, text: &str| {
+                let path = dir.join(name);
+                std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))
+            };
+            write("server.crt", cert)?;
+            write("server.key", key)?;
+            let mut chmod = Command::new("chmod");
+            chmod.arg("600").arg(dir.join("server.key"));
+            run(chmod, "chmod")?;
+            hand_over(&dir)?;
+            let hba = dir.join("pg_hba.conf");
+            let text =
+                std::fs::read_to_string(&hba).map_err(|e| format!("{}: {e}", hba.display()))?;
+            let text: String = text
+                .lines()
+                .map(|l| match l.strip_prefix("host ") {
+                    Some(rest) => format!("hostssl {rest}\n"),
+                    None => format!("{l}\n"),
+                })
+                .collect();
+            write("pg_hba.conf", &text)?;
+            hand_over(&dir)?;
+            options = " -c ssl=on -c ssl_cert_file=server.crt -c ssl_key_file=server.key".into();
+        }
         // The watchdog: stops the server and deletes the folder when our end of its stdin
         // closes (this process exited or dropped the server).
         let script = format!(
@@ -214,6 +253,7 @@ impl TestServer {
             port: free_port()?,
             watchdog: Mutex::new(Some((child, stdin))),
             databases: AtomicUsize::new(0),
+            options,
         };
         server.resume()?;
         Ok(server)
@@ -236,9 +276,10 @@ impl TestServer {
             .arg("-o")
             .arg(format!(
                 "-p {} -k {} -c listen_addresses=127.0.0.1 -c fsync=off \
-                 -c full_page_writes=off -c shared_buffers=32MB -c max_connections=200",
+                 -c full_page_writes=off -c shared_buffers=32MB -c max_connections=200{}",
                 self.port,
-                self.dir.display()
+                self.dir.display(),
+                self.options
             ))
             .arg("start");
         run(start, "pg_ctl start").map_err(|e| {

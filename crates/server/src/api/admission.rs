@@ -34,6 +34,8 @@ const EWMA_WEIGHT: f64 = 0.2;
 #[derive(Debug)]
 pub struct Admission {
     queued: Arc<Semaphore>,
+    /// Places in the queue.
+    capacity: usize,
     running: Arc<Semaphore>,
     threads: usize,
     max_wait: Duration,
@@ -100,6 +102,7 @@ impl Admission {
         let threads = running.clamp(1, queue);
         Admission {
             queued: Arc::new(Semaphore::new(queue)),
+            capacity: queue,
             running: Arc::new(Semaphore::new(threads)),
             threads,
             max_wait,
@@ -120,6 +123,12 @@ impl Admission {
             admission: Arc::clone(self),
             _queued: queued,
         })
+    }
+
+    /// Requests holding a place in the queue now (waiting or computing).
+    pub fn depth(&self) -> usize {
+        self.capacity
+            .saturating_sub(self.queued.available_permits())
     }
 
     /// Requests waiting for a turn now.

@@ -222,6 +222,9 @@ impl IntoResponse for ApiError {
         };
         let body = serde_json::json!({"error": {"code": code.as_str(), "message": message}});
         let mut response = (status, axum::Json(body)).into_response();
+        response
+            .extensions_mut()
+            .insert(super::access_log::ErrorCodeTag(code.as_str()));
         if code.retry_after() {
             response
                 .headers_mut()

@@ -13,7 +13,7 @@
 //!   (health, metrics, OpenAPI) and `dashboard` (the embedded web dashboard for people);
 //! * the files directly in `api/` are the machinery the resources share ([`error`],
 //!   [`extract`], [`upload`], [`idempotency`], [`wire`] ids and page sizes, [`state`], [`body`],
-//!   [`admission`], [`auth`], [`metrics`]); they never import a resource;
+//!   [`admission`], [`auth`], [`metrics`], [`access_log`]); they never import a resource;
 //! * `router` composes the resources and the middleware; nothing imports it but this file.
 
 // Request paths must not panic: no `unwrap` outside tests (clippy.toml allows it there), and a
@@ -21,6 +21,7 @@
 #![warn(clippy::unwrap_used, clippy::wildcard_enum_match_arm)]
 
 // Shared edge machinery: used by the resources, never using them.
+pub mod access_log;
 pub mod admission;
 pub mod auth;
 pub mod body;

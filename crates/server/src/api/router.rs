@@ -4,7 +4,7 @@
 //! Layers, outermost first: request id (`x-request-id` kept when it is a short token,
 //! [`request_id_ok`], otherwise replaced by a generated one, so a client's 16 KB id is neither
 //! echoed nor logged) -> trace span carrying it (and the API key's name once known) -> request
-//! id copied to the response -> JSON bodies for limit errors -> metrics (labels from closed
+//! id copied to the response -> the access log line ([`super::access_log`]) -> JSON bodies for limit errors -> metrics (labels from closed
 //! sets) -> `Host` check (421, [`crate::config::HostPolicy`]) -> cross-site guard of a server
 //! without keys (403 `cross_site_request`, [`cross_site`]) -> CORS (when `--cors-origin` is
 //! set; answers preflights before any key is asked for) -> access control ([`super::auth`]:
@@ -31,12 +31,11 @@ use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::limit::RequestBodyLimitLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::timeout::RequestBodyTimeoutLayer;
-use tower_http::trace::{DefaultOnResponse, TraceLayer};
-use tracing::Level;
+use tower_http::trace::TraceLayer;
 
 use super::error::ApiError;
 use super::state::AppState;
-use super::{auth, body, cooc, dashboard, localize, maps, metrics, ops, trips};
+use super::{access_log, auth, body, cooc, dashboard, localize, maps, metrics, ops, trips};
 
 /// Every route of the service as `(method, path template)`; `openapi/openapi.yaml` must
 /// describe exactly these (checked by the integration tests).
@@ -103,17 +102,34 @@ pub fn app(state: AppState) -> Router {
                         .extensions()
                         .get::<MatchedPath>()
                         .map_or(req.uri().path(), |p| p.as_str());
-                    tracing::info_span!(
+                    let method = metrics::method_label(req.method());
+                    let span = tracing::info_span!(
                         "request",
                         request_id = %id,
-                        method = %metrics::method_label(req.method()),
+                        method = %method,
                         route = %route,
-                        key = tracing::field::Empty
-                    )
+                        key = tracing::field::Empty,
+                        status = tracing::field::Empty,
+                        map_id = tracing::field::Empty,
+                        trip_id = tracing::field::Empty,
+                        localization_id = tracing::field::Empty,
+                        otel.name = tracing::field::Empty,
+                        otel.kind = tracing::field::Empty,
+                    );
+                    if crate::telemetry::tracing_enabled() {
+                        span.record("otel.name", format!("{method} {route}").as_str());
+                        span.record("otel.kind", "server");
+                        crate::telemetry::adopt_parent(&span, req.headers());
+                    }
+                    span
                 })
-                .on_response(DefaultOnResponse::new().level(Level::INFO)),
+                // The access log writes the one line per request (with its status, error code
+                // and ids); the span carries the request's fields to every other event.
+                .on_response(())
+                .on_failure(()),
         )
         .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+        .layer(middleware::from_fn(access_log::log))
         .layer(middleware::map_response(json_limit_errors))
         .layer(middleware::from_fn_with_state(
             state.metrics.clone(),

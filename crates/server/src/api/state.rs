@@ -53,6 +53,17 @@ impl AppState {
 
     /// Builds the state over the use cases with the access control `auth` ([`Self::load_auth`]).
     pub fn new(app: Arc<App>, settings: Settings, auth: Option<Arc<Auth>>) -> anyhow::Result<Self> {
+        Self::with_metrics(app, settings, auth, Arc::new(Metrics::default()))
+    }
+
+    /// [`Self::new`] recording into `metrics` (shared with the store's timing wrapper,
+    /// [`seasonloc_app::timed_store::TimedStore`]).
+    pub fn with_metrics(
+        app: Arc<App>,
+        settings: Settings,
+        auth: Option<Arc<Auth>>,
+        metrics: Arc<Metrics>,
+    ) -> anyhow::Result<Self> {
         let openapi_json = Bytes::from(openapi_json()?);
         Ok(AppState {
             auth,
@@ -63,7 +74,7 @@ impl AppState {
                 settings.localize_max_wait,
             )),
             settings: Arc::new(settings),
-            metrics: Arc::new(Metrics::default()),
+            metrics,
             openapi_json,
         })
     }

@@ -28,6 +28,7 @@
 mod maps;
 pub mod migrate;
 mod records;
+mod tls;
 
 use crate::OrStore;
 use std::ops::Range;
@@ -36,7 +37,6 @@ use std::time::Duration;
 use async_trait::async_trait;
 use deadpool_postgres::{Manager, ManagerConfig, Pool, PoolError, RecyclingMethod, Runtime};
 use tokio_postgres::error::SqlState;
-use tokio_postgres::NoTls;
 
 use seasonloc_app::model::{ImageMeta, LocalizationRecord, MapRecord, TripRecord};
 use seasonloc_app::store::{
@@ -104,10 +104,20 @@ impl PgStore {
 
     /// [`PgStore::connect`] with these timeouts.
     pub async fn connect_with(url: &str, options: &PgOptions) -> StoreResult<PgStore> {
-        let mut config: tokio_postgres::Config = url.parse().map_err(|e| StoreError::Open {
+        let bad_url = |reason: String| StoreError::Open {
             location: "the database URL".into(),
-            source: Box::new(e),
-        })?;
+            source: reason.into(),
+        };
+        let split = tls::split(url).map_err(bad_url)?;
+        let connector = tls::client_config(split.mode, split.root_cert.as_deref())
+            .map(tokio_postgres_rustls::MakeRustlsConnect::new)
+            .map_err(bad_url)?;
+        let mut config: tokio_postgres::Config =
+            split.url.parse().map_err(|e| StoreError::Open {
+                location: "the database URL".into(),
+                source: Box::new(e),
+            })?;
+        config.ssl_mode(tls::driver_mode(split.mode));
         if config.get_connect_timeout().is_none() {
             config.connect_timeout(CONNECT_TIMEOUT);
         }
@@ -128,10 +138,10 @@ impl PgStore {
             _ => format!("-c statement_timeout={ms}"),
         };
         config.options(session);
-        let location = describe(&config);
+        let location = format!("{} (sslmode={})", describe(&config), split.mode.name());
         let manager = Manager::from_config(
             config,
-            NoTls,
+            connector,
             ManagerConfig {
                 recycling_method: RecyclingMethod::Fast,
             },
@@ -284,16 +294,39 @@ fn pool_error(e: PoolError) -> StoreError {
         PoolError::Backend(e) if !is_unavailable(&e) && e.code().is_some() => {
             // The server answered and refused (bad credentials, no such database): still
             // nothing a request can do, and retrying after a fix may succeed.
-            StoreError::Unavailable(format!("the database refused the connection: {e}"))
+            // The driver's `Display` says only "db error"; the server's own message names the
+            // cause (a password, a database, `pg_hba.conf`, no encryption).
+            let why = e
+                .as_db_error()
+                .map_or_else(|| e.to_string(), |d| d.message().to_string());
+            StoreError::Unavailable(format!("the database refused the connection: {why}"))
         }
         other @ (PoolError::Backend(_)
         | PoolError::Timeout(_)
         | PoolError::Closed
         | PoolError::NoRuntimeSpecified
-        | PoolError::PostCreateHook(_)) => {
-            StoreError::Unavailable(format!("cannot reach the database: {other}"))
-        }
+        | PoolError::PostCreateHook(_)) => StoreError::Unavailable(format!(
+            "cannot reach the database: {}",
+            with_causes(&other)
+        )),
     }
+}
+
+/// An error's message followed by its causes' (`: `-joined), skipping a cause its parent
+/// already ends with: the driver's "error performing TLS handshake" keeps rustls's reason
+/// (`invalid peer certificate: UnknownIssuer`) in its source.
+fn with_causes(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let part = c.to_string();
+        if !text.ends_with(&part) {
+            text.push_str(": ");
+            text.push_str(&part);
+        }
+        cause = c.source();
+    }
+    text
 }
 
 /// An id as stored (`BIGINT`); `None` for ids no sequence value can equal.

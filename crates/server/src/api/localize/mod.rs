@@ -113,7 +113,11 @@ async fn run(
     // A place in the queue once the request is read (a slow upload holds none), then the CPU
     // turn in arrival order.
     let reservation = state.admission.reserve().map_err(|r| refused(&state, r))?;
+    let waited = std::time::Instant::now();
     let turn = reservation.turn().await.map_err(|r| refused(&state, r))?;
+    state
+        .metrics
+        .observe_queue_wait(waited.elapsed().as_secs_f64());
     // The turn ends with the computation: storing the result (a flushed write) and answering
     // wait on the disk and the network, not on a CPU.
     let (record, replayed) = state

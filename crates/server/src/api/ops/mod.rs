@@ -11,6 +11,7 @@ pub mod dto;
 
 use self::dto::StatusResponse;
 use crate::api::error::ApiError;
+use crate::api::metrics::Snapshot;
 use crate::api::state::AppState;
 
 /// The routes of this resource.
@@ -36,7 +37,34 @@ async fn readyz(State(state): State<AppState>) -> Result<Json<StatusResponse>, A
 }
 
 async fn metrics(State(state): State<AppState>) -> Response {
-    let mut text = state.metrics.render();
+    // A scrape must answer even when the store does not: the count is left out then.
+    let counted = tokio::time::timeout(
+        std::time::Duration::from_secs(2),
+        state.app.open_trip_counts(),
+    )
+    .await;
+    let open_trips = match counted {
+        Ok(Ok(c)) => Some(vec![
+            ("new", c.new),
+            ("localized", c.localized),
+            ("lost", c.lost),
+            ("relocalized", c.relocalized),
+        ]),
+        Ok(Err(e)) => {
+            tracing::warn!("metrics: cannot count the open trips: {e}");
+            None
+        }
+        Err(_) => {
+            tracing::warn!("metrics: counting the open trips took over 2 s; left out");
+            None
+        }
+    };
+    let snapshot = Snapshot {
+        open_trips,
+        cache: state.app.descriptor_cache_usage(),
+        queue_depth: state.admission.depth(),
+    };
+    let mut text = state.metrics.render(&snapshot);
     let a = &state.admission;
     text.push_str(&format!(
         "# HELP seasonloc_localize_waiting Localize requests waiting for a CPU turn.\n\

@@ -127,6 +127,7 @@ async fn frames(
     )
     .await?;
     let key = idempotency::from_request(&headers, &batch)?;
+    let started = std::time::Instant::now();
     let outcome = state
         .app
         .post_frames(trip, batch.images, key, caller.as_deref())
@@ -137,6 +138,13 @@ async fn frames(
         m.observe_stage("features", t.features);
         m.observe_stage("solve", t.solve);
         m.observe_stage("store", t.store);
+        let frames: Vec<(&'static str, f64)> = outcome
+            .update
+            .estimates
+            .iter()
+            .map(|e| (e.status.as_str(), e.p_correct))
+            .collect();
+        m.observe_trip_batch(started.elapsed().as_secs_f64(), &frames);
     }
     let update = &outcome.update;
     let headers = idempotency::headers(outcome.replayed);
