@@ -26,7 +26,9 @@ COPY assets ./assets
 RUN cargo build --release --locked --bin seasonloc --config 'profile.release.strip="debuginfo"'
 
 FROM debian:bookworm-slim AS runtime
-RUN useradd --system --uid 10001 --home-dir /nonexistent --shell /usr/sbin/nologin seasonloc \
+# uid and gid 10001: deploy/deployment.yaml runs the pod as this user and group.
+RUN groupadd --system --gid 10001 seasonloc \
+    && useradd --system --uid 10001 --gid 10001 --home-dir /nonexistent --shell /usr/sbin/nologin seasonloc \
     && mkdir -p /data && chown seasonloc /data
 COPY --from=build /src/target/release/seasonloc /usr/local/bin/seasonloc
 ENV SEASONLOC_ADDR=0.0.0.0:8080

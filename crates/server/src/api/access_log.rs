@@ -13,12 +13,8 @@ use axum::middleware::Next;
 use axum::response::Response;
 
 use super::auth::KeyName;
+use super::error::ErrorCodeTag;
 use super::metrics::method_label;
-
-/// The error code of a response, set by the API's error type when it builds the body, so the
-/// access log names it without parsing the body.
-#[derive(Clone, Copy, Debug)]
-pub struct ErrorCodeTag(pub &'static str);
 
 /// The ids a request's path names, from its matched route template.
 #[derive(Debug, Default, PartialEq, Eq)]

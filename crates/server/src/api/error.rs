@@ -204,6 +204,11 @@ impl std::fmt::Display for IdKind {
     }
 }
 
+/// The error code of a response, set when the error body is built, so the access log names it
+/// without parsing the body.
+#[derive(Clone, Copy, Debug)]
+pub struct ErrorCodeTag(pub &'static str);
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let code = self.code();
@@ -224,7 +229,7 @@ impl IntoResponse for ApiError {
         let mut response = (status, axum::Json(body)).into_response();
         response
             .extensions_mut()
-            .insert(super::access_log::ErrorCodeTag(code.as_str()));
+            .insert(ErrorCodeTag(code.as_str()));
         if code.retry_after() {
             response
                 .headers_mut()
