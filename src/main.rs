@@ -23,6 +23,16 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Solve(args) => cli::solve::run(args).map(Some),
         Command::Eval(args) => cli::eval::run(args).map(Some),
+        Command::Import(args) => cli::record::import(args).map(Some),
+        // The estimates go to stdout unless --out names a file; the summary then goes to stderr.
+        Command::Drive(args) => cli::record::drive(args).map(|summary| {
+            if args.out.is_some() {
+                Some(summary)
+            } else {
+                eprintln!("{summary}");
+                None
+            }
+        }),
         Command::Serve(args) => {
             seasonloc_server::service::run_serve(args.as_ref().clone()).map(|()| None)
         }

@@ -8,6 +8,7 @@ pub mod cooc;
 pub mod eval;
 pub mod npy;
 pub mod plot;
+pub mod record;
 pub mod solve;
 
 use std::path::PathBuf;
@@ -43,6 +44,12 @@ pub enum Command {
     /// (see docs/service.md).
     #[command(allow_negative_numbers = true)]
     Serve(Box<seasonloc_server::config::ServeArgs>),
+    /// Build a map on a running service from a video or an image folder, with an optional GPS
+    /// track; frames chosen by distance, time or step. Prints the map id.
+    Import(Box<record::ImportArgs>),
+    /// Replay a video or an image folder as a vehicle's trip against a service, writing every
+    /// estimate as JSON lines or CSV.
+    Drive(Box<record::DriveArgs>),
 }
 
 /// Graph and solver flags shared by `solve` and `eval`.

@@ -21,6 +21,7 @@ mod idempotency;
 mod operations;
 mod outside;
 mod ownership;
+mod recordings;
 mod spec;
 mod store_faults;
 mod stored;

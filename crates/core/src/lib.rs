@@ -28,6 +28,7 @@ pub mod picture;
 pub mod prediction;
 pub mod similarity;
 pub mod solver;
+pub mod time;
 pub mod trip;
 pub mod window;
 

@@ -11,6 +11,9 @@ use seasonloc_core::features::cnn::CnnResize;
 
 /// Longest accepted map name, in characters (as the OpenAPI `maxLength` counts).
 pub const MAX_NAME_CHARS: usize = 200;
+/// Largest integer `timestamp` (Unix milliseconds): 9999-12-31T23:59:59.999Z.
+const MAX_UNIX_MS: i64 = 253_402_300_799_999;
+
 /// Longest accepted metadata string (timestamp, label), in characters.
 pub const MAX_META_CHARS: usize = 256;
 /// Largest accepted precomputed descriptor length.
@@ -225,8 +228,9 @@ pub struct MapListResponse {
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImageMetaDto {
-    /// Capture time, free-form (e.g. RFC 3339), at most 256 bytes.
-    pub timestamp: Option<String>,
+    /// Capture time: a string (free-form, e.g. RFC 3339, at most 256 characters) or an integer
+    /// of Unix milliseconds (stored as RFC 3339 in UTC).
+    pub timestamp: Option<serde_json::Value>,
     /// Latitude in degrees, -90..=90.
     pub latitude: Option<f64>,
     /// Longitude in degrees, -180..=180.
@@ -239,7 +243,31 @@ impl ImageMetaDto {
     /// Validates entry `index` of a batch's metadata.
     pub fn validate(self, index: usize) -> Result<ImageMeta, ApiError> {
         let name = |f: &str| format!("metadata[{index}].{f}");
-        for (field, v) in [("timestamp", &self.timestamp), ("label", &self.label)] {
+        let timestamp = match self.timestamp {
+            None | Some(serde_json::Value::Null) => None,
+            Some(serde_json::Value::String(s)) => Some(s),
+            Some(serde_json::Value::Number(n)) => match n.as_i64() {
+                Some(ms) if (0..=MAX_UNIX_MS).contains(&ms) => {
+                    Some(seasonloc_core::time::format_unix_ms(ms))
+                }
+                _ => {
+                    return Err(ApiError::param(
+                        name("timestamp"),
+                        format!(
+                            "an integer timestamp is Unix milliseconds, from 0 to {MAX_UNIX_MS} \
+                             (year 9999), got {n}"
+                        ),
+                    ))
+                }
+            },
+            Some(_) => {
+                return Err(ApiError::param(
+                    name("timestamp"),
+                    "must be a string (e.g. RFC 3339) or an integer of Unix milliseconds",
+                ))
+            }
+        };
+        for (field, v) in [("timestamp", &timestamp), ("label", &self.label)] {
             if v.as_ref()
                 .is_some_and(|s| s.chars().count() > MAX_META_CHARS)
             {
@@ -266,7 +294,7 @@ impl ImageMetaDto {
             }
         }
         Ok(ImageMeta {
-            timestamp: self.timestamp,
+            timestamp,
             latitude: self.latitude,
             longitude: self.longitude,
             label: self.label,
