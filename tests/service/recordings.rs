@@ -491,3 +491,106 @@ fn an_integer_timestamp_is_unix_milliseconds_and_other_types_are_refused_by_name
     }
     assert_eq!(images(c, &map).len(), 2, "a refused batch stored nothing");
 }
+
+/// A JPEG of `img` whose EXIF says it was taken at `when` ("YYYY:MM:DD HH:MM:SS", offset
+/// +02:00) at latitude `lat` N, longitude `lon` E (built byte by byte: no EXIF writer needed).
+fn jpeg_with_exif(img: &image::GrayImage, when: &str, lat: f64, lon: f64) -> Vec<u8> {
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+        .encode_image(img)
+        .unwrap();
+    let mut t: Vec<u8> = b"II\x2a\x00\x08\x00\x00\x00".to_vec();
+    let entry = |t: &mut Vec<u8>, tag: u16, kind: u16, count: u32, value: u32| {
+        t.extend(tag.to_le_bytes());
+        t.extend(kind.to_le_bytes());
+        t.extend(count.to_le_bytes());
+        t.extend(value.to_le_bytes());
+    };
+    let (exif_ifd, gps_ifd) = (38u32, 96u32);
+    t.extend(2u16.to_le_bytes());
+    entry(&mut t, 0x8769, 4, 1, exif_ifd);
+    entry(&mut t, 0x8825, 4, 1, gps_ifd);
+    t.extend(0u32.to_le_bytes());
+    assert_eq!(t.len(), 38);
+    t.extend(2u16.to_le_bytes());
+    entry(&mut t, 0x9003, 2, 20, 68);
+    entry(&mut t, 0x9011, 2, 7, 88);
+    t.extend(0u32.to_le_bytes());
+    t.extend(when.as_bytes());
+    t.push(0);
+    t.extend(b"+02:00\0\0");
+    assert_eq!(t.len(), 96);
+    t.extend(4u16.to_le_bytes());
+    entry(&mut t, 1, 2, 2, u32::from_le_bytes(*b"N\0\0\0"));
+    entry(&mut t, 2, 5, 3, 150);
+    entry(&mut t, 3, 2, 2, u32::from_le_bytes(*b"E\0\0\0"));
+    entry(&mut t, 4, 5, 3, 174);
+    t.extend(0u32.to_le_bytes());
+    assert_eq!(t.len(), 150);
+    for v in [lat, lon] {
+        let d = v.trunc();
+        let m = ((v - d) * 60.0).trunc();
+        let s = ((v - d) * 60.0 - m) * 60.0;
+        for (num, den) in [
+            (d as u32, 1u32),
+            (m as u32, 1),
+            ((s * 1e6).round() as u32, 1_000_000),
+        ] {
+            t.extend(num.to_le_bytes());
+            t.extend(den.to_le_bytes());
+        }
+    }
+    let mut app1 = vec![0xff, 0xe1];
+    app1.extend(((2 + 6 + t.len()) as u16).to_be_bytes());
+    app1.extend(b"Exif\0\0");
+    app1.extend(t);
+    let mut out = jpeg[..2].to_vec();
+    out.extend(app1);
+    out.extend(&jpeg[2..]);
+    out
+}
+
+#[test]
+fn camera_jpegs_give_their_exif_time_and_position() {
+    let server = Server::start();
+    let url = format!("http://{}", server.client.addr);
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("camera");
+    std::fs::create_dir_all(&frames).unwrap();
+    let route = Route::new(12, 6);
+    // 3 m north each second, from 48.1 N 11.5 E, at 10:00 local time (+02:00).
+    let lat = |i: usize| 48.1 + 3.0 * i as f64 / M_PER_DEG;
+    for i in 0..12 {
+        let png = route.reference_png(i as u32);
+        let img = image::load_from_memory(&png).unwrap().to_luma8();
+        let when = format!("2026:05:01 10:00:{i:02}");
+        std::fs::write(
+            frames.join(format!("IMG_{i:04}.jpg")),
+            jpeg_with_exif(&img, &when, lat(i), 11.5),
+        )
+        .unwrap();
+    }
+    let summary = ok(&seasonloc(
+        &[
+            "import",
+            frames.to_str().unwrap(),
+            "--name",
+            "camera",
+            "--every",
+            "5m",
+        ],
+        &url,
+    ));
+    let map = summary["map_id"].as_str().unwrap();
+    let stored = images(&server.client, map);
+    // 0, 6, 12, ... m along: every other frame is 5 m or more beyond the last kept one.
+    let kept: Vec<usize> = (0..12).step_by(2).collect();
+    assert_eq!(stored.len(), kept.len(), "{summary}");
+    for (img, i) in stored.iter().zip(kept) {
+        assert_eq!(img["label"], format!("IMG_{i:04}.jpg"));
+        assert_eq!(img["timestamp"], format!("2026-05-01T08:00:{i:02}.000Z"));
+        let dlat = (img["latitude"].as_f64().unwrap() - lat(i)) * M_PER_DEG;
+        assert!(dlat.abs() < 0.5, "frame {i}: {dlat} m off");
+        assert!((img["longitude"].as_f64().unwrap() - 11.5).abs() < 1e-6);
+    }
+}

@@ -12,8 +12,10 @@
 //!   CSV with the matched image's position.
 //!
 //! Code: [`track`] (GPX, NMEA, CSV tracks; time; haversine), [`source`] (folders, videos
-//! through the `ffmpeg` program, selection), [`client`] (the HTTP calls).
+//! through the `ffmpeg` program, selection), [`camera`] (a JPEG's own time and GPS position),
+//! [`client`] (the HTTP calls).
 
+pub mod camera;
 pub mod client;
 pub mod source;
 pub mod track;
@@ -155,8 +157,36 @@ fn chosen(args: &RecordingArgs) -> Result<(source::Recording, Vec<source::Chosen
     if !args.offset.is_finite() {
         bail!("--offset must be a number of seconds");
     }
-    let track = args.track.as_deref().map(Track::read).transpose()?;
+    let mut track = args.track.as_deref().map(Track::read).transpose()?;
     let mut recording = source::open(&args.source, args.fps, args.start)?;
+    // A folder of camera JPEGs given without --start and --track: their EXIF times, and their
+    // EXIF positions as the track.
+    if args.start.is_none() && args.track.is_none() && args.source.is_dir() {
+        let taken: Vec<camera::Taken> = recording
+            .frames
+            .iter()
+            .map(|f| camera::read(&f.path))
+            .collect();
+        if taken.iter().all(|t| t.t_ms.is_some()) {
+            for (f, t) in recording.frames.iter_mut().zip(&taken) {
+                f.t_ms = t.t_ms;
+            }
+            if taken.iter().all(|t| t.position.is_some()) {
+                let fixes = taken
+                    .iter()
+                    .filter_map(|t| {
+                        let (lat, lon) = t.position?;
+                        Some(track::Fix {
+                            t_ms: t.t_ms?,
+                            lat,
+                            lon,
+                        })
+                    })
+                    .collect();
+                track = Some(Track::new(fixes, 0)?);
+            }
+        }
+    }
     let shift = (args.offset * 1000.0).round() as i64;
     for f in &mut recording.frames {
         f.t_ms = f.t_ms.map(|t| t + shift);
