@@ -46,6 +46,7 @@ use seasonloc_core::Error;
 mod job;
 mod leave_one_out;
 
+pub use job::metrics_json;
 use job::{run_job, Job};
 use leave_one_out::leave_one_out;
 

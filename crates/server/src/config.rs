@@ -328,19 +328,27 @@ impl HostPolicy {
 /// PostgreSQL pool, the runtime, logs and the accept of one connection past the cap.
 pub const RESERVED_DESCRIPTORS: usize = 128;
 
-/// Connections the process's descriptor limit leaves room for (its soft `RLIMIT_NOFILE`, read
-/// from `/proc/self/limits`, less [`RESERVED_DESCRIPTORS`]; 1024 assumed where it cannot be
+/// The process's soft `RLIMIT_NOFILE` as `/proc/self/limits` shows it: `None` where it cannot
+/// be read, `Some(None)` when it is `unlimited`.
+pub fn open_files_soft_limit() -> Option<Option<u64>> {
+    let text = std::fs::read_to_string("/proc/self/limits").ok()?;
+    let value = text
+        .lines()
+        .find(|l| l.starts_with("Max open files"))
+        .and_then(|l| l.split_whitespace().nth(3))?
+        .to_string();
+    Some(value.parse::<u64>().ok())
+}
+
+/// Connections the process's descriptor limit leaves room for (its soft `RLIMIT_NOFILE`,
+/// [`open_files_soft_limit`], less [`RESERVED_DESCRIPTORS`]; 1024 assumed where it cannot be
 /// read), at least 16.
 pub fn descriptor_room() -> usize {
-    let soft = std::fs::read_to_string("/proc/self/limits")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find(|l| l.starts_with("Max open files"))
-                .and_then(|l| l.split_whitespace().nth(3).map(str::to_string))
-        })
-        .map_or(Some(1024), |v| v.parse::<usize>().ok())
-        .unwrap_or(usize::MAX / 2);
+    let soft = match open_files_soft_limit() {
+        None => 1024,
+        Some(None) => usize::MAX / 2,
+        Some(Some(n)) => usize::try_from(n).unwrap_or(usize::MAX / 2),
+    };
     soft.saturating_sub(RESERVED_DESCRIPTORS).max(16)
 }
 

@@ -394,9 +394,9 @@ fn calibration_json(bins: &[ReliabilityBin], ece: f64, by_p: &Metrics) -> Value 
     })
 }
 
-fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
-    let mut v = json!({
-        "method": method.name(),
+/// The figures of `m` as `eval` prints them (also `drive --ground-truth`'s).
+pub fn metrics_json(m: &Metrics) -> Value {
+    json!({
         "ap": m.ap,
         "recall_at_100p": m.recall_at_100p,
         "recall_at_99p": m.recall_at_99p,
@@ -405,8 +405,15 @@ fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -
         "predicted": m.predicted,
         "correct": m.correct,
         "positives": m.positives,
-        "seconds": {"solve": solve_seconds},
-    });
+    })
+}
+
+fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
+    let mut v = json!({"method": method.name()});
+    if let (Some(obj), Value::Object(figures)) = (v.as_object_mut(), metrics_json(m)) {
+        obj.extend(figures);
+        obj.insert("seconds".into(), json!({"solve": solve_seconds}));
+    }
     if let (Some(obj), Some(extra)) = (v.as_object_mut(), extra.as_object()) {
         if !extra.is_empty() {
             obj.insert("params".into(), Value::Object(extra.clone()));

@@ -51,6 +51,14 @@ impl Client {
         format!("{}{path}", self.base)
     }
 
+    /// `req` with the key as a bearer token, when there is one.
+    fn authorized<B>(&self, req: ureq::RequestBuilder<B>) -> ureq::RequestBuilder<B> {
+        match &self.key {
+            Some(k) => req.header("Authorization", format!("Bearer {k}")),
+            None => req,
+        }
+    }
+
     fn answer(
         &self,
         what: &str,
@@ -76,19 +84,13 @@ impl Client {
 
     /// `GET path` as JSON.
     pub fn get(&self, path: &str) -> Result<Value> {
-        let mut req = self.agent.get(self.url(path));
-        if let Some(k) = &self.key {
-            req = req.header("Authorization", format!("Bearer {k}"));
-        }
+        let req = self.authorized(self.agent.get(self.url(path)));
         self.answer(&format!("GET {path}"), req.call())
     }
 
     /// `POST path` with a JSON body (or none) and an optional idempotency key.
     pub fn post_json(&self, path: &str, body: Option<&Value>, key: Option<&str>) -> Result<Value> {
-        let mut req = self.agent.post(self.url(path));
-        if let Some(k) = &self.key {
-            req = req.header("Authorization", format!("Bearer {k}"));
-        }
+        let mut req = self.authorized(self.agent.post(self.url(path)));
         if let Some(k) = key {
             req = req.header("Idempotency-Key", k);
         }
@@ -135,17 +137,13 @@ impl Client {
             body.extend_from_slice(b"\r\n");
         }
         body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
-        let mut req = self
-            .agent
-            .post(self.url(path))
+        let req = self
+            .authorized(self.agent.post(self.url(path)))
             .header(
                 "Content-Type",
                 format!("multipart/form-data; boundary={boundary}"),
             )
             .header("Idempotency-Key", key);
-        if let Some(k) = &self.key {
-            req = req.header("Authorization", format!("Bearer {k}"));
-        }
         self.answer(&format!("POST {path}"), req.send(&body[..]))
     }
 }

@@ -476,16 +476,7 @@ pub fn drive(args: &DriveArgs) -> Result<Value> {
             args.tolerance,
             args.exclude.as_ref().unwrap_or(&none),
         )?;
-        summary["metrics"] = json!({
-            "ap": m.ap,
-            "recall_at_100p": m.recall_at_100p,
-            "recall_at_99p": m.recall_at_99p,
-            "max_f1": m.max_f1,
-            "precision_at_full": m.precision_at_full,
-            "predicted": m.predicted,
-            "correct": m.correct,
-            "positives": m.positives,
-        });
+        summary["metrics"] = super::eval::metrics_json(&m);
     }
     Ok(summary)
 }

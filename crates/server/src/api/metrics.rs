@@ -471,20 +471,12 @@ pub fn process_metrics() -> Vec<(&'static str, &'static str, &'static str, f64)>
             dir.count() as f64,
         ));
     }
-    let max_fds = std::fs::read_to_string("/proc/self/limits")
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with("Max open files"))
-                .and_then(|l| l.split_whitespace().nth(3))
-                .and_then(|v| v.parse::<f64>().ok())
-        });
-    if let Some(n) = max_fds {
+    if let Some(Some(n)) = crate::config::open_files_soft_limit() {
         out.push((
             "process_max_fds",
             "gauge",
             "Limit of open file descriptors.",
-            n,
+            n as f64,
         ));
     }
     out
