@@ -20,7 +20,8 @@ use seasonloc_core::calibration::fit::{expected_calibration_error, reliability, 
 use seasonloc_core::confidence::ConfidenceParams;
 use seasonloc_core::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use seasonloc_core::eval::{
-    evaluate, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+    evaluate, recall_at_n, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+    STANDARD_NS,
 };
 use seasonloc_core::features::{extract_files, image_file_size, Extractor};
 use seasonloc_core::localize::{solve_with_confidence, LocalizeOptions};
@@ -274,6 +275,15 @@ pub(super) fn run_job(
         }),
     );
     obj.insert("compared".into(), Value::Array(reports));
+    if let Some((c, _)) = &inputs.descriptors {
+        // The field's retrieval metric, of the descriptors: the ranking of the raw cosine C.
+        let recalls = recall_at_n(c, ground_truth, &STANDARD_NS, args.tolerance, &exclusions)?;
+        let recalls: serde_json::Map<String, Value> = recalls
+            .iter()
+            .map(|r| (r.n.to_string(), json!(r.recall)))
+            .collect();
+        obj.insert("recall_at_n".into(), Value::Object(recalls));
+    }
     if let Some((bins, ece)) = &calibration {
         let by_p: Vec<Prediction> = scored[0]
             .1
@@ -402,6 +412,7 @@ fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -
         "recall_at_99p": m.recall_at_99p,
         "max_f1": m.max_f1,
         "precision_at_full": m.precision_at_full,
+        "auc": m.auc,
         "predicted": m.predicted,
         "correct": m.correct,
         "positives": m.positives,
