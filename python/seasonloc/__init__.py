@@ -25,7 +25,7 @@ __version__: str = _native.__version__
 __all__ = [
     "Prediction", "Match", "RowAssignment", "Hypothesis", "Solution", "Evaluation", "Estimate",
     "GroundTruth", "similarity", "solve", "localize", "hog", "cnn", "best_match", "seqslam",
-    "evaluate", "load_ground_truth", "recall_at_n", "Trip", "STANDARD_NS",
+    "cooc", "evaluate", "load_ground_truth", "recall_at_n", "Trip", "STANDARD_NS",
 ]
 
 #: The N of Recall@N reported by default (VPR-methods-evaluation's, up to 20).
@@ -248,6 +248,18 @@ def seqslam(C: Any, *, ds: int = _SEQSLAM_DEFAULTS[0], enhance_window: int = _SE
     rows = _native.seqslam(_inputs.matrix(C, "similarity matrix"), int(ds), int(enhance_window),
                            float(v_min), float(v_max), float(v_step), int(exclusion_window))
     return _predictions(rows)
+
+
+def cooc(reference_images: Any, query_images: Any, method: str = "cooc", *, tolerance: int = 0) -> List[Prediction]:
+    """The co-occurrence method (Johns & Yang, feature co-occurrence maps) on images, as
+    `seasonloc eval --method cooc|cooc-seq|cooc-flow` with its default parameters: a map of the
+    reference images (one mapping drive, in route order; image k = location k), the query images
+    localized by `method`: `"cooc"` (single image), `"cooc-seq"` (the paper's sequences) or
+    `"cooc-flow"` (the co-occurrence scores in the flow graph, claim = `tolerance`). Images as
+    for `hog` (they are used in gray)."""
+    rp, ra = _inputs.images(reference_images)
+    qp, qa = _inputs.images(query_images)
+    return _predictions(_native.cooc(rp, ra, qp, qa, str(method), int(tolerance)))
 
 
 def load_ground_truth(source: Any, *, soft: bool = False, distance: Optional[float] = None) -> GroundTruth:

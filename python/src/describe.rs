@@ -17,7 +17,7 @@ use super::{array, py_err};
 
 /// Decoded images as the package passes them: `H x W` (gray), `H x W x 3` (RGB) or
 /// `H x W x 4` (RGBA) uint8 arrays.
-fn images(arrays: &[PyReadonlyArrayDyn<'_, u8>]) -> PyResult<Vec<DynamicImage>> {
+pub(crate) fn images(arrays: &[PyReadonlyArrayDyn<'_, u8>]) -> PyResult<Vec<DynamicImage>> {
     arrays
         .iter()
         .enumerate()

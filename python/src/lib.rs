@@ -14,6 +14,7 @@ use pyo3::prelude::*;
 
 use seasonloc_core::{Error, Matrix};
 
+mod cooc;
 mod describe;
 mod evaluate;
 mod methods;
@@ -52,6 +53,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     methods::register(m)?;
     describe::register(m)?;
+    cooc::register(m)?;
     evaluate::register(m)?;
     trip::register(m)?;
     Ok(())

@@ -15,7 +15,7 @@ use seasonloc_core::Error;
 use super::{array, matrix, py_err};
 
 /// `(query, ref, confidence, p_correct)` per prediction.
-type PredictionRow = (usize, usize, f64, Option<f64>);
+pub(crate) type PredictionRow = (usize, usize, f64, Option<f64>);
 /// `(rank, cost, [(query, [(ref, similarity)])])` per hypothesis.
 type HypothesisRow = (usize, f64, Vec<(usize, Vec<(usize, f32)>)>);
 /// `(total_cost, hidden_cost, hypotheses, predictions)`.

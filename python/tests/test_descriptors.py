@@ -75,3 +75,15 @@ def test_cnn_needs_a_model_and_says_so(route):
         return
     with pytest.raises((OSError, ValueError), match="missing.onnx"):
         sl.cnn(route["reference"], model=str(route["root"] / "missing.onnx"))
+
+
+def test_cooc_equals_cli_eval_on_a_generated_route(cli, route):
+    for method in ("cooc", "cooc-seq", "cooc-flow"):
+        preds = sl.cooc(route["reference"], route["query"], method)
+        ev = sl.evaluate(preds, route["gt"], tolerance=0, num_queries=30)
+        want = _cli_eval(cli, route["reference"], route["query"], route["gt"], "--method", method)
+        assert (ev.ap, ev.predicted, ev.correct) == (want["ap"], want["predicted"], want["correct"]), method
+    from_arrays = sl.cooc(list(route["ref_pixels"]), list(route["query_pixels"]))
+    assert from_arrays == sl.cooc(route["reference"], route["query"])
+    with pytest.raises(ValueError, match="unknown co-occurrence method"):
+        sl.cooc(route["reference"], route["query"], "nope")
