@@ -55,7 +55,7 @@ fn cooc(
     let method: CoocMethod = method.parse().map_err(|e: Error| py_err(e))?;
     let refs = gray(reference_paths, reference_arrays)?;
     let queries = gray(query_paths, query_arrays)?;
-    py.allow_threads(|| {
+    crate::without_gil(py, || {
         let map = CoocMap::build(&CoocParams::default(), &[Drive::sequential(0.0, refs)?])?;
         let options = CoocOptions {
             flow: LocalizeOptions {

@@ -67,8 +67,7 @@ fn fit(name: &str) -> PyResult<Fit> {
 
 /// One descriptor row per image file, in order.
 fn from_files(py: Python<'_>, extractor: &dyn Extractor, paths: &[PathBuf]) -> PyResult<Matrix> {
-    py.allow_threads(|| extract_files(extractor, paths, &|| {}))
-        .map_err(py_err)
+    crate::without_gil(py, || extract_files(extractor, paths, &|| {})).map_err(py_err)
 }
 
 /// HOG descriptors of image files (one row per file, in order). The input geometry is
@@ -110,9 +109,7 @@ fn hog_arrays<'py>(
         .ok_or_else(|| py_err(Error::Empty("no images to extract descriptors from".into())))?;
     let geometry = resize.unwrap_or((first.width(), first.height()));
     let extractor = Fitted::hog(cell_size, geometry, fit(fit_name)?).map_err(py_err)?;
-    let m = py
-        .allow_threads(|| extract_batch(&extractor, &imgs))
-        .map_err(py_err)?;
+    let m = crate::without_gil(py, || extract_batch(&extractor, &imgs)).map_err(py_err)?;
     array(py, m)
 }
 
@@ -171,8 +168,7 @@ mod cnn {
             (Some(paths), None) => from_files(py, &extractor, &paths)?,
             (None, Some(arrays)) => {
                 let imgs = images(&arrays)?;
-                py.allow_threads(|| extract_batch(&extractor, &imgs))
-                    .map_err(py_err)?
+                crate::without_gil(py, || extract_batch(&extractor, &imgs)).map_err(py_err)?
             }
             _ => {
                 return Err(py_err(Error::param(

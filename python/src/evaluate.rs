@@ -157,16 +157,15 @@ fn evaluate<'py>(
         .collect();
     let s = similarity.as_ref().map(matrix).transpose()?;
     let gt = &ground_truth.inner;
-    let (m, recalls) = py
-        .allow_threads(|| {
-            let m = eval::evaluate(&preds, gt, num_queries, tolerance, &exclusions)?;
-            let recalls = match &s {
-                Some(s) => Some(recall_at_n(s, gt, &ns, tolerance, &exclusions)?),
-                None => None,
-            };
-            Ok::<_, Error>((m, recalls))
-        })
-        .map_err(py_err)?;
+    let (m, recalls) = crate::without_gil(py, || {
+        let m = eval::evaluate(&preds, gt, num_queries, tolerance, &exclusions)?;
+        let recalls = match &s {
+            Some(s) => Some(recall_at_n(s, gt, &ns, tolerance, &exclusions)?),
+            None => None,
+        };
+        Ok::<_, Error>((m, recalls))
+    })
+    .map_err(py_err)?;
     let d = PyDict::new(py);
     d.set_item("ap", m.ap)?;
     d.set_item("auc", m.auc)?;

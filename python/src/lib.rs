@@ -4,7 +4,8 @@
 //! (argument forms, result classes) is the Python code in `python/seasonloc/`.
 //!
 //! Every call that computes releases the GIL (`Python::allow_threads`) after copying its
-//! arrays into core matrices, so Python threads solve in parallel. A core error becomes a
+//! arrays into core matrices, and runs on its Python thread's own rayon pool
+//! (`without_gil`), so Python threads solve in parallel. A core error becomes a
 //! `ValueError` (an I/O error an `OSError`) carrying the message the CLI prints.
 
 use numpy::ndarray::Array2;
@@ -19,6 +20,33 @@ mod describe;
 mod evaluate;
 mod methods;
 mod trip;
+
+thread_local! {
+    /// This Python thread's rayon pool, made at its first call (`None` if it could not be).
+    static POOL: std::cell::OnceCell<Option<rayon::ThreadPool>> = const { std::cell::OnceCell::new() };
+}
+
+/// Runs `work` without the GIL, on the calling Python thread's own rayon pool of
+/// `rayon::current_num_threads()` threads (`RAYON_NUM_THREADS`, else one per core). On the
+/// one global pool, calls from several Python threads would queue for the same workers (with
+/// `RAYON_NUM_THREADS=1`, run one after the other); each thread's pool lets them run at once,
+/// as separate processes would.
+pub(crate) fn without_gil<T: Send>(py: Python<'_>, work: impl FnOnce() -> T + Send) -> T {
+    py.allow_threads(|| {
+        POOL.with(|pool| {
+            let pool = pool.get_or_init(|| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(rayon::current_num_threads())
+                    .build()
+                    .ok()
+            });
+            match pool {
+                Some(p) => p.install(work),
+                None => work(),
+            }
+        })
+    })
+}
 
 /// A core error as the Python exception the package raises, with the CLI's message.
 fn py_err(e: Error) -> PyErr {

@@ -118,8 +118,7 @@ fn similarity<'py>(
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
     let (r, q) = (matrix(&reference)?, matrix(&query)?);
     let norm = normalization(normalization_name)?;
-    let out = py
-        .allow_threads(|| cosine_matrix(&q, &r).and_then(|c| norm.apply(&c)))
+    let out = crate::without_gil(py, || cosine_matrix(&q, &r).and_then(|c| norm.apply(&c)))
         .map_err(py_err)?;
     array(py, out)
 }
@@ -151,7 +150,7 @@ fn solve(
     )?;
     check_tolerance("tolerance", tolerance)?;
     let m = matrix(&similarity)?;
-    py.allow_threads(|| {
+    crate::without_gil(py, || {
         m.check_finite("similarity matrix")?;
         let chat = if normalize { normalize_columns(&m)? } else { m };
         let options = LocalizeOptions {
@@ -206,15 +205,14 @@ fn localize<'py>(
         tolerance,
     };
     let (r, q) = (matrix(&reference)?, matrix(&query)?);
-    let (out, c) = py
-        .allow_threads(|| {
-            // As `seasonloc eval` does: C, its normalisation, the graph with confidences.
-            let c = cosine_matrix(&q, &r)?;
-            let chat = options.normalization.apply(&c)?;
-            let (solution, predictions) = solve_with_confidence(&chat, &options)?;
-            Ok((solved(&solution, &predictions), c))
-        })
-        .map_err(py_err)?;
+    let (out, c) = crate::without_gil(py, || {
+        // As `seasonloc eval` does: C, its normalisation, the graph with confidences.
+        let c = cosine_matrix(&q, &r)?;
+        let chat = options.normalization.apply(&c)?;
+        let (solution, predictions) = solve_with_confidence(&chat, &options)?;
+        Ok((solved(&solution, &predictions), c))
+    })
+    .map_err(py_err)?;
     Ok((out, array(py, c)?))
 }
 
@@ -225,7 +223,7 @@ fn best_match(
     similarity: PyReadonlyArray2<'_, f32>,
 ) -> PyResult<Vec<PredictionRow>> {
     let c = matrix(&similarity)?;
-    py.allow_threads(|| {
+    crate::without_gil(py, || {
         c.check_finite("similarity matrix")?;
         Ok(prediction_rows(&baselines::best_match(&c)))
     })
@@ -255,7 +253,7 @@ fn seqslam(
     };
     params.validate().map_err(py_err)?;
     let c = matrix(&similarity)?;
-    py.allow_threads(|| {
+    crate::without_gil(py, || {
         c.check_finite("similarity matrix")?;
         Ok(prediction_rows(&baselines::seqslam(&c, &params)?))
     })

@@ -55,13 +55,12 @@ impl Trip {
             ..TripParams::default()
         };
         params.validate().map_err(py_err)?;
-        let (references, trip) = py
-            .allow_threads(|| {
-                refs.check_finite("reference descriptors")?;
-                let prior = column_prior(&refs)?;
-                Ok((l2_normalized_rows(&refs), CoreTrip::new(prior, params)?))
-            })
-            .map_err(py_err)?;
+        let (references, trip) = crate::without_gil(py, || {
+            refs.check_finite("reference descriptors")?;
+            let prior = column_prior(&refs)?;
+            Ok((l2_normalized_rows(&refs), CoreTrip::new(prior, params)?))
+        })
+        .map_err(py_err)?;
         Ok(Trip {
             references,
             state: Mutex::new(trip),
@@ -76,7 +75,7 @@ impl Trip {
         descriptors: PyReadonlyArray2<'_, f32>,
     ) -> PyResult<(Vec<EstimateRow>, &'static str)> {
         let batch = matrix(&descriptors)?;
-        let update = py.allow_threads(|| {
+        let update = crate::without_gil(py, || {
             let mut trip = self
                 .state
                 .lock()
