@@ -44,6 +44,7 @@ use seasonloc_core::eval::{utm_of_files, Exclusions, GroundTruth, GroundTruthFil
 use seasonloc_core::features::list_images;
 use seasonloc_core::Error;
 
+mod descriptors;
 mod job;
 mod leave_one_out;
 
@@ -110,8 +111,17 @@ pub struct EvalArgs {
     /// Folder of reference (map) images, taken in file-name order. The co-occurrence methods
     /// fuse several mapping drives of one route: repeat the flag (image k of every drive =
     /// location k).
-    #[arg(long, required = true)]
+    #[arg(long, required_unless_present = "reference_descriptors")]
     pub reference: Vec<PathBuf>,
+    /// Reference descriptors (one row per map image, in route order) from a float32/float64
+    /// `.npy` instead of `--reference` images: the descriptor methods (flow, best-match,
+    /// seqslam) on descriptors from any network. Needs `--query-descriptors`.
+    #[arg(long, requires = "query_descriptors", conflicts_with_all = ["reference", "query"])]
+    pub reference_descriptors: Option<PathBuf>,
+    /// Query descriptors (one row per query image, in driving order), `.npy`, with
+    /// `--reference-descriptors`.
+    #[arg(long, requires = "reference_descriptors")]
+    pub query_descriptors: Option<PathBuf>,
     /// Time of day of each `--reference` drive (repeat once per drive, same order; any number
     /// whose order is the drives' order in time, e.g. hours), for the co-occurrence map's
     /// interpolation between drives adjacent in time. Default: the order given.
@@ -264,6 +274,9 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
              use it (score cooc, cooc-seq or cooc-flow, or leave it out)",
             args.method.name()
         );
+    }
+    if let Some(reference) = &args.reference_descriptors {
+        return descriptors::run(args, reference, &methods, started);
     }
     let drives = reference_drives(args)?;
     if args.leave_one_out {

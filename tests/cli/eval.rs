@@ -1,7 +1,7 @@
 //! `seasonloc eval` on generated image routes: its outputs, images of any size brought to the
 //! map's geometry, and every bad input answered in one line before any work.
 
-use crate::common::{seasonloc, write_route, Dir};
+use crate::common::{npy_f32, seasonloc, write_route, Dir};
 
 #[test]
 fn eval_localizes_a_generated_route_and_writes_its_outputs() {
@@ -502,4 +502,57 @@ fn eval_takes_the_ground_truth_from_utm_file_names() {
         "5",
     ])
     .failure_mentions("UTM");
+}
+
+/// `--reference-descriptors` / `--query-descriptors`: the descriptor methods on `.npy`
+/// descriptors from any network, with every ground-truth form and the same report.
+#[test]
+fn eval_scores_descriptors_from_npy_files() {
+    let dir = Dir::new();
+    let (refs, queries, dim) = (30usize, 20usize, 16usize);
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let r: Vec<f32> = (0..refs * dim).map(|_| next()).collect();
+    // Query q shows reference q + 5, with noise.
+    let q: Vec<f32> = (0..queries * dim)
+        .map(|k| r[(k / dim + 5) * dim + k % dim] + 0.1 * next())
+        .collect();
+    let (rp, qp) = (dir.path("r.npy"), dir.path("q.npy"));
+    npy_f32(&rp, refs, dim, &r);
+    npy_f32(&qp, queries, dim, &q);
+    let gt = dir.path("gt.csv");
+    let rows: String = (0..queries).map(|i| format!("{i},{}\n", i + 5)).collect();
+    std::fs::write(&gt, format!("query_index,ref_index\n{rows}")).unwrap();
+    let args = [
+        "eval",
+        "--reference-descriptors",
+        rp.to_str().unwrap(),
+        "--query-descriptors",
+        qp.to_str().unwrap(),
+        "--ground-truth",
+        gt.to_str().unwrap(),
+        "--compare",
+        "best-match,seqslam",
+    ];
+    let out = seasonloc(&args).success_json();
+    assert_eq!(out["method"], "flow");
+    assert_eq!(
+        (out["queries"].as_u64(), out["references"].as_u64()),
+        (Some(20), Some(30))
+    );
+    assert!(out["ap"].as_f64().unwrap() > 0.8, "{out}");
+    assert_eq!(out["recall_at_n"]["1"], 1.0, "{out}");
+    assert_eq!(out["compared"][0]["method"], "best-match");
+    assert_eq!(out["compared"][0]["ap"], 1.0, "{out}");
+    seasonloc(&[&args[..], &["--method", "cooc"]].concat()).failure_mentions("needs images");
+    seasonloc(&args[..3]).failure_mentions("--query-descriptors");
+    let bad = dir.path("bad.csv");
+    std::fs::write(&bad, "query_index,ref_index\n25,0\n").unwrap();
+    seasonloc(&[&args[..5], &["--ground-truth", bad.to_str().unwrap()]].concat())
+        .failure_mentions("names query 25");
 }

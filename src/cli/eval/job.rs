@@ -29,11 +29,11 @@ use seasonloc_core::similarity::{cosine_matrix, Normalization};
 use seasonloc_core::Matrix;
 
 /// What the methods are computed from: descriptor similarity matrices and/or a co-occurrence map.
-struct Inputs<'m> {
+pub(super) struct Inputs<'m> {
     /// Raw cosine matrix C and its normalised ĉ (descriptor methods).
-    descriptors: Option<(Matrix, Matrix)>,
+    pub(super) descriptors: Option<(Matrix, Matrix)>,
     /// The quantised queries on the co-occurrence map (co-occurrence methods).
-    cooc: Option<CoocQueries<'m>>,
+    pub(super) cooc: Option<CoocQueries<'m>>,
 }
 
 /// One evaluation: the mapping drives, the queries and their ground truth.
@@ -156,20 +156,7 @@ pub(super) fn run_job(
     }
     let features_seconds = t.elapsed().as_secs_f64() - similarity_seconds;
 
-    let options = LocalizeOptions {
-        solver,
-        normalization: args.normalization.into(),
-        confidence: ConfidenceParams {
-            radius: args.confidence_radius,
-            discount: match args.confidence {
-                ConfidenceArg::Discounted => Some(args.confidence_discount),
-                ConfidenceArg::Window => None,
-            },
-            ..ConfidenceParams::default()
-        },
-        claim: args.claim.unwrap_or(args.tolerance),
-        tolerance: args.tolerance,
-    };
+    let options = localize_options(args, solver);
     let cooc_options = CoocOptions {
         sequence,
         flow: options.clone(),
@@ -305,7 +292,28 @@ pub(super) fn run_job(
     Ok(report)
 }
 
-fn run_method(
+/// The flow method's options from the flags (claim: `--claim`, else the tolerance).
+pub(super) fn localize_options(
+    args: &EvalArgs,
+    solver: seasonloc_core::solver::SolverParams,
+) -> LocalizeOptions {
+    LocalizeOptions {
+        solver,
+        normalization: args.normalization.into(),
+        confidence: ConfidenceParams {
+            radius: args.confidence_radius,
+            discount: match args.confidence {
+                ConfidenceArg::Discounted => Some(args.confidence_discount),
+                ConfidenceArg::Window => None,
+            },
+            ..ConfidenceParams::default()
+        },
+        claim: args.claim.unwrap_or(args.tolerance),
+        tolerance: args.tolerance,
+    }
+}
+
+pub(super) fn run_method(
     method: Method,
     inputs: &Inputs,
     options: &LocalizeOptions,
@@ -404,7 +412,7 @@ fn calibration_json(bins: &[ReliabilityBin], ece: f64, by_p: &Metrics) -> Value 
     })
 }
 
-fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
+pub(super) fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
     let mut v = json!({
         "method": method.name(),
         "ap": m.ap,
