@@ -37,12 +37,14 @@ use clap::{Args, ValueEnum};
 use serde_json::Value;
 
 use super::cooc::CoocArgs;
+use super::ground_truth;
 use super::{DescriptorArgs, SolverArgs};
 use seasonloc_core::cooc::CoocMethod;
-use seasonloc_core::eval::{Exclusions, GroundTruth, GroundTruthFiles};
+use seasonloc_core::eval::{utm_of_files, Exclusions, GroundTruth, GroundTruthFiles};
 use seasonloc_core::features::list_images;
 use seasonloc_core::Error;
 
+mod descriptors;
 mod job;
 mod leave_one_out;
 
@@ -110,8 +112,17 @@ pub struct EvalArgs {
     /// Folder of reference (map) images, taken in file-name order. The co-occurrence methods
     /// fuse several mapping drives of one route: repeat the flag (image k of every drive =
     /// location k).
-    #[arg(long, required = true)]
+    #[arg(long, required_unless_present = "reference_descriptors")]
     pub reference: Vec<PathBuf>,
+    /// Reference descriptors (one row per map image, in route order) from a float32/float64
+    /// `.npy` instead of `--reference` images: the descriptor methods (flow, best-match,
+    /// seqslam) on descriptors from any network. Needs `--query-descriptors`.
+    #[arg(long, requires = "query_descriptors", conflicts_with_all = ["reference", "query"])]
+    pub reference_descriptors: Option<PathBuf>,
+    /// Query descriptors (one row per query image, in driving order), `.npy`, with
+    /// `--reference-descriptors`.
+    #[arg(long, requires = "reference_descriptors")]
+    pub query_descriptors: Option<PathBuf>,
     /// Time of day of each `--reference` drive (repeat once per drive, same order; any number
     /// whose order is the drives' order in time, e.g. hours), for the co-occurrence map's
     /// interpolation between drives adjacent in time. Default: the order given.
@@ -120,10 +131,20 @@ pub struct EvalArgs {
     /// Folder of query images, taken in file-name order.
     #[arg(long)]
     pub query: Option<PathBuf>,
-    /// Ground-truth CSV with a header holding at least `query_index,ref_index`. Optional with
-    /// `--leave-one-out`, where it defaults to query k -> location k.
+    /// Ground truth: a CSV with a header holding at least `query_index,ref_index`; VPR-Bench's
+    /// `ground_truth_new.npy` (rows `[query, [refs]]`); VPR_Tutorial's GThard as a bool
+    /// references x queries `.npy`, or a `.npz` holding `GThard` (see docs/metrics.md).
+    /// Optional with `--leave-one-out`, where it defaults to query k -> location k.
     #[arg(long)]
     pub ground_truth: Option<PathBuf>,
+    /// With a `.npz` ground truth: read its `GTsoft` instead of `GThard`.
+    #[arg(long)]
+    pub soft_ground_truth: bool,
+    /// The ground truth from VPR-methods-evaluation's layout instead of --ground-truth: the UTM
+    /// coordinates in the reference and query file names (`@east@north@...`), a reference true
+    /// within this many metres of the query (that project uses 25).
+    #[arg(long, conflicts_with = "ground_truth")]
+    pub positive_distance: Option<f64>,
     /// Refuse (exit non-zero) a ground truth whose `query_file` / `ref_file` columns name other
     /// files than the folders' files at those indices; without it that is a warning on stderr.
     #[arg(long)]
@@ -255,22 +276,41 @@ pub fn run(args: &EvalArgs) -> Result<Value> {
             args.method.name()
         );
     }
+    if let Some(reference) = &args.reference_descriptors {
+        return descriptors::run(args, reference, &methods, started);
+    }
     let drives = reference_drives(args)?;
     if args.leave_one_out {
         return leave_one_out(args, &drives, started);
     }
-    let (Some(query), Some(gt_path)) = (&args.query, &args.ground_truth) else {
+    let (Some(query), true) = (
+        &args.query,
+        args.ground_truth.is_some() || args.positive_distance.is_some(),
+    ) else {
         bail!("--query and --ground-truth are required (unless --leave-one-out)");
     };
-    let ground_truth = GroundTruth::from_csv(gt_path)?;
     let query_files = list_images(query)?;
-    check_ground_truth(
-        &ground_truth,
-        gt_path,
-        (query, query_files.len()),
-        (&drives[0].folder, drives[0].files.len()),
-    )?;
-    check_file_names(gt_path, &query_files, &drives[0].files, args.strict)?;
+    let ground_truth = match (&args.ground_truth, args.positive_distance) {
+        (Some(gt_path), _) => {
+            let gt = ground_truth::load(gt_path, args.soft_ground_truth)?;
+            check_ground_truth(
+                &gt,
+                gt_path,
+                (query, query_files.len()),
+                (&drives[0].folder, drives[0].files.len()),
+            )?;
+            if ground_truth::Form::of(gt_path) == ground_truth::Form::Csv {
+                check_file_names(gt_path, &query_files, &drives[0].files, args.strict)?;
+            }
+            gt
+        }
+        (None, Some(metres)) => GroundTruth::within_distance(
+            &utm_of_files(&drives[0].files)?,
+            &utm_of_files(&query_files)?,
+            metres,
+        )?,
+        (None, None) => bail!("--query and --ground-truth are required (unless --leave-one-out)"),
+    };
     let job = Job {
         references: drives.iter().collect(),
         query,

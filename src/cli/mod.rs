@@ -6,7 +6,10 @@
 
 pub mod cooc;
 pub mod eval;
+pub mod ground_truth;
 pub mod npy;
+pub mod npz;
+pub mod pickle;
 pub mod plot;
 pub mod record;
 pub mod solve;

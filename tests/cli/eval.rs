@@ -1,7 +1,7 @@
 //! `seasonloc eval` on generated image routes: its outputs, images of any size brought to the
 //! map's geometry, and every bad input answered in one line before any work.
 
-use crate::common::{seasonloc, write_route, Dir};
+use crate::common::{npy_f32, seasonloc, write_route, Dir};
 
 #[test]
 fn eval_localizes_a_generated_route_and_writes_its_outputs() {
@@ -341,4 +341,218 @@ fn a_ground_truth_naming_other_files_warns_and_strict_refuses_it() {
     clean.success_json();
     let stderr = String::from_utf8_lossy(&clean.output.stderr);
     assert!(!stderr.contains("warning"), "{stderr}");
+}
+
+/// The field's ground-truth forms score as the equivalent CSV (`tests/data/gt_forms`: query q
+/// has reference q, query 3 also 5, query 7 also 6), and `eval` prints Recall@N and the AUC.
+#[test]
+fn eval_reads_the_fields_ground_truth_forms_and_prints_their_metrics() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 20, 10);
+    let mut csv = String::from("query_index,ref_index\n");
+    for q in 0..10 {
+        csv.push_str(&format!("{q},{q}\n"));
+    }
+    csv.push_str("3,5\n7,6\n");
+    let csv_path = dir.path("multi.csv");
+    std::fs::write(&csv_path, csv).unwrap();
+    let forms = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/gt_forms");
+    let run = |gt: &str, extra: &[&str]| {
+        let mut args = vec![
+            "eval",
+            "--reference",
+            &route.reference,
+            "--query",
+            &route.query,
+            "--ground-truth",
+            gt,
+            "--cell-size",
+            "8",
+            "--compare",
+            "best-match",
+        ];
+        args.extend_from_slice(extra);
+        seasonloc(&args).success_json()
+    };
+    let want = run(csv_path.to_str().unwrap(), &[]);
+    let recall = &want["recall_at_n"];
+    for n in ["1", "5", "10", "20"] {
+        let r = recall[n].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&r), "{n}: {want}");
+    }
+    assert_eq!(
+        recall["20"], 1.0,
+        "20 references: every true match is in the top 20"
+    );
+    let auc = want["auc"].as_f64().unwrap();
+    assert!(auc > 0.5 && auc <= 1.0, "{want}");
+    assert!(want["compared"][0]["auc"].as_f64().is_some(), "{want}");
+    let same = |got: &serde_json::Value| {
+        for key in [
+            "ap",
+            "auc",
+            "recall_at_100p",
+            "recall_at_99p",
+            "positives",
+            "correct",
+            "recall_at_n",
+        ] {
+            assert_eq!(got[key], want[key], "{key}");
+        }
+        assert_eq!(got["compared"][0]["ap"], want["compared"][0]["ap"]);
+    };
+    for file in ["ground_truth_new.npy", "GThard.npy", "GT.npz"] {
+        same(&run(forms.join(file).to_str().unwrap(), &[]));
+    }
+    same(&run(
+        forms.join("GT.npz").to_str().unwrap(),
+        &["--soft-ground-truth"],
+    ));
+    // A ground truth that names more references than the folder holds is refused.
+    let dir2 = Dir::new();
+    let small = write_route(&dir2, 8, 8);
+    seasonloc(&[
+        "eval",
+        "--reference",
+        &small.reference,
+        "--query",
+        &small.query,
+        "--ground-truth",
+        forms.join("GThard.npy").to_str().unwrap(),
+    ])
+    .failure_mentions("names");
+    std::fs::write(dir.path("junk.npy"), b"\x93NUMPY garbage").unwrap();
+    seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--ground-truth",
+        dir.path("junk.npy").to_str().unwrap(),
+    ])
+    .failure_mentions("junk.npy");
+}
+
+/// VPR-methods-evaluation's layout: UTM coordinates in the file names, true within
+/// `--positive-distance` metres, the same scores as the CSV of the same pairs.
+#[test]
+fn eval_takes_the_ground_truth_from_utm_file_names() {
+    let dir = Dir::new();
+    let route = write_route(&dir, 12, 12);
+    for (from, to, offset) in [
+        (&route.reference, "database", 0.0),
+        (&route.query, "queries", 3.0),
+    ] {
+        let to = dir.path(to);
+        std::fs::create_dir_all(&to).unwrap();
+        let mut files: Vec<_> = std::fs::read_dir(from)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        files.sort();
+        for (i, f) in files.iter().enumerate() {
+            let east = 500_000.0 + 20.0 * i as f64 + offset;
+            let name = format!("@{east:.2}@4000000.00@33@T@0@0@@@@@@@.png");
+            std::fs::copy(f, to.join(name)).unwrap();
+        }
+    }
+    let (db, qs) = (dir.path("database"), dir.path("queries"));
+    let base = [
+        "eval",
+        "--reference",
+        db.to_str().unwrap(),
+        "--query",
+        qs.to_str().unwrap(),
+        "--cell-size",
+        "8",
+    ];
+    let utm = seasonloc(&[&base[..], &["--positive-distance", "5"]].concat()).success_json();
+    let csv =
+        seasonloc(&[&base[..], &["--ground-truth", &route.ground_truth]].concat()).success_json();
+    for key in ["ap", "auc", "positives", "recall_at_n"] {
+        assert_eq!(utm[key], csv[key], "{key}");
+    }
+    // 25 m reaches the neighbours (17 and 23 m away) too: more true matches.
+    let wide = seasonloc(&[&base[..], &["--positive-distance", "25"]].concat()).success_json();
+    assert!(
+        wide["recall_at_n"]["1"].as_f64() >= csv["recall_at_n"]["1"].as_f64(),
+        "{wide}"
+    );
+    seasonloc(
+        &[
+            &base[..],
+            &[
+                "--positive-distance",
+                "5",
+                "--ground-truth",
+                &route.ground_truth,
+            ],
+        ]
+        .concat(),
+    )
+    .failure_mentions("--positive-distance");
+    seasonloc(&[
+        "eval",
+        "--reference",
+        &route.reference,
+        "--query",
+        &route.query,
+        "--positive-distance",
+        "5",
+    ])
+    .failure_mentions("UTM");
+}
+
+/// `--reference-descriptors` / `--query-descriptors`: the descriptor methods on `.npy`
+/// descriptors from any network, with every ground-truth form and the same report.
+#[test]
+fn eval_scores_descriptors_from_npy_files() {
+    let dir = Dir::new();
+    let (refs, queries, dim) = (30usize, 20usize, 16usize);
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let r: Vec<f32> = (0..refs * dim).map(|_| next()).collect();
+    // Query q shows reference q + 5, with noise.
+    let q: Vec<f32> = (0..queries * dim)
+        .map(|k| r[(k / dim + 5) * dim + k % dim] + 0.1 * next())
+        .collect();
+    let (rp, qp) = (dir.path("r.npy"), dir.path("q.npy"));
+    npy_f32(&rp, refs, dim, &r);
+    npy_f32(&qp, queries, dim, &q);
+    let gt = dir.path("gt.csv");
+    let rows: String = (0..queries).map(|i| format!("{i},{}\n", i + 5)).collect();
+    std::fs::write(&gt, format!("query_index,ref_index\n{rows}")).unwrap();
+    let args = [
+        "eval",
+        "--reference-descriptors",
+        rp.to_str().unwrap(),
+        "--query-descriptors",
+        qp.to_str().unwrap(),
+        "--ground-truth",
+        gt.to_str().unwrap(),
+        "--compare",
+        "best-match,seqslam",
+    ];
+    let out = seasonloc(&args).success_json();
+    assert_eq!(out["method"], "flow");
+    assert_eq!(
+        (out["queries"].as_u64(), out["references"].as_u64()),
+        (Some(20), Some(30))
+    );
+    assert!(out["ap"].as_f64().unwrap() > 0.8, "{out}");
+    assert_eq!(out["recall_at_n"]["1"], 1.0, "{out}");
+    assert_eq!(out["compared"][0]["method"], "best-match");
+    assert_eq!(out["compared"][0]["ap"], 1.0, "{out}");
+    seasonloc(&[&args[..], &["--method", "cooc"]].concat()).failure_mentions("needs images");
+    seasonloc(&args[..3]).failure_mentions("--query-descriptors");
+    let bad = dir.path("bad.csv");
+    std::fs::write(&bad, "query_index,ref_index\n25,0\n").unwrap();
+    seasonloc(&[&args[..5], &["--ground-truth", bad.to_str().unwrap()]].concat())
+        .failure_mentions("names query 25");
 }

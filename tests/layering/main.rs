@@ -223,7 +223,7 @@ fn root() -> PathBuf {
 
 /// The `src/` folder of every crate of the workspace.
 fn crate_sources() -> Vec<PathBuf> {
-    let mut out = vec![root().join("src")];
+    let mut out = vec![root().join("src"), root().join("python/src")];
     for e in std::fs::read_dir(root().join("crates")).unwrap() {
         let src = e.unwrap().path().join("src");
         if src.is_dir() {
@@ -539,7 +539,7 @@ fn crates_depend_on_each_other_only_downwards() {
         !deps["seasonloc-core"].contains("serde_json"),
         "seasonloc-core depends on serde_json"
     );
-    let rules: [(&str, &[&str]); 4] = [
+    let rules: [(&str, &[&str]); 5] = [
         ("seasonloc-core", &forbidden_in_core),
         (
             "seasonloc-app",
@@ -562,6 +562,18 @@ fn crates_depend_on_each_other_only_downwards() {
         (
             "seasonloc-test-support",
             &["seasonloc-core", "seasonloc-app", "tokio"],
+        ),
+        // The Python package is a thin binding over the algorithms: no use case, store or
+        // service below it.
+        (
+            "seasonloc-py",
+            &[
+                "seasonloc-app",
+                "seasonloc-store",
+                "seasonloc-server",
+                "tokio",
+                "axum",
+            ],
         ),
     ];
     for (package, banned) in rules {

@@ -20,7 +20,8 @@ use seasonloc_core::calibration::fit::{expected_calibration_error, reliability, 
 use seasonloc_core::confidence::ConfidenceParams;
 use seasonloc_core::cooc::{CoocMethod, CoocOptions, CoocQueries};
 use seasonloc_core::eval::{
-    evaluate, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+    evaluate, recall_at_n, write_predictions_csv, Exclusions, GroundTruth, Metrics, Prediction,
+    STANDARD_NS,
 };
 use seasonloc_core::features::{extract_files, image_file_size, Extractor};
 use seasonloc_core::localize::{solve_with_confidence, LocalizeOptions};
@@ -28,11 +29,11 @@ use seasonloc_core::similarity::{cosine_matrix, Normalization};
 use seasonloc_core::Matrix;
 
 /// What the methods are computed from: descriptor similarity matrices and/or a co-occurrence map.
-struct Inputs<'m> {
+pub(super) struct Inputs<'m> {
     /// Raw cosine matrix C and its normalised ĉ (descriptor methods).
-    descriptors: Option<(Matrix, Matrix)>,
+    pub(super) descriptors: Option<(Matrix, Matrix)>,
     /// The quantised queries on the co-occurrence map (co-occurrence methods).
-    cooc: Option<CoocQueries<'m>>,
+    pub(super) cooc: Option<CoocQueries<'m>>,
 }
 
 /// One evaluation: the mapping drives, the queries and their ground truth.
@@ -155,20 +156,7 @@ pub(super) fn run_job(
     }
     let features_seconds = t.elapsed().as_secs_f64() - similarity_seconds;
 
-    let options = LocalizeOptions {
-        solver,
-        normalization: args.normalization.into(),
-        confidence: ConfidenceParams {
-            radius: args.confidence_radius,
-            discount: match args.confidence {
-                ConfidenceArg::Discounted => Some(args.confidence_discount),
-                ConfidenceArg::Window => None,
-            },
-            ..ConfidenceParams::default()
-        },
-        claim: args.claim.unwrap_or(args.tolerance),
-        tolerance: args.tolerance,
-    };
+    let options = localize_options(args, solver);
     let cooc_options = CoocOptions {
         sequence,
         flow: options.clone(),
@@ -274,6 +262,15 @@ pub(super) fn run_job(
         }),
     );
     obj.insert("compared".into(), Value::Array(reports));
+    if let Some((c, _)) = &inputs.descriptors {
+        // The field's retrieval metric, of the descriptors: the ranking of the raw cosine C.
+        let recalls = recall_at_n(c, ground_truth, &STANDARD_NS, args.tolerance, &exclusions)?;
+        let recalls: serde_json::Map<String, Value> = recalls
+            .iter()
+            .map(|r| (r.n.to_string(), json!(r.recall)))
+            .collect();
+        obj.insert("recall_at_n".into(), Value::Object(recalls));
+    }
     if let Some((bins, ece)) = &calibration {
         let by_p: Vec<Prediction> = scored[0]
             .1
@@ -295,7 +292,28 @@ pub(super) fn run_job(
     Ok(report)
 }
 
-fn run_method(
+/// The flow method's options from the flags (claim: `--claim`, else the tolerance).
+pub(super) fn localize_options(
+    args: &EvalArgs,
+    solver: seasonloc_core::solver::SolverParams,
+) -> LocalizeOptions {
+    LocalizeOptions {
+        solver,
+        normalization: args.normalization.into(),
+        confidence: ConfidenceParams {
+            radius: args.confidence_radius,
+            discount: match args.confidence {
+                ConfidenceArg::Discounted => Some(args.confidence_discount),
+                ConfidenceArg::Window => None,
+            },
+            ..ConfidenceParams::default()
+        },
+        claim: args.claim.unwrap_or(args.tolerance),
+        tolerance: args.tolerance,
+    }
+}
+
+pub(super) fn run_method(
     method: Method,
     inputs: &Inputs,
     options: &LocalizeOptions,
@@ -402,13 +420,14 @@ pub fn metrics_json(m: &Metrics) -> Value {
         "recall_at_99p": m.recall_at_99p,
         "max_f1": m.max_f1,
         "precision_at_full": m.precision_at_full,
+        "auc": m.auc,
         "predicted": m.predicted,
         "correct": m.correct,
         "positives": m.positives,
     })
 }
 
-fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
+pub(super) fn method_json(method: Method, m: &Metrics, extra: &Value, solve_seconds: f64) -> Value {
     let mut v = json!({"method": method.name()});
     if let (Some(obj), Value::Object(figures)) = (v.as_object_mut(), metrics_json(m)) {
         obj.extend(figures);

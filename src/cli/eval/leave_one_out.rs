@@ -48,7 +48,7 @@ pub(super) fn leave_one_out(
     let locations = drives[0].files.len();
     let ground_truth = match &args.ground_truth {
         Some(path) => {
-            let gt = GroundTruth::from_csv(path)?;
+            let gt = crate::cli::ground_truth::load(path, args.soft_ground_truth)?;
             let drive = (drives[0].folder.as_path(), locations);
             check_ground_truth(&gt, path, drive, drive)?;
             gt

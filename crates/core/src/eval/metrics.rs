@@ -14,6 +14,12 @@
 //!   `recall_at_99p` = highest recall at a sweep point with precision >= 1.0 / >= 0.99 (tested
 //!   in exact integer arithmetic), 0 if none; `max_f1` over the sweep points;
 //!   `precision_at_full` = precision over all scored predictions (0 when there are none).
+//! * `auc` = the area under the PR curve as VPR_Tutorial computes it (`createPR` with
+//!   single-best-match and 100 thresholds, then `np.trapz(P, R)`), on the predictions: the
+//!   curve starts at (R 0, P 1); at each of 100 thresholds equally spaced from the highest to
+//!   the lowest scored confidence (`np.linspace`), precision and recall of the predictions with
+//!   confidence >= the threshold; the trapezoids' area over recall. Unlike `ap` it depends on
+//!   the confidences' spacing, not only their order. 0 without scored predictions.
 
 use super::{Exclusions, GroundTruth, Prediction};
 use crate::{Error, Result};
@@ -42,6 +48,8 @@ pub struct Metrics {
     pub max_f1: f64,
     /// Precision over all scored predictions.
     pub precision_at_full: f64,
+    /// Area under the PR curve as VPR_Tutorial computes it (see the module doc).
+    pub auc: f64,
     /// Scored queries that have a true match (the recall denominator).
     pub positives: usize,
     /// Scored predictions (excluded queries' predictions are not counted).
@@ -140,6 +148,7 @@ pub fn evaluate(
         });
     }
     let predicted = scored.len();
+    let auc = vpr_tutorial_auc(&scored, positives);
     Ok(Metrics {
         ap,
         recall_at_100p: r100,
@@ -150,11 +159,42 @@ pub fn evaluate(
         } else {
             tp as f64 / predicted as f64
         },
+        auc,
         positives,
         predicted,
         correct: tp,
         curve,
     })
+}
+
+/// VPR_Tutorial's `createPR(..., matching='single', n_thresh=100)` followed by
+/// `np.trapz(P, R)`, on `(confidence, correct)` pairs sorted by decreasing confidence, with
+/// `positives` as its ground-truth positive count (`GTP`).
+fn vpr_tutorial_auc(scored: &[(f64, bool)], positives: usize) -> f64 {
+    const THRESHOLDS: usize = 100;
+    let (Some(&(start, _)), Some(&(end, _))) = (scored.first(), scored.last()) else {
+        return 0.0;
+    };
+    let gtp = positives as f64;
+    let (mut p_prev, mut r_prev, mut area) = (1.0f64, 0.0f64, 0.0f64);
+    // np.linspace(start, end, 100): start + i * step, the last exactly `end`.
+    let step = (end - start) / (THRESHOLDS - 1) as f64;
+    for i in 0..THRESHOLDS {
+        let threshold = if i + 1 == THRESHOLDS {
+            end
+        } else {
+            start + i as f64 * step
+        };
+        // Sorted by decreasing confidence: the accepted ones are a prefix.
+        let accepted = scored.partition_point(|&(c, _)| c >= threshold);
+        let tp = scored[..accepted].iter().filter(|&&(_, ok)| ok).count();
+        let precision = tp as f64 / accepted.max(1) as f64;
+        // np.count_nonzero(...) / 0 is nan (or inf) in numpy; seasonloc scores 0 recall then.
+        let recall = if positives == 0 { 0.0 } else { tp as f64 / gtp };
+        area += (recall - r_prev) * (precision + p_prev) / 2.0;
+        (p_prev, r_prev) = (precision, recall);
+    }
+    area
 }
 
 #[cfg(test)]
@@ -193,6 +233,26 @@ mod tests {
         assert!(close(m.max_f1, 4.0 / 7.0), "{}", m.max_f1);
         assert!(close(m.precision_at_full, 2.0 / 3.0));
         assert_eq!(m.curve[0].threshold, 0.9);
+    }
+
+    #[test]
+    fn auc_is_vpr_tutorials_trapezoids_over_100_thresholds() {
+        // As hand_computed_example: thresholds from 0.9 to 0.7 accept the first prediction
+        // (P 1, R 1/4), then two (P 1/2, R 1/4), at 0.7 all three (P 2/3, R 1/2). From (0, 1):
+        // 1/4 * (1 + 1) / 2 + 0 + 1/4 * (1/2 + 2/3) / 2.
+        let preds = [p(0, 0, 0.9), p(1, 5, 0.8), p(2, 2, 0.7)];
+        let m = evaluate(&preds, &diagonal(4), 4, 0, &Exclusions::none()).unwrap();
+        assert!(
+            close(m.auc, 0.25 + 0.25 * (0.5 + 2.0 / 3.0) / 2.0),
+            "{}",
+            m.auc
+        );
+        // One confidence for all: every threshold accepts everything.
+        let flat = [p(0, 0, 0.5), p(1, 1, 0.5)];
+        let m = evaluate(&flat, &diagonal(4), 4, 0, &Exclusions::none()).unwrap();
+        assert!(close(m.auc, 0.5), "{}", m.auc);
+        let none = evaluate(&[], &diagonal(4), 4, 0, &Exclusions::none()).unwrap();
+        assert_eq!(none.auc, 0.0);
     }
 
     #[test]
